@@ -1,0 +1,292 @@
+"""Configuration: one TOML profile decoded into Structs with bounds.
+
+A profile has one table per service. Every field has a default, a bound and
+a comment; unknown fields are errors (a typo must not be silently ignored).
+The packaged ``default`` profile (``common/profiles/default.toml``) spells
+every field out. Command-line flags and environment variables override the
+profile in each service's ``main``, never at import.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+
+from nwr.common.errors import ConfigError
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+PROFILES_DIR = PACKAGE_DIR / "profiles"
+SCRIPTS_DIR = PACKAGE_DIR / "scripts"
+
+Positive = Annotated[float, msgspec.Meta(gt=0)]
+NonNegative = Annotated[float, msgspec.Meta(ge=0)]
+Fraction = Annotated[float, msgspec.Meta(gt=0, le=1)]
+Port = Annotated[int, msgspec.Meta(ge=1024, le=65000)]
+Name = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_-]{0,31}$")]
+
+
+class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    pass
+
+
+class RobotSection(_Section):
+    # Robot name: the key prefix is nwr/<name>/, so two arms can share a LAN.
+    name: Name = "ur10e"
+    # Path of a robot.toml (URDF + skin + limits); empty = the packaged UR10e.
+    description: str = ""
+
+
+class ZenohSection(_Section):
+    # "peer": the embedded mesh on loopback (default). "client": connect to a router.
+    mode: Literal["peer", "client"] = "peer"
+    # Router endpoint(s) for the LAN deployment, e.g. ["tcp/10.0.0.2:7447"].
+    # When set, services connect only to these and listen nowhere.
+    router: list[str] = []
+    # Address the embedded mesh listens and connects on. Keep it loopback
+    # unless every service really runs on another host.
+    host: str = "127.0.0.1"
+    # First port of the embedded mesh: service i listens on base_port + i.
+    base_port: Port = 7450
+
+
+class SimSkinSection(_Section):
+    # Seed of the noise and drift generators (a run is reproducible).
+    seed: int = 7
+    # Absolute no-contact pressure of a pad, hPa (pads differ by up to +-spread).
+    base_hpa: Annotated[float, msgspec.Meta(gt=0, le=5000)] = 1013.0
+    spread_hpa: NonNegative = 3.0
+    # White noise, standard deviation in hPa.
+    noise_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.08
+    # Slow drift (temperature): a random walk of this many hPa per sqrt(s),
+    # plus a sine of this amplitude and period.
+    drift_walk_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.02
+    drift_sine_hpa: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.3
+    drift_period_s: Positive = 60.0
+    # Touch script (TOML, [[touch]] tables); empty = no touches.
+    script: str = ""
+
+
+class GatewaySection(_Section):
+    # Skin sample rate, Hz (AIRSKIN delivers about 25 Hz).
+    rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
+    source: Literal["sim"] = "sim"
+    # A change above this marks the pad as touched and freezes its baseline.
+    contact_hpa: Positive = 1.0
+    # The contact ends when the change falls below this (hysteresis).
+    release_hpa: Positive = 0.5
+    # Time constant of the baseline's tracking of slow drift while untouched.
+    baseline_tau_s: Positive = 5.0
+    # The baseline never moves faster than this, so it cannot follow a press.
+    max_drift_hpa_s: Positive = 0.05
+    # A "contact" longer than this is taken as a new no-contact level (a pad
+    # that changed, not a hand): the baseline is re-acquired, with a warning.
+    max_contact_s: Positive = 120.0
+    sim: SimSkinSection = msgspec.field(default_factory=SimSkinSection)
+
+
+class PadGainOverride(_Section):
+    # Pain-level thresholds for this pad, hPa: [PL2, PL3, PL4, saturation].
+    thresholds_hpa: list[float] | None = None
+    # Sigmoid steepness for this pad.
+    k: Positive | None = None
+
+
+class GainSection(_Section):
+    # "continuous": the paper's piecewise scaled sigmoid; "discrete": PL steps.
+    model: Literal["continuous", "discrete"] = "continuous"
+    # Upper thresholds of PL 1, 2, 3 and the saturation of PL 4, hPa.
+    thresholds_hpa: list[float] = msgspec.field(default_factory=lambda: [2.0, 6.0, 12.0, 20.0])
+    # Sigmoid steepness k.
+    k: Positive = 3.0
+    # Gain at the start of PL 4 (the ratio of PL 3 to PL 4 displacements).
+    pl3_gain: Fraction = 0.35
+    # Per-pad overrides, by pad name.
+    overrides: dict[str, PadGainOverride] = {}
+
+
+class TaskSection(_Section):
+    # Period of the figure-eight, s.
+    period_s: Positive = 12.0
+    # Joint amplitudes of the figure-eight around the home pose, rad: the base
+    # swings at the task frequency, shoulder and elbow at twice it, which
+    # draws an eight with the tool.
+    amplitude_rad: list[float] = msgspec.field(default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
+    # Twice-frequency joints (1) versus task-frequency joints (0).
+    double_frequency: list[int] = msgspec.field(default_factory=lambda: [0, 1, 1, 0, 0, 0])
+    # Time to ease in and out of the task when it resumes or pauses, s.
+    ramp_s: NonNegative = 0.5
+
+
+class PlannerSection(_Section):
+    # Instance name: the planner publishes reflex/<name>/status and signs its
+    # commands with it; the bridge follows the planner named active_planner.
+    name: Name = "cartesian"
+    strategy: Literal["cartesian"] = "cartesian"
+    # Command rate, Hz (the UR e-Series control period is 2 ms).
+    rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
+    # Cartesian reflex: speed of the pad at G(p) = 1, m/s (the paper leaves it
+    # open; 0.25 m/s withdraws the pad 12.5 cm in the 0.5 s reflex).
+    v_max_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.25
+    # Duration of a Cartesian reflex, s (the paper's 0.5 s).
+    reflex_duration_s: Positive = 0.5
+    # During a reflex, a contact must exceed the current reflex's gain by this
+    # much to update it (a new pad always updates it).
+    update_margin: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.05
+    # Cartesian reflex: ask for zero angular velocity of the pad, as the paper's
+    # q_dot = J^+ [v_c; 0] does (true), or only for its linear velocity (false).
+    hold_orientation: bool = True
+    # Damped least squares: the damping grows to this as the smallest singular
+    # value of the pad Jacobian falls below singular_threshold.
+    damping_max: NonNegative = 0.05
+    singular_threshold: Positive = 0.05
+    # Fraction of the joint speed and acceleration limits reflexes may use.
+    speed_fraction: Fraction = 0.9
+    # Planner status rate, Hz (transitions are published at once as well).
+    status_rate_hz: Positive = 20.0
+    task: TaskSection = msgspec.field(default_factory=TaskSection)
+
+
+class BridgeSection(_Section):
+    backend: Literal["sim"] = "sim"
+    # Simulation and control rate, Hz.
+    rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
+    # Robot state publication rate, Hz (plus one out of schedule per reflex onset).
+    state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 125.0
+    # The only planner whose commands move the arm.
+    active_planner: Name = "cartesian"
+    # No command for this long: decelerate to rest and hold, s.
+    command_timeout_s: Positive = 0.02
+    # Fractions of the robot description's joint speed / acceleration limits.
+    speed_fraction: Fraction = 1.0
+    acceleration_fraction: Fraction = 1.0
+    # Initial pose, rad; empty = the robot description's home pose.
+    initial_q: list[float] = []
+
+
+class RecorderSection(_Section):
+    # Directory for recordings (created if missing).
+    directory: str = "recordings"
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    # Chunks are closed at this size, bytes: small chunks lose little on a crash.
+    chunk_size: Annotated[int, msgspec.Meta(ge=1024, le=64 * 1024 * 1024)] = 256 * 1024
+
+
+class Profile(_Section):
+    robot: RobotSection = msgspec.field(default_factory=RobotSection)
+    zenoh: ZenohSection = msgspec.field(default_factory=ZenohSection)
+    gateway: GatewaySection = msgspec.field(default_factory=GatewaySection)
+    gain: GainSection = msgspec.field(default_factory=GainSection)
+    planner: PlannerSection = msgspec.field(default_factory=PlannerSection)
+    bridge: BridgeSection = msgspec.field(default_factory=BridgeSection)
+    recorder: RecorderSection = msgspec.field(default_factory=RecorderSection)
+
+
+class Touch(_Section):
+    # Pad name (or id as a string) of the robot's skin.
+    pad: str
+    # Start time from the beginning of the session, s.
+    start_s: NonNegative
+    # Time at peak (steps) or between the ends of the ramps (ramps), s.
+    duration_s: Positive
+    # Peak pressure change, hPa.
+    peak_hpa: Annotated[float, msgspec.Meta(gt=0, le=200)]
+    shape: Literal["step", "ramp"] = "step"
+    # Rise and fall time of a ramp, s.
+    ramp_s: NonNegative = 0.3
+
+
+class TouchScript(_Section):
+    # Length of the session, s.
+    duration_s: Positive
+    touch: list[Touch] = []
+
+
+def _decode(path: Path, kind: type) -> object:
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{kind.__name__} file {path} does not exist") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read {kind.__name__} file {path}: {exc}") from exc
+    try:
+        raw = tomllib.loads(text.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+    try:
+        return msgspec.convert(raw, kind)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def resolve_profile(name_or_path: str | None) -> Path:
+    """A profile given by packaged name ("default") or by path."""
+    if not name_or_path:
+        name_or_path = "default"
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    packaged = PROFILES_DIR / f"{name_or_path}.toml"
+    if not packaged.exists():
+        known = sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
+        raise ConfigError(f"no profile {name_or_path!r}: give a path to a .toml file or one of {known}")
+    return packaged
+
+
+def load_profile(name_or_path: str | None = None) -> Profile:
+    profile = _decode(resolve_profile(name_or_path), Profile)
+    assert isinstance(profile, Profile)
+    _check_profile(profile)
+    return profile
+
+
+def _check_thresholds(where: str, thresholds: list[float]) -> None:
+    if len(thresholds) != 4 or any(b <= a for a, b in zip(thresholds, thresholds[1:])) or thresholds[0] <= 0:
+        raise ConfigError(
+            f"{where}: thresholds_hpa must be four increasing positive values [PL2, PL3, PL4, saturation], "
+            f"got {thresholds}"
+        )
+
+
+def _check_profile(profile: Profile) -> None:
+    _check_thresholds("gain", profile.gain.thresholds_hpa)
+    for pad, override in profile.gain.overrides.items():
+        if override.thresholds_hpa is not None:
+            _check_thresholds(f"gain.overrides.{pad}", override.thresholds_hpa)
+    if profile.gateway.release_hpa > profile.gateway.contact_hpa:
+        raise ConfigError(
+            f"gateway: release_hpa ({profile.gateway.release_hpa}) must not exceed contact_hpa "
+            f"({profile.gateway.contact_hpa})"
+        )
+    task = profile.planner.task
+    if len(task.amplitude_rad) != len(task.double_frequency):
+        raise ConfigError("planner.task: amplitude_rad and double_frequency must have one entry per joint")
+
+
+def resolve_script(name_or_path: str) -> Path:
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    packaged = SCRIPTS_DIR / f"{name_or_path}.toml"
+    if not packaged.exists():
+        known = sorted(p.stem for p in SCRIPTS_DIR.glob("*.toml"))
+        raise ConfigError(f"no touch script {name_or_path!r}: give a path to a .toml file or one of {known}")
+    return packaged
+
+
+def load_script(name_or_path: str) -> TouchScript:
+    script = _decode(resolve_script(name_or_path), TouchScript)
+    assert isinstance(script, TouchScript)
+    for touch in script.touch:
+        if touch.start_s + touch.duration_s + 2 * touch.ramp_s > script.duration_s:
+            raise ConfigError(
+                f"touch on {touch.pad} at {touch.start_s} s ends after the script's duration {script.duration_s} s"
+            )
+    return script
+
+
+def encode_profile(profile: Profile) -> bytes:
+    """The profile as JSON, for session metadata."""
+    return msgspec.json.encode(profile)

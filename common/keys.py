@@ -1,0 +1,137 @@
+"""The key-expression registry: every key, its message type and its QoS.
+
+Everything lives under ``nwr/<robot>/`` so that two arms can share one LAN.
+
+===========================  =====================================  ==========  =========  =======
+key (under nwr/<robot>/)     message                                priority    express    on congestion
+===========================  =====================================  ==========  =========  =======
+skin/pressure                SkinPressure                           real-time   yes        block
+skin/pain                    SkinPain                               real-time   yes        block
+robot/command                PositionCommand | VelocityCommand      real-time   yes        block
+robot/state                  RobotState                             interactive no         drop
+reflex/<name>/status         PlannerStatus                          data        no         drop
+diag/<service>               Diagnostic                             data-low    no         drop
+alive/<service>              (liveliness token, no payload)
+===========================  =====================================  ==========  =========  =======
+
+The reflex path (skin -> pain -> command) travels at Zenoh's real-time
+priority with ``express`` (no batching) and never drops; telemetry may drop
+under congestion rather than slow the reflex path down.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+import zenoh
+
+from nwr.common import messages as m
+from nwr.common.errors import DecodeError
+
+PREFIX_ROOT = "nwr"
+DEFAULT_ROBOT = "ur10e"
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One key of the registry: a pattern relative to the robot prefix."""
+
+    pattern: str  # may contain one '*' chunk, e.g. "reflex/*/status"
+    type: Any
+    priority: zenoh.Priority
+    express: bool
+    drop: bool
+    doc: str
+
+
+TOPICS: tuple[Topic, ...] = (
+    Topic("skin/pressure", m.SkinPressure, zenoh.Priority.REAL_TIME, True, False,
+          "per-pad absolute pressure, change from baseline, contact flags"),
+    Topic("skin/pain", m.SkinPain, zenoh.Priority.REAL_TIME, True, False,
+          "per-pad gain and pain level, strongest contact"),
+    Topic("robot/command", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
+          "joint position or velocity target of the active planner"),
+    Topic("robot/state", m.RobotState, zenoh.Priority.INTERACTIVE_HIGH, False, True,
+          "joint positions and velocities, status, command owner, reflex onsets"),
+    Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
+          "a planner's state machine: mode, strategy, saved pose, reflex"),
+    Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
+          "warnings and errors with a code and a readable message"),
+)
+
+SKIN_PRESSURE = "skin/pressure"
+SKIN_PAIN = "skin/pain"
+ROBOT_COMMAND = "robot/command"
+ROBOT_STATE = "robot/state"
+
+
+def prefix(robot: str) -> str:
+    return f"{PREFIX_ROOT}/{robot}"
+
+
+def key(robot: str, relative: str) -> str:
+    """Full key expression of a relative key, e.g. ``key("ur10e", "skin/pain")``."""
+    return f"{prefix(robot)}/{relative}"
+
+
+def planner_status(name: str) -> str:
+    return f"reflex/{name}/status"
+
+
+def diag(service: str) -> str:
+    return f"diag/{service}"
+
+
+def alive(service: str) -> str:
+    return f"alive/{service}"
+
+
+def topic_for(relative: str) -> Topic:
+    """The registry entry matching a relative key; DecodeError if none does."""
+    for topic in TOPICS:
+        if fnmatch.fnmatchcase(relative, topic.pattern) and relative.count("/") == topic.pattern.count("/"):
+            return topic
+    raise DecodeError(f"key {relative!r} is not in the key registry (known: {[t.pattern for t in TOPICS]})")
+
+
+def relative_key(robot: str, full_key: str) -> str:
+    head = prefix(robot) + "/"
+    if not full_key.startswith(head):
+        raise DecodeError(f"key {full_key!r} is not under the robot prefix {head!r}")
+    return full_key[len(head):]
+
+
+class Codec:
+    """Encoder and strict typed decoder for one key, built once at start-up."""
+
+    def __init__(self, topic: Topic) -> None:
+        self.topic = topic
+        self._encoder = msgspec.msgpack.Encoder()
+        self._decoder = msgspec.msgpack.Decoder(topic.type)
+
+    def encode(self, message: Any) -> bytes:
+        return self._encoder.encode(message)
+
+    def decode(self, payload: bytes | bytearray | memoryview) -> Any:
+        try:
+            return self._decoder.decode(payload)
+        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            reason = str(exc)
+            if str(m.FINITE_BOUND) in reason:
+                reason = f"a number is NaN, infinite or beyond +-{m.FINITE_BOUND:g} ({reason})"
+            raise DecodeError(f"{self.topic.pattern}: {reason}") from exc
+
+
+_CODECS: dict[str, Codec] = {}
+
+
+def codec(relative: str) -> Codec:
+    """The codec of a relative key (shared per registry entry)."""
+    topic = topic_for(relative)
+    found = _CODECS.get(topic.pattern)
+    if found is None:
+        found = _CODECS[topic.pattern] = Codec(topic)
+    return found

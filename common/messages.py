@@ -1,0 +1,209 @@
+"""Every wire message of the pipeline, as msgspec Structs (msgpack on the wire).
+
+This module is the single source of truth for what travels between the
+services. The recorder derives its JSON Schemas from it, the key registry
+(:mod:`nwr.common.keys`) maps each key expression to one type here.
+
+Conventions
+-----------
+- Every message carries ``seq`` (a per-publisher counter starting at 0) and
+  ``stamp_ns`` (the source's clock, ``time.monotonic_ns()`` by default: one
+  clock shared by every process of a machine, so cross-process latencies are
+  plain differences).
+- Per-pad and per-joint payloads are flat lists of numbers, in pad id order
+  and joint order of the robot description. Use :func:`as_array` to turn them
+  into numpy arrays.
+- Messages that share a key form a tagged union (``tag_field="kind"``).
+
+Evolution rules
+---------------
+- A new field always gets a default, so older recordings still decode.
+- No field ever changes its type or meaning; add a new field instead.
+- Decoding is strict: unknown message kinds, missing required fields and
+  wrong types are rejected whole (never half-used).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+import numpy as np
+
+# Every number on the wire is finite: NaN and infinities are rejected at
+# decoding, so no service ever acts on one (and recordings stay valid JSON).
+FINITE_BOUND = 1e12
+Finite = Annotated[float, msgspec.Meta(ge=-FINITE_BOUND, le=FINITE_BOUND)]
+
+MODES = ("TASK", "REFLEX", "RETURNING")
+Mode = Literal["TASK", "REFLEX", "RETURNING"]
+
+RobotStatus = Literal[
+    "ok",  # following commands
+    "idle",  # no command received yet: holding still
+    "stale_command",  # commands stopped arriving: decelerating to rest and holding
+    "stopped",  # stopped on request or at shutdown
+]
+
+
+class Trace(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Identifies the skin sample a decision was made on (sequence and stamp)."""
+
+    seq: int
+    stamp_ns: int
+
+
+class SkinPressure(msgspec.Struct, tag="skin_pressure", tag_field="kind", forbid_unknown_fields=True):
+    """Skin gateway output: one sample of every pad, in pad id order.
+
+    ``change_hpa`` is the pressure change from each pad's no-contact baseline.
+    """
+
+    seq: int
+    stamp_ns: int
+    absolute_hpa: list[Finite]
+    baseline_hpa: list[Finite]
+    change_hpa: list[Finite]
+    contact: list[bool]
+    # False where a pad's reading was not a finite number (its change is 0).
+    valid: list[bool] = []
+    source: str = "sim"
+
+
+class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """The strongest contact of a skin sample."""
+
+    pad: int
+    name: str
+    region: str
+    change_hpa: Finite
+    level: int
+    gain: Finite
+
+
+class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown_fields=True):
+    """Gain estimator output: per-pad pain level (1-4) and gain G(p) in [0, 1]."""
+
+    seq: int
+    stamp_ns: int
+    trace: Trace
+    model: str
+    level: list[int]
+    gain: list[Finite]
+    strongest: Contact | None = None
+
+
+class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_unknown_fields=True):
+    """Joint position target (rad) for the next control cycle."""
+
+    seq: int
+    stamp_ns: int
+    owner: str
+    q: list[Finite]
+    trace: Trace
+    reflex_seq: int = 0
+    phase: Mode = "TASK"
+
+
+class VelocityCommand(msgspec.Struct, tag="velocity", tag_field="kind", forbid_unknown_fields=True):
+    """Joint velocity target (rad/s) for the next control cycle."""
+
+    seq: int
+    stamp_ns: int
+    owner: str
+    dq: list[Finite]
+    trace: Trace
+    reflex_seq: int = 0
+    phase: Mode = "REFLEX"
+
+
+Command = PositionCommand | VelocityCommand
+
+
+class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unknown_fields=True):
+    """Bridge output: the arm's joint state and what the bridge is doing.
+
+    ``accepted`` / ``accepted_ns`` name the newest reflex whose first command
+    the bridge accepted for its backend and when: the end of the reflex
+    onset latency (``accepted_ns - accepted.stamp_ns``). The bridge publishes
+    a state out of schedule the moment it accepts a new reflex.
+    """
+
+    seq: int
+    stamp_ns: int
+    q: list[Finite]
+    dq: list[Finite]
+    status: RobotStatus
+    owner: str
+    backend: str
+    command_mode: Literal["none", "position", "velocity"] = "none"
+    reflex_seq: int = 0
+    accepted: Trace | None = None
+    accepted_ns: int = 0
+    rejected: int = 0
+    clipped: int = 0
+
+
+class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """The reflex a planner is executing."""
+
+    reflex_seq: int
+    strategy: str
+    contact: Contact
+    trace: Trace
+    started_ns: int
+    duration_s: Finite
+    direction: list[Finite] = []
+
+
+class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):
+    """A planner's state machine, published on every transition and periodically."""
+
+    seq: int
+    stamp_ns: int
+    name: str
+    strategy: str
+    mode: Mode
+    task_time_s: Finite
+    saved_pose: list[Finite] | None = None
+    reflex: ReflexInfo | None = None
+
+
+class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unknown_fields=True):
+    """A warning or error of a service, with a stable code and a readable message."""
+
+    seq: int
+    stamp_ns: int
+    service: str
+    level: Literal["info", "warning", "error"]
+    code: str
+    message: str
+    count: int = 1
+
+
+Message = SkinPressure | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
+
+
+def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:
+    """The one place where a wire list becomes a numpy array (float64)."""
+    return np.asarray(values, dtype=np.float64)
+
+
+def json_schema(message_type: object) -> dict:
+    """JSON Schema of a message type with ``"type": "object"`` at the top.
+
+    Foxglove plots fields only of object schemas, so a union (several
+    message kinds on one key) is wrapped in an object with ``anyOf``.
+    """
+    schema = msgspec.json.schema(message_type)
+    if "$ref" in schema and "anyOf" not in schema:
+        name = schema["$ref"].rsplit("/", 1)[-1]
+        defs = schema["$defs"]
+        top = dict(defs[name])
+        rest = {k: v for k, v in defs.items() if k != name}
+        if rest:
+            top["$defs"] = rest
+        return top
+    if "anyOf" in schema:
+        return {"type": "object", "anyOf": schema["anyOf"], "$defs": schema.get("$defs", {})}
+    return schema

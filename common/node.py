@@ -1,0 +1,216 @@
+"""The thin Zenoh adapter every service shares.
+
+- :func:`zenoh_config` builds the session configuration: multicast scouting is
+  always off and every endpoint is explicit. The embedded default is a mesh
+  of peers on loopback: each core service listens on ``base_port + slot`` and
+  every process connects to all those ports (gossip over the links tells
+  late-comers about each other). With ``router`` set, processes are clients
+  of that router and listen nowhere.
+- :class:`Node` owns one session: publishers declared once with the QoS of
+  the key registry, subscribers that decode strictly and count and report
+  bad samples instead of crashing, a liveliness token, the service's
+  ``diag/<service>`` channel, and one stop event that SIGINT and SIGTERM set.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.clock import Clock, MonotonicClock
+from nwr.common.config import ZenohSection
+from nwr.common.errors import DecodeError
+
+log = logging.getLogger(__name__)
+
+# Listening slots of the embedded mesh: service -> offset from base_port.
+SLOTS = {"gateway": 0, "gain": 1, "planner": 2, "bridge": 3, "recorder": 4}
+
+
+def setup_logging(level: str = "INFO", service: str = "nwr") -> None:
+    """Configure logging once per process."""
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format=f"%(asctime)s {service:>8s} %(levelname)-7s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+    )
+
+
+def endpoints(cfg: ZenohSection) -> list[str]:
+    return [f"tcp/{cfg.host}:{cfg.base_port + slot}" for slot in SLOTS.values()]
+
+
+def zenoh_config(cfg: ZenohSection, listen_slot: str | None = None) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if cfg.router:
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps(cfg.router))
+        return conf
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    listen: list[str] = []
+    if listen_slot is not None and listen_slot in SLOTS:
+        listen.append(f"tcp/{cfg.host}:{cfg.base_port + SLOTS[listen_slot]}")
+    else:
+        # Not a core service: listen on a free loopback port so that peers
+        # learning about this one through gossip can reach it.
+        listen.append(f"tcp/{cfg.host}:0")
+    mine = set(listen)
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps([e for e in endpoints(cfg) if e not in mine]))
+    return conf
+
+
+class Node:
+    """One service's Zenoh session and its plumbing."""
+
+    def __init__(
+        self,
+        service: str,
+        robot: str,
+        zcfg: ZenohSection,
+        *,
+        clock: Clock | None = None,
+        listen_slot: str | None = None,
+        token: bool = True,
+    ) -> None:
+        self.service = service
+        self.robot = robot
+        self.clock = clock or MonotonicClock()
+        self.stop = threading.Event()
+        self.session = zenoh.open(zenoh_config(zcfg, listen_slot))
+        self._publishers: list[Any] = []
+        self._subscribers: list[Any] = []
+        self._diag_seq = 0
+        self._diag_last: dict[str, tuple[int, int]] = {}  # code -> (last sent ns, suppressed)
+        self.decode_errors = 0
+        self._diag_pub = self.session.declare_publisher(
+            keys.key(robot, keys.diag(service)),
+            priority=zenoh.Priority.DATA_LOW,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self._diag_codec = keys.codec(keys.diag(service))
+        self._token = self.session.liveliness().declare_token(keys.key(robot, keys.alive(service))) if token else None
+
+    # -- publishing -------------------------------------------------------
+    def publisher(self, relative: str) -> Callable[[Any], None]:
+        """A ``publish(message)`` function for a registry key, declared once."""
+        codec = keys.codec(relative)
+        topic = codec.topic
+        pub = self.session.declare_publisher(
+            keys.key(self.robot, relative),
+            priority=topic.priority,
+            express=topic.express,
+            congestion_control=zenoh.CongestionControl.DROP if topic.drop else zenoh.CongestionControl.BLOCK,
+        )
+        self._publishers.append(pub)
+        encode = codec.encode
+
+        def publish(message: Any) -> None:
+            pub.put(encode(message))
+
+        return publish
+
+    # -- subscribing ------------------------------------------------------
+    def subscribe(self, relative: str, handler: Callable[[Any], None]) -> None:
+        """Call ``handler(message)`` for every valid message on a registry key.
+
+        Runs in Zenoh's callback thread. A sample that does not decode is
+        counted, reported on ``diag/<service>`` and dropped; an exception in
+        the handler is logged and reported, and the subscription goes on.
+        """
+        codec = keys.codec(relative)
+        full = keys.key(self.robot, relative)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = codec.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                self.decode_errors += 1
+                self.diag("warning", "decode_error", f"dropped a malformed sample on {sample.key_expr}: {exc}")
+                return
+            try:
+                handler(message)
+            except Exception as exc:  # a bad message must never kill the subscription
+                log.exception("handler for %s failed", full)
+                self.diag("error", "handler_error", f"handling a message on {full} failed: {exc!r}")
+
+        self._subscribers.append(self.session.declare_subscriber(full, on_sample))
+
+    # -- diagnostics ------------------------------------------------------
+    def diag(self, level: str, code: str, message: str, *, every_s: float = 1.0) -> None:
+        """Log and publish a diagnostic; repeats of a code are rate limited."""
+        now = self.clock.now_ns()
+        last, suppressed = self._diag_last.get(code, (0, 0))
+        if last and now - last < every_s * 1e9:
+            self._diag_last[code] = (last, suppressed + 1)
+            return
+        self._diag_last[code] = (now, 0)
+        text = message if not suppressed else f"{message} ({suppressed} more like it suppressed)"
+        getattr(log, "error" if level == "error" else "warning" if level == "warning" else "info")(
+            "[%s] %s", code, text
+        )
+        msg = m.Diagnostic(
+            seq=self._diag_seq, stamp_ns=now, service=self.service, level=level,  # type: ignore[arg-type]
+            code=code, message=text, count=suppressed + 1,
+        )
+        self._diag_seq += 1
+        try:
+            self._diag_pub.put(self._diag_codec.encode(msg))
+        except zenoh.ZError:  # the session is closing
+            pass
+
+    # -- lifecycle --------------------------------------------------------
+    def install_signal_handlers(self) -> None:
+        """SIGINT and SIGTERM set the stop event (main thread only)."""
+
+        def on_signal(signum: int, _frame: object) -> None:
+            log.info("received %s, stopping", signal.Signals(signum).name)
+            self.stop.set()
+
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+
+    def alive_services(self, timeout_s: float = 1.0) -> list[str]:
+        """Services whose liveliness token is visible from here."""
+        found = []
+        for reply in self.session.liveliness().get(keys.key(self.robot, "alive/*"), timeout=timeout_s):
+            if reply.ok is not None:
+                found.append(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return sorted(found)
+
+    def wait_for(self, services: list[str], timeout_s: float) -> list[str]:
+        """Wait until every named service is alive; returns those still missing."""
+        deadline = time.monotonic() + timeout_s
+        missing = list(services)
+        while time.monotonic() < deadline:
+            alive = set(self.alive_services(0.5))
+            missing = [s for s in services if s not in alive]
+            if not missing:
+                break
+            time.sleep(0.1)
+        return missing
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers.clear()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        self.session.close()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,84 @@
+"""Messages, key registry, configuration."""
+
+import json
+
+import msgspec
+import pytest
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, load_profile, load_script
+from nwr.common.errors import ConfigError, DecodeError
+
+TR = m.Trace(3, 100)
+
+
+def test_command_union_round_trip():
+    c = keys.codec("robot/command")
+    for msg in (m.PositionCommand(seq=1, stamp_ns=2, owner="p", q=[0.1, 0.2], trace=TR, reflex_seq=4, phase="RETURNING"),
+                m.VelocityCommand(seq=1, stamp_ns=2, owner="p", dq=[0.1], trace=TR)):
+        assert c.decode(c.encode(msg)) == msg
+
+
+def test_strict_decoding_rejects_garbage_and_wrong_types():
+    c = keys.codec("robot/command")
+    with pytest.raises(DecodeError, match="robot/command"):
+        c.decode(b"\x00\x01garbage")
+    wrong = msgspec.msgpack.encode({"kind": "position", "seq": 1, "stamp_ns": 2, "owner": "p", "q": ["x"],
+                                    "trace": {"seq": 1, "stamp_ns": 2}})
+    with pytest.raises(DecodeError):
+        c.decode(wrong)
+    unknown_kind = msgspec.msgpack.encode({"kind": "torque", "seq": 1})
+    with pytest.raises(DecodeError):
+        c.decode(unknown_kind)
+    state = m.RobotState(seq=0, stamp_ns=0, q=[], dq=[], status="ok", owner="p", backend="sim")
+    with pytest.raises(DecodeError):  # a state where a command is expected
+        c.decode(keys.codec("robot/state").encode(state))
+
+
+def test_registry_patterns():
+    assert keys.topic_for("reflex/cartesian/status").type is m.PlannerStatus
+    assert keys.topic_for("diag/gain").type is m.Diagnostic
+    with pytest.raises(DecodeError):
+        keys.topic_for("reflex/a/b/status")
+    with pytest.raises(DecodeError):
+        keys.topic_for("nothing/here")
+    assert keys.key("arm2", keys.SKIN_PAIN) == "nwr/arm2/skin/pain"
+    assert keys.relative_key("ur10e", "nwr/ur10e/skin/pain") == "skin/pain"
+
+
+@pytest.mark.parametrize("topic", keys.TOPICS, ids=lambda t: t.pattern)
+def test_json_schemas_are_objects(topic):
+    schema = m.json_schema(topic.type)
+    assert schema["type"] == "object"
+    json.dumps(schema)
+
+
+def test_default_profile_is_the_struct_default():
+    assert load_profile("default") == Profile()
+
+
+def test_profile_errors_are_helpful(tmp_path):
+    with pytest.raises(ConfigError, match="no profile 'nope'"):
+        load_profile("nope")
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_profile(str(tmp_path / "missing.toml"))
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[gain]\nk = -1\n")
+    with pytest.raises(ConfigError, match=r"gain.k"):
+        load_profile(str(bad))
+    bad.write_text("[gain]\nkk = 3\n")
+    with pytest.raises(ConfigError, match="kk"):
+        load_profile(str(bad))
+    bad.write_text("[gain]\nthresholds_hpa = [2, 6, 5, 20]\n")
+    with pytest.raises(ConfigError, match="increasing"):
+        load_profile(str(bad))
+    bad.write_text("not toml [")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_profile(str(bad))
+
+
+def test_demo_script_loads():
+    script = load_script("demo")
+    assert script.duration_s == pytest.approx(30.0)
+    assert len(script.touch) >= 6
