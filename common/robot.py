@@ -1,0 +1,539 @@
+"""Robot description (URDF + TOML) and pure forward kinematics.
+
+This module only reads files and computes: no network, no clock, no global state.
+
+Frames
+------
+* The URDF root link (``base_link`` for the UR10e) is pinocchio's *universe* frame.
+* Everything :class:`RobotModel` returns "in the base frame" (positions, normals,
+  4x4 poses, Jacobians) is expressed in ``RobotDescription.base_frame``, a frame
+  named in ``robot.toml`` that must be rigidly attached to the URDF root.  For the
+  packaged UR10e it is ``base_link`` (ROS convention: the UR controller's DH base
+  turned by pi about z, so at q = 0 the arm points along +x).  Choosing ``base``
+  instead gives the coordinates shown on the UR pendant.
+* Each skin pad gets an extra pinocchio frame ``pad_<name>`` rigidly attached to
+  its link: origin at the pad's surface point, z axis along its outward normal.
+  Pad Jacobians are the Jacobians of these frames' origins.
+* Joint vectors ``q`` are in radians, in the order of ``RobotDescription.joints``,
+  which is also the URDF chain order (pinocchio's q order).
+
+:class:`RobotModel` keeps one pinocchio ``Data`` and caches the last
+configuration, so it is cheap to call several accessors for the same ``q`` but it
+is not thread-safe: give each thread its own instance.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from nwr.common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+REGIONS: tuple[str, ...] = ("shoulder", "upper_arm", "elbow", "forearm", "wrist")
+
+#: The description shipped with the package.
+DEFAULT_DESCRIPTION: Path = Path(__file__).resolve().parent / "robots" / "ur10e" / "robot.toml"
+
+# A normal whose length is off by more than this is a typo, not rounding.
+_UNIT_TOLERANCE = 1e-6
+# Pad names end up in frame names and, elsewhere, in Zenoh key expressions,
+# where '/', '*', '$', '?' and '#' have meanings of their own.
+_NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
+
+_ROBOT_KEYS: frozenset[str] = frozenset(
+    {"name", "urdf", "skin", "base_frame", "tool_frame", "joints", "max_acceleration", "max_jerk", "home"}
+)
+_PAD_KEYS: frozenset[str] = frozenset({"id", "name", "region", "link", "point", "normal"})
+
+
+@dataclass(frozen=True, eq=False)
+class Pad:
+    """One skin pad, fixed to ``link``.
+
+    ``point`` (m) is a point on the pad surface and ``normal`` its outward unit
+    normal, both expressed in the frame of ``link``.  ``eq=False`` because the
+    numpy fields make field-wise ``==`` ambiguous; pads compare by identity.
+    """
+
+    id: int
+    name: str
+    region: str
+    link: str
+    point: np.ndarray
+    normal: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RobotDescription:
+    """Everything the pipeline needs to know about one robot, validated.
+
+    Arrays have one entry per joint, in ``joints`` order, and are read-only:
+    ``q_min``/``q_max`` (rad) and ``v_max`` (rad/s) come from the URDF,
+    ``a_max`` (rad/s^2), ``j_max`` (rad/s^3) and ``home`` (rad) from robot.toml.
+    ``pads`` is sorted by id, and ids are 0..n-1, so ``pads[i].id == i``.
+    """
+
+    name: str
+    urdf_path: Path
+    skin_path: Path
+    base_frame: str
+    tool_frame: str
+    joints: tuple[str, ...]
+    q_min: np.ndarray
+    q_max: np.ndarray
+    v_max: np.ndarray
+    a_max: np.ndarray
+    j_max: np.ndarray
+    home: np.ndarray
+    pads: tuple[Pad, ...]
+
+    def pad(self, key: int | str) -> Pad:
+        """Return a pad by id (int) or by name (str); raise ConfigError otherwise."""
+        if isinstance(key, (int, np.integer)) and not isinstance(key, (bool, np.bool_)):
+            if 0 <= key < len(self.pads):
+                return self.pads[int(key)]
+        elif isinstance(key, str):
+            for pad in self.pads:
+                if pad.name == key:
+                    return pad
+        names = ", ".join(p.name for p in self.pads)
+        raise ConfigError(
+            f"{self.skin_path}: robot {self.name!r} has no pad {key!r}; "
+            f"expected an id in 0..{len(self.pads) - 1} or one of: {names}"
+        )
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_description(path: str | Path | None = None) -> RobotDescription:
+    """Read and validate ``robot.toml``, its URDF and its skin file.
+
+    ``path`` is the robot.toml file; ``None`` selects the packaged UR10e.  The
+    ``urdf`` and ``skin`` entries are resolved relative to robot.toml's folder.
+    Any inconsistency raises :class:`ConfigError` naming the file, the field, the
+    offending value and what was expected.
+    """
+    robot_path = Path(path) if path is not None else DEFAULT_DESCRIPTION
+    doc = _read_toml(robot_path)
+    _check_keys(doc, _ROBOT_KEYS, _ROBOT_KEYS, robot_path, "robot description")
+
+    name = _string(doc["name"], robot_path, "name")
+    urdf_path = (robot_path.parent / _string(doc["urdf"], robot_path, "urdf")).resolve()
+    skin_path = (robot_path.parent / _string(doc["skin"], robot_path, "skin")).resolve()
+    base_frame = _string(doc["base_frame"], robot_path, "base_frame")
+    tool_frame = _string(doc["tool_frame"], robot_path, "tool_frame")
+
+    model = _build_model(urdf_path, robot_path)
+    urdf_joints = tuple(model.names[1:])
+    joints = _joint_names(doc["joints"], urdf_joints, robot_path, urdf_path)
+    for index in range(1, model.njoints):
+        if model.joints[index].nq != 1:
+            raise ConfigError(
+                f"{urdf_path}: joint {model.names[index]!r} has {model.joints[index].nq} "
+                "configuration variables; only revolute and prismatic joints are supported"
+            )
+    frames = {frame.name for frame in model.frames}
+    links = {frame.name for frame in model.frames if frame.type == pin.FrameType.BODY}
+    for field, frame_name in (("base_frame", base_frame), ("tool_frame", tool_frame)):
+        if frame_name not in frames:
+            raise ConfigError(
+                f"{robot_path}: {field} = {frame_name!r} is not a frame of {urdf_path.name}; "
+                f"expected one of its links: {', '.join(sorted(links))}"
+            )
+
+    n = len(joints)
+    q_min = _readonly(model.lowerPositionLimit)
+    q_max = _readonly(model.upperPositionLimit)
+    v_max = _readonly(model.velocityLimit)
+    for i, joint in enumerate(joints):
+        if not (math.isfinite(q_min[i]) and math.isfinite(q_max[i]) and q_min[i] < q_max[i]):
+            raise ConfigError(
+                f"{urdf_path}: joint {joint!r} has position limits [{q_min[i]}, {q_max[i]}]; "
+                "expected finite lower < upper"
+            )
+        if not (math.isfinite(v_max[i]) and v_max[i] > 0.0):
+            raise ConfigError(
+                f"{urdf_path}: joint {joint!r} has velocity limit {v_max[i]}; expected a finite value > 0"
+            )
+
+    a_max = _vector(doc["max_acceleration"], n, robot_path, "max_acceleration", positive=True)
+    j_max = _vector(doc["max_jerk"], n, robot_path, "max_jerk", positive=True)
+    home = _vector(doc["home"], n, robot_path, "home")
+    outside = [i for i in range(n) if not q_min[i] <= home[i] <= q_max[i]]
+    if outside:
+        details = "; ".join(
+            f"{joints[i]} = {home[i]} not in [{q_min[i]}, {q_max[i]}]" for i in outside
+        )
+        raise ConfigError(f"{robot_path}: home is outside the URDF joint limits: {details}")
+
+    if not skin_path.is_file():
+        raise ConfigError(f"{robot_path}: skin file {skin_path} does not exist")
+    pads = _load_pads(skin_path, links, urdf_path)
+    log.debug("loaded robot %r: %d joints, %d pads", name, n, len(pads))
+    return RobotDescription(
+        name=name,
+        urdf_path=urdf_path,
+        skin_path=skin_path,
+        base_frame=base_frame,
+        tool_frame=tool_frame,
+        joints=joints,
+        q_min=q_min,
+        q_max=q_max,
+        v_max=v_max,
+        a_max=a_max,
+        j_max=j_max,
+        home=home,
+        pads=pads,
+    )
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as stream:
+            return tomllib.load(stream)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc}") from exc
+
+
+def _build_model(urdf_path: Path, referenced_from: Path) -> pin.Model:
+    if not urdf_path.is_file():
+        raise ConfigError(f"{referenced_from}: urdf file {urdf_path} does not exist")
+    try:
+        return pin.buildModelFromUrdf(str(urdf_path))
+    except (ValueError, RuntimeError) as exc:
+        raise ConfigError(f"{urdf_path}: pinocchio cannot parse this URDF: {exc}") from exc
+
+
+def _check_keys(
+    table: dict[str, Any], required: frozenset[str], allowed: frozenset[str], path: Path, what: str
+) -> None:
+    missing = sorted(required - table.keys())
+    if missing:
+        raise ConfigError(f"{path}: {what} is missing {', '.join(missing)}")
+    # Unknown keys are almost always typos ("max_accel"); silently ignoring them
+    # would run the robot with a default the user thinks they changed.
+    unknown = sorted(table.keys() - allowed)
+    if unknown:
+        raise ConfigError(
+            f"{path}: {what} has unknown key(s) {', '.join(unknown)}; expected only {', '.join(sorted(allowed))}"
+        )
+
+
+def _string(value: Any, path: Path, field: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{path}: {field} = {value!r}; expected a non-empty string")
+    return value
+
+
+def _joint_names(value: Any, urdf_joints: tuple[str, ...], path: Path, urdf_path: Path) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(f"{path}: joints = {value!r}; expected a list of joint names")
+    unknown = [v for v in value if v not in urdf_joints]
+    if unknown:
+        raise ConfigError(
+            f"{path}: joints {unknown} are not movable joints of {urdf_path.name}; "
+            f"expected {list(urdf_joints)}"
+        )
+    # q vectors are handed to pinocchio as they are, so the order must be the URDF's.
+    if tuple(value) != urdf_joints:
+        raise ConfigError(
+            f"{path}: joints = {value}; expected every movable joint of {urdf_path.name} "
+            f"in chain order: {list(urdf_joints)}"
+        )
+    return tuple(value)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _vector(value: Any, n: int, path: Path, field: str, *, positive: bool = False) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != n or not all(_is_number(v) for v in value):
+        raise ConfigError(f"{path}: {field} = {value!r}; expected a list of {n} numbers")
+    out = np.array(value, dtype=float)
+    if not np.all(np.isfinite(out)):
+        raise ConfigError(f"{path}: {field} = {value!r}; expected finite numbers")
+    if positive and not np.all(out > 0.0):
+        raise ConfigError(f"{path}: {field} = {value!r}; expected numbers > 0")
+    return _readonly(out)
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    out = np.array(array, dtype=float)  # copy: never alias pinocchio's or the caller's memory
+    out.flags.writeable = False
+    return out
+
+
+def _load_pads(skin_path: Path, links: set[str], urdf_path: Path) -> tuple[Pad, ...]:
+    doc = _read_toml(skin_path)
+    _check_keys(doc, frozenset({"pad"}), frozenset({"pad"}), skin_path, "skin description")
+    tables = doc["pad"]
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise ConfigError(f"{skin_path}: expected one or more [[pad]] tables")
+
+    pads: list[Pad] = []
+    for index, table in enumerate(tables):
+        where = f"[[pad]] #{index + 1}"
+        if "name" in table:
+            where += f" ({table['name']!r})"
+        _check_keys(table, _PAD_KEYS, _PAD_KEYS, skin_path, where)
+        pad_id = table["id"]
+        if not isinstance(pad_id, int) or isinstance(pad_id, bool):
+            raise ConfigError(f"{skin_path}: {where}: id = {pad_id!r}; expected an integer")
+        name = _string(table["name"], skin_path, f"{where}: name")
+        if not _NAME_PATTERN.match(name):
+            raise ConfigError(
+                f"{skin_path}: {where}: name = {name!r}; expected letters, digits, '_' or '-' only"
+            )
+        region = table["region"]
+        if region not in REGIONS:
+            raise ConfigError(
+                f"{skin_path}: {where}: region = {region!r}; expected one of {', '.join(REGIONS)}"
+            )
+        link = table["link"]
+        if link not in links:
+            raise ConfigError(
+                f"{skin_path}: {where}: link = {link!r} is not a link of {urdf_path.name}; "
+                f"expected one of {', '.join(sorted(links))}"
+            )
+        point = _vector(table["point"], 3, skin_path, f"{where}: point")
+        normal = np.array(_vector(table["normal"], 3, skin_path, f"{where}: normal"))
+        length = float(np.linalg.norm(normal))
+        if abs(length - 1.0) > _UNIT_TOLERANCE:
+            raise ConfigError(
+                f"{skin_path}: {where}: normal = {table['normal']!r} has length {length:.9g}; "
+                f"expected a unit vector (length 1 within {_UNIT_TOLERANCE:g})"
+            )
+        pads.append(
+            Pad(id=pad_id, name=name, region=region, link=link, point=point, normal=_readonly(normal / length))
+        )
+
+    for attribute in ("id", "name"):
+        first: dict[Any, int] = {}
+        for index, pad in enumerate(pads):
+            value = getattr(pad, attribute)
+            if value in first:
+                raise ConfigError(
+                    f"{skin_path}: pad {attribute} {value!r} is used by more than one [[pad]] "
+                    f"(#{first[value] + 1} and #{index + 1}); expected unique {attribute}s"
+                )
+            first[value] = index
+    ids = sorted(pad.id for pad in pads)
+    if ids != list(range(len(pads))):
+        raise ConfigError(
+            f"{skin_path}: pad ids are {ids}; expected exactly 0..{len(pads) - 1} "
+            "(ids index arrays of pad readings)"
+        )
+    return tuple(sorted(pads, key=lambda pad: pad.id))
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+def _rotation_with_z(z: np.ndarray) -> np.ndarray:
+    """A rotation matrix whose third column is the unit vector ``z``."""
+    # Cross with the world axis least aligned with z so the result is well conditioned.
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(z)))] = 1.0
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.column_stack((x, y, z))
+
+
+class RobotModel:
+    """Forward kinematics of a :class:`RobotDescription` with pinocchio.
+
+    The URDF is parsed once and one ``pinocchio.Data`` is reused for every call.
+    All results are expressed in ``desc.base_frame`` (see the module docstring)
+    and are fresh arrays the caller may keep or modify.
+    """
+
+    def __init__(self, desc: RobotDescription) -> None:
+        self.desc = desc
+        model = _build_model(desc.urdf_path, desc.urdf_path)
+        if tuple(model.names[1:]) != desc.joints:
+            raise ConfigError(
+                f"{desc.urdf_path}: movable joints {list(model.names[1:])} do not match the "
+                f"description's joints {list(desc.joints)}"
+            )
+        base_id = self._existing_frame(model, desc.base_frame, desc.urdf_path)
+        if model.frames[base_id].parentJoint != 0:
+            raise ConfigError(
+                f"{desc.urdf_path}: base_frame {desc.base_frame!r} moves with joint "
+                f"{model.names[model.frames[base_id].parentJoint]!r}; it must be fixed to the URDF root"
+            )
+        self._tool_id = self._existing_frame(model, desc.tool_frame, desc.urdf_path)
+
+        pad_ids: list[int] = []
+        for pad in desc.pads:
+            link_id = model.getFrameId(pad.link, pin.FrameType.BODY)
+            if link_id >= model.nframes:
+                raise ConfigError(f"{desc.urdf_path}: pad {pad.name!r} is on unknown link {pad.link!r}")
+            frame_name = f"pad_{pad.name}"
+            if model.existFrame(frame_name):
+                raise ConfigError(f"{desc.urdf_path}: a frame named {frame_name!r} already exists")
+            link = model.frames[link_id]
+            on_link = pin.SE3(_rotation_with_z(np.array(pad.normal)), np.array(pad.point))
+            frame = pin.Frame(frame_name, link.parentJoint, link_id, link.placement * on_link, pin.FrameType.OP_FRAME)
+            pad_ids.append(model.addFrame(frame))
+
+        self.model: pin.Model = model
+        # Created after the pad frames were added, so data.oMf has room for them.
+        self.data: pin.Data = model.createData()
+        self.nq: int = model.nq
+        self._pad_ids: tuple[int, ...] = tuple(pad_ids)
+        self._frame_ids: dict[str, int] = {}
+        for frame_id, frame in enumerate(model.frames):
+            self._frame_ids.setdefault(frame.name, frame_id)
+
+        # base_frame is fixed to the root, so its pose is a constant of the model.
+        base = model.frames[base_id].placement
+        self._base_rotation_t: np.ndarray = np.array(base.rotation).T
+        self._base_translation: np.ndarray = np.array(base.translation)
+        self._base_inverse: pin.SE3 = base.inverse()
+        self._base_is_root: bool = bool(np.allclose(base.homogeneous, np.eye(4), rtol=0.0, atol=1e-15))
+
+        self._q = np.zeros(self.nq)
+        self._fk_valid = False
+        self._jacobians_valid = False
+
+    @staticmethod
+    def _existing_frame(model: pin.Model, name: str, urdf_path: Path) -> int:
+        if not model.existFrame(name):
+            raise ConfigError(f"{urdf_path}: no frame {name!r}; the description expects one")
+        return model.getFrameId(name)
+
+    # ------------------------------------------------------------------ caching
+
+    def _as_q(self, q: Any) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.nq,):
+            raise ValueError(f"q has shape {q.shape}; expected ({self.nq},) joint angles in rad")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"q = {q} contains non-finite values")
+        return q
+
+    def _update(self, q: np.ndarray) -> None:
+        if self._fk_valid and np.array_equal(q, self._q):
+            return
+        pin.forwardKinematics(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        self._q[:] = q  # a copy: callers may reuse and modify their q array
+        self._fk_valid = True
+        self._jacobians_valid = False
+
+    def fk(self, q: Any) -> None:
+        """Update joint and frame placements for ``q``; a no-op if ``q`` is unchanged."""
+        self._update(self._as_q(q))
+
+    # ------------------------------------------------------------------ helpers
+
+    def _pad_frame(self, pad: int) -> int:
+        if not 0 <= pad < len(self._pad_ids):
+            raise IndexError(f"pad index {pad} out of range; expected 0..{len(self._pad_ids) - 1}")
+        return self._pad_ids[pad]
+
+    def _to_base(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 3) from the root frame into base_frame."""
+        if self._base_is_root:
+            return np.array(points, dtype=float)
+        return (points - self._base_translation) @ self._base_rotation_t.T
+
+    def _rotate_to_base(self, vectors: np.ndarray) -> np.ndarray:
+        """Free vectors (..., 3) from the root frame into base_frame."""
+        if self._base_is_root:
+            return np.array(vectors, dtype=float)
+        return vectors @ self._base_rotation_t.T
+
+    # ------------------------------------------------------------------ queries
+
+    def frame_pose(self, q: Any, frame: str) -> np.ndarray:
+        """4x4 homogeneous transform of model frame ``frame`` in base_frame.
+
+        ``frame`` is any URDF link or joint name, or a pad frame ``pad_<name>``.
+        """
+        frame_id = self._frame_ids.get(frame)
+        if frame_id is None:
+            raise ConfigError(
+                f"{self.desc.urdf_path}: no frame {frame!r}; expected one of {', '.join(self._frame_ids)}"
+            )
+        self._update(self._as_q(q))
+        return (self._base_inverse * self.data.oMf[frame_id]).homogeneous
+
+    def tool_position(self, q: Any) -> np.ndarray:
+        """Origin of the tool frame (m), shape (3,), in base_frame."""
+        self._update(self._as_q(q))
+        return self._to_base(self.data.oMf[self._tool_id].translation)
+
+    def pad_point(self, q: Any, pad: int) -> np.ndarray:
+        """Surface point of pad ``pad`` (its id) in base_frame, shape (3,)."""
+        frame_id = self._pad_frame(pad)
+        self._update(self._as_q(q))
+        return self._to_base(self.data.oMf[frame_id].translation)
+
+    def pad_normal(self, q: Any, pad: int) -> np.ndarray:
+        """Outward unit normal of pad ``pad`` in base_frame, shape (3,)."""
+        frame_id = self._pad_frame(pad)
+        self._update(self._as_q(q))
+        return self._rotate_to_base(self.data.oMf[frame_id].rotation[:, 2])
+
+    def pad_points(self, q: Any) -> np.ndarray:
+        """All pad points in base_frame, shape (n_pads, 3), row i = pad id i."""
+        self._update(self._as_q(q))
+        points = np.empty((len(self._pad_ids), 3))
+        for row, frame_id in enumerate(self._pad_ids):
+            points[row] = self.data.oMf[frame_id].translation
+        return self._to_base(points)
+
+    def pad_normals(self, q: Any) -> np.ndarray:
+        """All outward pad normals in base_frame, shape (n_pads, 3), row i = pad id i."""
+        self._update(self._as_q(q))
+        normals = np.empty((len(self._pad_ids), 3))
+        for row, frame_id in enumerate(self._pad_ids):
+            normals[row] = self.data.oMf[frame_id].rotation[:, 2]
+        return self._rotate_to_base(normals)
+
+    def pad_jacobian(self, q: Any, pad: int) -> np.ndarray:
+        """Jacobian (6, nq) of the pad point: rows 0-2 linear velocity (m/s per rad/s),
+        rows 3-5 angular velocity, both with base_frame axes (pinocchio's
+        LOCAL_WORLD_ALIGNED, i.e. the velocity of the pad point itself)."""
+        frame_id = self._pad_frame(pad)
+        q = self._as_q(q)
+        self._update(q)
+        if not self._jacobians_valid:
+            # Also redoes forward kinematics for the same q; harmless, and then all
+            # pads share one Jacobian computation per configuration.
+            pin.computeJointJacobians(self.model, self.data, q)
+            self._jacobians_valid = True
+        jacobian = pin.getFrameJacobian(self.model, self.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        if not self._base_is_root:
+            jacobian[:3] = self._base_rotation_t @ jacobian[:3]
+            jacobian[3:] = self._base_rotation_t @ jacobian[3:]
+        return jacobian
+
+    def joint_positions(self, q: Any) -> np.ndarray:
+        """Origins of every movable joint in chain order, then the tool frame origin,
+        in base_frame, shape (nq + 1, 3): the polyline used for drawing and for
+        distance checks."""
+        self._update(self._as_q(q))
+        points = np.empty((self.model.njoints, 3))
+        for row in range(self.model.njoints - 1):
+            points[row] = self.data.oMi[row + 1].translation
+        points[-1] = self.data.oMf[self._tool_id].translation
+        return self._to_base(points)
