@@ -1,0 +1,146 @@
+"""Per-touch summary of a recording, computed from the recording alone.
+
+A *touch* is a run of skin samples in which one pad's contact flag is set.
+For each touch: the peak pressure change, pain level and gain; the reflex it
+caused (a planner reflex whose contact is that pad and whose triggering skin
+sample lies within the touch); the reflex onset latency (skin sample stamped
+in the gateway -> first command of the reflex accepted by the bridge); how
+far the touched pad withdrew along its outward normal (computed with the
+robot model from the recorded joint states); and the time from the onset
+until the planner was back in TASK, with how close the arm came back to the
+saved pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nwr.common import messages as m
+from nwr.common.robot import RobotDescription, RobotModel
+from nwr.services.recorder.core import Recorded
+
+
+@dataclass
+class TouchSummary:
+    pad: int
+    name: str
+    region: str
+    start_ns: int
+    end_ns: int
+    first_seq: int
+    last_seq: int
+    peak_hpa: float
+    level: int = 1
+    gain: float = 0.0
+    reflex_seq: int = 0
+    onset_latency_ms: float | None = None
+    withdrawal_mm: float | None = None
+    resumed_after_s: float | None = None
+    return_error_rad: float | None = None
+
+
+def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None) -> list[TouchSummary]:
+    model = model or RobotModel(desc)
+    pressure = [r.message for r in records if r.key == "skin/pressure"]
+    pain = [r.message for r in records if r.key == "skin/pain"]
+    states = [r.message for r in records if r.key == "robot/state"]
+    statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")]
+
+    touches = _segment(pressure, desc)
+    by_seq = {p.trace.seq: p for p in pain}
+    for touch in touches:
+        for seq in range(touch.first_seq, touch.last_seq + 1):
+            p = by_seq.get(seq)
+            if p is not None and len(p.gain) > touch.pad:
+                if p.gain[touch.pad] > touch.gain or p.level[touch.pad] > touch.level:
+                    touch.gain = max(touch.gain, p.gain[touch.pad])
+                    touch.level = max(touch.level, p.level[touch.pad])
+
+    reflexes: dict[int, m.ReflexInfo] = {}
+    for st in statuses:
+        if st.reflex is not None and st.reflex.reflex_seq not in reflexes:
+            reflexes[st.reflex.reflex_seq] = st.reflex
+    onsets: dict[int, m.RobotState] = {}
+    for s in states:
+        if s.accepted is not None and s.reflex_seq not in onsets:
+            onsets[s.reflex_seq] = s
+    state_t = np.array([s.stamp_ns for s in states], dtype=np.int64)
+    state_q = np.array([s.q for s in states]) if states else np.zeros((0, len(desc.joints)))
+
+    for touch in touches:
+        reflex = next(
+            (r for seq, r in sorted(reflexes.items())
+             if r.contact.pad == touch.pad and touch.first_seq <= r.trace.seq <= touch.last_seq),
+            None,
+        )
+        if reflex is None:
+            continue
+        touch.reflex_seq = reflex.reflex_seq
+        onset = onsets.get(reflex.reflex_seq)
+        if onset is None or onset.accepted is None:
+            continue
+        t0 = onset.accepted_ns
+        touch.onset_latency_ms = (t0 - onset.accepted.stamp_ns) / 1e6
+        resumed = next((st for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
+        end = resumed.stamp_ns if resumed is not None else int(state_t[-1]) if len(state_t) else t0
+        if resumed is not None:
+            touch.resumed_after_s = (resumed.stamp_ns - t0) / 1e9
+        window = (state_t >= t0) & (state_t <= end)
+        if window.any():
+            q0 = state_q[np.argmax(state_t >= t0)]
+            p0 = model.pad_point(q0, touch.pad)
+            n0 = model.pad_normal(q0, touch.pad)
+            moved = [float(-(model.pad_point(q, touch.pad) - p0) @ n0) for q in state_q[window]]
+            touch.withdrawal_mm = 1e3 * max(moved)
+        saved = next((st.saved_pose for st in statuses if st.stamp_ns >= t0 and st.saved_pose is not None), None)
+        if resumed is not None and saved is not None and len(state_t):
+            after = np.argmax(state_t >= resumed.stamp_ns) if (state_t >= resumed.stamp_ns).any() else len(state_t) - 1
+            touch.return_error_rad = float(np.max(np.abs(state_q[after] - np.asarray(saved))))
+    return touches
+
+
+def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[TouchSummary]:
+    open_: dict[int, TouchSummary] = {}
+    done: list[TouchSummary] = []
+    for sample in pressure:
+        for pad, on in enumerate(sample.contact):
+            if on:
+                t = open_.get(pad)
+                if t is None:
+                    info = desc.pads[pad]
+                    t = open_[pad] = TouchSummary(pad, info.name, info.region, sample.stamp_ns, sample.stamp_ns,
+                                                  sample.seq, sample.seq, 0.0)
+                t.end_ns, t.last_seq = sample.stamp_ns, sample.seq
+                t.peak_hpa = max(t.peak_hpa, sample.change_hpa[pad])
+            elif pad in open_:
+                done.append(open_.pop(pad))
+    done.extend(open_.values())
+    done.sort(key=lambda t: t.start_ns)
+    return done
+
+
+def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
+    def f(x: float | None, fmt: str) -> str:
+        return "-" if x is None else format(x, fmt)
+
+    return [
+        [
+            f"{(t.start_ns - t0_ns) / 1e9:6.2f}", t.name, t.region, f"{t.peak_hpa:5.1f}", str(t.level), f"{t.gain:.3f}",
+            "yes" if t.reflex_seq else "no", f(t.onset_latency_ms, ".2f"), f(t.withdrawal_mm, ".1f"),
+            f(t.resumed_after_s, ".2f"),
+        ]
+        for t in touches
+    ]
+
+
+HEADER = ["t (s)", "pad", "region", "peak (hPa)", "PL", "gain", "reflex", "onset (ms)", "withdrawal (mm)", "resumed (s)"]
+
+
+def format_table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    line = "  ".join(h.rjust(w) for h, w in zip(header, widths))
+    out = [line, "  ".join("-" * w for w in widths)]
+    out += ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows]
+    return "\n".join(out)

@@ -1,0 +1,234 @@
+"""The ``nwr`` command: run one service, launch the pipeline, run the demo, summarise a recording."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from importlib import import_module
+from pathlib import Path
+from typing import Any
+
+from nwr.common.config import load_profile, load_script
+from nwr.common.errors import NwrError
+from nwr.common.node import setup_logging
+
+log = logging.getLogger("nwr")
+
+SERVICES = {
+    "gateway": "skin gateway: simulated AIRSKIN pads -> skin/pressure",
+    "gain": "gain estimator: skin/pressure -> skin/pain (pain level and gain per pad)",
+    "planner": "reflex planner: task, state machine and reflex -> robot/command",
+    "bridge": "robot bridge: robot/command -> the (simulated) arm -> robot/state",
+    "recorder": "recorder: everything under nwr/<robot>/ -> MCAP",
+}
+# Started in this order; the gateway starts its clock once the others are alive.
+START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
+
+
+def _service_module(name: str) -> Any:
+    return import_module(f"nwr.services.{name}.main")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="nwr",
+        description="Tactile withdrawal reflexes for a skin-covered robot arm: Zenoh services, launcher and tools.",
+    )
+    parser.add_argument("--profile", "-p", default=os.environ.get("NWR_PROFILE", "default"),
+                        help="profile: a packaged name or a .toml path (default: $NWR_PROFILE or 'default')")
+    parser.add_argument("--log-level", default=os.environ.get("NWR_LOG_LEVEL", "INFO"),
+                        help="logging level (default: INFO)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run one service in the foreground",
+                         description="Run one service as its own process until Ctrl-C or SIGTERM.")
+    run_sub = run.add_subparsers(dest="service", required=True, metavar="SERVICE")
+    for name, doc in SERVICES.items():
+        p = run_sub.add_parser(name, help=doc, description=doc)
+        _service_module(name).add_arguments(p)
+
+    up = sub.add_parser("up", help="start every service as its own process (Ctrl-C stops them all)",
+                        description="Start bridge, planner, gain estimator, recorder and skin gateway as separate "
+                                    "processes on this machine and stop them all cleanly on Ctrl-C or SIGTERM.")
+    _launch_arguments(up)
+
+    demo = sub.add_parser("demo", help="run a scripted ~30 s touch session and print the per-touch table",
+                          description="Run the whole pipeline on a touch script, record it to "
+                                      "recordings/<session>.mcap and print one row per touch.")
+    _launch_arguments(demo)
+    demo.set_defaults(script="demo")
+
+    summary = sub.add_parser("summary", help="print the per-touch table of a recording")
+    summary.add_argument("file", help="MCAP recording")
+    summary.add_argument("--script", help="touch script to compare the recording with")
+    return parser
+
+
+def _launch_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--script", help="touch script for the simulated skin: packaged name or .toml path")
+    p.add_argument("--session", help="session name of the recording (default: the start time)")
+    p.add_argument("--output", "-o", help="recording file (default: recordings/<session>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="do not start the recorder")
+
+
+def _spawn(profile: str, log_level: str, service: str, extra: list[str]) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "nwr.services.cli", "--profile", profile, "--log-level", log_level,
+           "run", service, *extra]
+    return subprocess.Popen(cmd)
+
+
+def _stop_all(procs: dict[str, subprocess.Popen[bytes]], timeout_s: float = 10.0) -> dict[str, int]:
+    """SIGTERM in reverse start order (the gateway first, the bridge last); kill stragglers."""
+    for name in reversed(list(procs)):
+        if procs[name].poll() is None:
+            procs[name].send_signal(signal.SIGTERM)
+            if name == "gateway":
+                time.sleep(0.05)
+    deadline = time.monotonic() + timeout_s
+    codes = {}
+    for name, proc in procs.items():
+        try:
+            codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.error("%s did not stop within %.0f s: killing it", name, timeout_s)
+            proc.kill()
+            codes[name] = proc.wait()
+    return codes
+
+
+def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float = 2.0) -> tuple[int, Path | None]:
+    """Start every service; wait for Ctrl-C/SIGTERM (or the script's end); stop them all."""
+    from nwr.services.recorder.main import session_name
+
+    session = args.session or session_name()
+    output = Path(args.output) if args.output else Path(load_profile(args.profile).recorder.directory) / f"{session}.mcap"
+    services = [s for s in START_ORDER if not (s == "recorder" and args.no_record)]
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    stop = False
+
+    def on_signal(signum: int, _frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for name in services:
+            extra: list[str] = []
+            if name == "recorder":
+                extra = ["--session", session, "--output", str(output)]
+            if name == "gateway":
+                extra = ["--wait-for", ",".join(s for s in services if s != "gateway")]
+                if args.script:
+                    extra += ["--script", args.script]
+                if until_script_end:
+                    extra.append("--exit-at-end")
+            procs[name] = _spawn(args.profile, args.log_level, name, extra)
+        log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
+        while not stop:
+            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+            if until_script_end and dead.get("gateway") == 0 and len(dead) == 1:
+                time.sleep(settle_s)  # let the last reflex return and the recorder catch up
+                break
+            if dead:
+                log.error("service(s) exited unexpectedly: %s", dead)
+                _stop_all(procs)
+                return 1, None
+            time.sleep(0.1)
+    finally:
+        codes = _stop_all(procs)
+        for s, handler in old.items():
+            signal.signal(s, handler)
+    bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM, -signal.SIGINT)}
+    if bad:
+        log.error("service(s) stopped with errors: %s", bad)
+        return 1, None
+    return 0, (output if "recorder" in services else None)
+
+
+def print_summary(path: Path, script_name: str | None) -> int:
+    from nwr.common.robot import load_description
+    from nwr.services import analysis
+    from nwr.services.recorder.core import read_recording
+
+    records, metadata = read_recording(path)
+    desc = load_description(load_profile(None).robot.description or None)
+    touches = analysis.summarize(records, desc)
+    first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
+    print(f"\nRecording {path}: {len(records)} messages")
+    print(analysis.format_table(analysis.HEADER, analysis.table_rows(touches, first)))
+    latencies = [t.onset_latency_ms for t in touches if t.onset_latency_ms is not None]
+    if latencies:
+        import numpy as np
+
+        print(f"\nreflex onset latency over {len(latencies)} reflexes: median {np.median(latencies):.2f} ms, "
+              f"worst {max(latencies):.2f} ms")
+    if script_name:
+        return _compare_with_script(touches, script_name, desc, first)
+    return 0
+
+
+def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns: int) -> int:
+    """Every scripted touch seen on its pad at its time, with a reflex exactly when G(peak) > 0."""
+    from nwr.services.gain.core import GainEstimator
+
+    profile = load_profile(None)
+    estimator = GainEstimator(profile.gain, desc.pads)
+    script = load_script(script_name)
+    mismatches = []
+    for touch in script.touch:
+        pad = desc.pad(touch.pad)
+        _, expected_gain = estimator.gain(pad.id, touch.peak_hpa)
+        window = (touch.start_s - 0.2, touch.start_s + touch.ramp_s + 0.3)
+        match = next((t for t in touches if t.pad == pad.id and window[0] <= (t.start_ns - t0_ns) / 1e9 <= window[1]),
+                     None)
+        if match is None:
+            mismatches.append(f"touch on {pad.name} at {touch.start_s} s was not seen")
+        elif (match.reflex_seq > 0) != (expected_gain > 0):
+            mismatches.append(f"touch on {pad.name} at {touch.start_s} s ({touch.peak_hpa} hPa): "
+                              f"expected {'a' if expected_gain > 0 else 'no'} reflex")
+    if mismatches:
+        print("\nthe recording does NOT match its script:\n  " + "\n  ".join(mismatches))
+        return 1
+    print(f"\nall {len(script.touch)} scripted touches as expected "
+          f"({sum(1 for t in touches if t.reflex_seq)} reflexes, none from sub-threshold touches)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    service = args.service if args.command == "run" else args.command
+    setup_logging(args.log_level, service)
+    try:
+        if args.command == "run":
+            profile = load_profile(args.profile)
+            return int(_service_module(args.service).run(profile, args) or 0)
+        if args.command == "up":
+            load_profile(args.profile)  # fail here, not in five processes
+            return launch(args, until_script_end=False)[0]
+        if args.command == "demo":
+            load_profile(args.profile)
+            load_script(args.script)
+            code, path = launch(args, until_script_end=True)
+            if code or path is None:
+                return code or 1
+            return print_summary(path, args.script)
+        if args.command == "summary":
+            return print_summary(Path(args.file), args.script)
+    except NwrError as exc:
+        log.error("%s", exc)
+        return 2
+    except FileNotFoundError as exc:
+        log.error("%s", exc)
+        return 2
+    parser.error(f"unknown command {args.command}")
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

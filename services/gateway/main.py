@@ -1,0 +1,69 @@
+"""Skin gateway process: simulated AIRSKIN pads -> skin/pressure."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+from nwr.common import keys
+from nwr.common.config import Profile, load_script
+from nwr.common.node import Node
+from nwr.common.pacing import Rate
+from nwr.common.robot import load_description
+from nwr.services.gateway.core import Gateway, SimSkin
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--script", help="touch script: a packaged name (e.g. demo) or a .toml path")
+    parser.add_argument("--rate", type=float, help="skin sample rate, Hz (overrides gateway.rate_hz)")
+    parser.add_argument(
+        "--wait-for", default="", metavar="SERVICES",
+        help="comma-separated services to wait for (liveliness) before the script's clock starts",
+    )
+    parser.add_argument("--exit-at-end", action="store_true", help="exit when the touch script ends")
+
+
+def run(profile: Profile, args: argparse.Namespace) -> int:
+    cfg = profile.gateway
+    if args.rate:
+        cfg.rate_hz = args.rate
+    script_name = args.script or cfg.sim.script
+    script = load_script(script_name) if script_name else None
+    desc = load_description(profile.robot.description or None)
+    sim = SimSkin(cfg.sim, desc.pads, script)
+    gateway = Gateway(cfg, len(desc.pads), source="sim")
+    with Node("gateway", profile.robot.name, profile.zenoh, listen_slot="gateway") as node:
+        node.install_signal_handlers()
+        publish = node.publisher(keys.SKIN_PRESSURE)
+        wait_for = [s for s in args.wait_for.split(",") if s]
+        if wait_for:
+            missing = node.wait_for(wait_for, timeout_s=30.0)
+            if missing:
+                log.error("services %s did not come up within 30 s", missing)
+                return 1
+        log.info(
+            "publishing %d pads at %.0f Hz%s", len(desc.pads), cfg.rate_hz,
+            f", touch script {script_name} ({len(sim.touches)} touches, {script.duration_s} s)" if script else "",
+        )
+        rate = Rate(cfg.rate_hz, "gateway")
+        t0 = node.clock.now_ns()
+        try:
+            while rate.sleep(node.stop):
+                now = node.clock.now_ns()
+                t = (now - t0) / 1e9
+                msg, events = gateway.process(t, now, sim.sample(t))
+                publish(msg)
+                for pad in events.reacquired:
+                    node.diag("warning", "baseline_reacquired",
+                              f"pad {desc.pads[pad].name} stayed above the contact threshold for more than "
+                              f"{cfg.max_contact_s} s: its baseline was re-acquired")
+                for pad in events.non_finite:
+                    node.diag("warning", "non_finite_pressure", f"pad {desc.pads[pad].name} reported a non-finite pressure")
+                if args.exit_at_end and script is not None and t >= script.duration_s:
+                    log.info("touch script finished after %.1f s", t)
+                    break
+        finally:
+            log.info(rate.summary())
+    return 0

@@ -1,0 +1,74 @@
+"""Reflex planner process: skin/pain + robot/state -> robot/command and reflex/<name>/status."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile
+from nwr.common.node import Node
+from nwr.common.pacing import Rate
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.planner.core import Planner
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--name", help="planner instance name (overrides planner.name)")
+
+
+def run(profile: Profile, args: argparse.Namespace) -> int:
+    cfg = profile.planner
+    if args.name:
+        cfg.name = args.name
+    desc = load_description(profile.robot.description or None)
+    planner = Planner(cfg, desc, RobotModel(desc))
+    lock = threading.Lock()
+    with Node("planner", profile.robot.name, profile.zenoh, listen_slot="planner") as node:
+        node.install_signal_handlers()
+        send = node.publisher(keys.ROBOT_COMMAND)
+        send_status = node.publisher(keys.planner_status(cfg.name))
+
+        def on_state(state: m.RobotState) -> None:
+            q = m.as_array(state.q)
+            if q.shape != planner.q.shape:
+                node.diag("warning", "bad_state", f"robot state has {q.size} joints, the robot has {planner.q.size}")
+                return
+            with lock:
+                planner.on_state(q, following=state.owner == cfg.name and state.status == "ok")
+
+        def on_pain(pain: m.SkinPain) -> None:
+            # The event path: a reflex starts the moment its pain message arrives.
+            with lock:
+                try:
+                    command = planner.on_pain(pain, node.clock.now_ns())
+                except ValueError as exc:
+                    node.diag("warning", "bad_pain", str(exc))
+                    return
+                if command is not None:
+                    send(command)
+                if planner.changed:
+                    send_status(planner.status(node.clock.now_ns()))
+
+        node.subscribe(keys.ROBOT_STATE, on_state)
+        node.subscribe(keys.SKIN_PAIN, on_pain)
+        log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.strategy, cfg.rate_hz)
+        rate = Rate(cfg.rate_hz, "planner")
+        status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
+        try:
+            while rate.sleep(node.stop):
+                with lock:
+                    now = node.clock.now_ns()
+                    command = planner.step(now)
+                    if command is not None:
+                        send(command)
+                    if planner.changed or rate.ticks % status_every == 0:
+                        send_status(planner.status(now))
+        finally:
+            log.info(rate.summary())
+            log.info("%d reflexes, %d resynchronisations", planner.reflex_count, planner.resyncs)
+    return 0

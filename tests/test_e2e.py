@@ -1,0 +1,115 @@
+"""The real processes over Zenoh on loopback: a short scripted session, checked from its recording."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import ZenohSection, load_script
+from nwr.common.node import zenoh_config
+from nwr.common.robot import load_description
+from nwr.services import analysis
+from nwr.services.gain.core import GainEstimator
+from nwr.common.config import GainSection
+from nwr.services.recorder.core import read_recording
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+SCRIPT = Path(__file__).parent / "data" / "short.toml"
+BASE_PORT = 17450  # away from the default mesh, so a running demo does not interfere
+
+
+def write_profile(tmp_path: Path) -> Path:
+    profile = tmp_path / "profile.toml"
+    profile.write_text(f'[zenoh]\nbase_port = {BASE_PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+    return profile
+
+
+def intruder(stop: threading.Event, counts: dict[str, int]) -> None:
+    """Publishes garbage and a foreign planner's commands into the running pipeline."""
+    cfg = ZenohSection(base_port=BASE_PORT)
+    with zenoh.open(zenoh_config(cfg)) as session:
+        pressure = session.declare_publisher(keys.key("ur10e", keys.SKIN_PRESSURE))
+        command = session.declare_publisher(keys.key("ur10e", keys.ROBOT_COMMAND))
+        foreign = m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder", dq=[3.0] * 6, trace=m.Trace(0, 0))
+        nan = m.PositionCommand(seq=0, stamp_ns=0, owner="cartesian", q=[float("nan")] * 6, trace=m.Trace(0, 0))
+        time.sleep(3.0)
+        while not stop.wait(0.5):
+            pressure.put(b"\x92\x01garbage")
+            command.put(msgspec.msgpack.encode(foreign))
+            command.put(msgspec.msgpack.encode(nan))
+            counts["sent"] += 1
+
+
+def test_scripted_session_end_to_end(tmp_path):
+    profile = write_profile(tmp_path)
+    output = tmp_path / "session.mcap"
+    stop = threading.Event()
+    counts = {"sent": 0}
+    thread = threading.Thread(target=intruder, args=(stop, counts), daemon=True)
+    thread.start()
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo",
+             "--script", str(SCRIPT), "--output", str(output)],
+            capture_output=True, text=True, timeout=120,
+        )
+    finally:
+        stop.set()
+        thread.join(5)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log
+    assert "all 4 scripted touches as expected" in proc.stdout, log
+    assert counts["sent"] > 5
+
+    records, metadata = read_recording(output)
+    assert metadata["session"]["robot"] == "ur10e"
+    assert '"base_port":17450' in metadata["session"]["profile"]
+    desc = load_description()
+    touches = analysis.summarize(records, desc)
+    script = load_script(str(SCRIPT))
+    estimator = GainEstimator(GainSection(), desc.pads)
+    assert len(touches) == len(script.touch)
+    for touch, scripted in zip(touches, script.touch):
+        assert touch.name == scripted.pad
+        assert touch.peak_hpa == pytest.approx(scripted.peak_hpa, abs=0.5)
+        level, gain = estimator.gain(touch.pad, scripted.peak_hpa)
+        if gain > 0:
+            assert touch.reflex_seq > 0, touch
+            assert touch.onset_latency_ms is not None and 0 < touch.onset_latency_ms < 1000
+            assert touch.withdrawal_mm is not None and touch.withdrawal_mm > 1.0, touch  # moved away
+            assert touch.resumed_after_s is not None and touch.resumed_after_s < 5.0
+            assert touch.return_error_rad is not None and touch.return_error_rad < 2e-3  # back at the saved pose
+        else:
+            assert touch.reflex_seq == 0, touch
+
+    # The task went on after the last reflex.
+    status = [r.message for r in records if r.key == "reflex/cartesian/status"]
+    last_reflex = max(i for i, s in enumerate(status) if s.mode == "REFLEX")
+    after = [s for s in status[last_reflex:] if s.mode == "TASK"]
+    assert after and after[-1].task_time_s > after[0].task_time_s + 1.0
+
+    # Every command that moved the arm carries the trace of a real skin sample.
+    skin_seqs = {r.message.seq for r in records if r.key == "skin/pressure"}
+    commands = [r.message for r in records if r.key == "robot/command" and r.message.owner == "cartesian"]
+    traced = {c.trace.seq for c in commands if c.trace.seq >= 0 and all(np.isfinite(getattr(c, "q", c.dq if hasattr(c, "dq") else [0])))}
+    assert traced and traced <= skin_seqs
+
+    # Hostile input was reported, not obeyed.
+    diags = [r.message for r in records if r.key.startswith("diag/")]
+    codes = {(d.service, d.code) for d in diags}
+    assert ("gain", "decode_error") in codes
+    assert ("bridge", "command_rejected") in codes
+    states = [r.message for r in records if r.key == "robot/state"]
+    assert max(s.rejected for s in states) > 5
+    assert max(np.max(np.abs(s.dq)) for s in states) < 3.0  # the intruder's 3 rad/s never reached the arm

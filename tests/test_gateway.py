@@ -1,0 +1,124 @@
+"""Baseline filter and simulated skin."""
+
+import numpy as np
+import pytest
+
+from nwr.common.config import GatewaySection, SimSkinSection, Touch, TouchScript
+from nwr.common.errors import ConfigError
+from nwr.common.robot import Pad
+from nwr.services.gateway.core import BaselineFilter, Gateway, SimSkin, touch_profile
+
+RATE = 25.0
+
+
+def run(filter_, signal, t0=0.0):
+    """Feed a (T, n) array of absolute pressures; returns the (T, n) changes."""
+    out = []
+    for i, row in enumerate(signal):
+        change, _ = filter_.update(t0 + i / RATE, np.asarray(row, dtype=float))
+        out.append(change.copy())
+    return np.array(out)
+
+
+def test_noise_only_stays_near_zero():
+    rng = np.random.default_rng(1)
+    f = BaselineFilter(GatewaySection(), 2)
+    change = run(f, 1000.0 + rng.normal(0, 0.08, (1000, 2)))
+    assert np.abs(change[10:]).max() < 0.5
+    assert not f.contact.any()
+
+
+def test_slow_drift_is_tracked():
+    f = BaselineFilter(GatewaySection(), 1)
+    t = np.arange(0, 120, 1 / RATE)
+    drift = 1000.0 + 0.01 * t  # 0.01 hPa/s, below max_drift_hpa_s
+    change = run(f, drift[:, None])
+    assert abs(change[-1, 0]) < 0.1
+    assert f.baseline[0] == pytest.approx(drift[-1], abs=0.1)
+
+
+def test_sustained_press_is_not_followed_and_release_returns_to_zero():
+    f = BaselineFilter(GatewaySection(), 1)
+    rest = [[1000.0]] * 50
+    press = [[1010.0]] * int(30 * RATE)  # 30 s at +10 hPa
+    change = run(f, rest + press + rest)
+    during = change[50:50 + len(press), 0]
+    assert during.min() == pytest.approx(10.0)
+    assert during.max() == pytest.approx(10.0)  # frozen baseline: no drift away
+    assert change[-1, 0] == pytest.approx(0.0, abs=1e-9)
+    assert not f.contact[0]
+
+
+def test_slow_ramp_is_not_absorbed_by_the_baseline():
+    f = BaselineFilter(GatewaySection(), 1)
+    ramp = 1000.0 + np.clip(np.arange(0, 10, 1 / RATE) - 1.0, 0, None) * 2.0  # +2 hPa/s from t = 1 s
+    change = run(f, ramp[:, None])
+    # The baseline moves at most max_drift_hpa_s while below the contact threshold.
+    assert change[-1, 0] > ramp[-1] - 1000.0 - 0.06
+
+
+def test_drift_during_press_is_bounded():
+    cfg = GatewaySection()
+    f = BaselineFilter(cfg, 1)
+    rest = [[1000.0]] * 50
+    press = [[1008.0 + 0.01 * i / RATE] for i in range(int(20 * RATE))]
+    change = run(f, rest + press)
+    assert f.baseline[0] == pytest.approx(1000.0)
+    assert change[-1, 0] == pytest.approx(8.2, abs=0.01)
+
+
+def test_too_long_contact_reacquires():
+    cfg = GatewaySection(max_contact_s=2.0)
+    f = BaselineFilter(cfg, 1)
+    events = []
+    for i in range(200):
+        _, ev = f.update(i / RATE, np.array([1000.0 if i < 10 else 1005.0]))
+        events += ev.reacquired
+    assert events == [0]
+    assert f.baseline[0] == pytest.approx(1005.0, abs=0.1)
+
+
+def test_non_finite_reading_is_invalid_and_leaves_baseline():
+    g = Gateway(GatewaySection(), 2)
+    g.process(0.0, 0, np.array([1000.0, 1000.0]))
+    msg, events = g.process(0.04, 1, np.array([np.nan, 1000.0]))
+    assert events.non_finite == [0]
+    assert msg.valid == [False, True]
+    assert msg.change_hpa[0] == 0.0 and not msg.contact[0]
+    assert g.filter.baseline[0] == pytest.approx(1000.0)
+
+
+def test_touch_profiles():
+    step = Touch(pad="a", start_s=1.0, duration_s=0.5, peak_hpa=9.0)
+    assert [touch_profile(step, t) for t in (0.99, 1.0, 1.49, 1.5)] == [0.0, 9.0, 9.0, 0.0]
+    ramp = Touch(pad="a", start_s=1.0, duration_s=0.5, peak_hpa=10.0, shape="ramp", ramp_s=0.5)
+    assert touch_profile(ramp, 1.25) == pytest.approx(5.0)
+    assert touch_profile(ramp, 1.75) == pytest.approx(10.0)
+    assert touch_profile(ramp, 2.25) == pytest.approx(5.0)
+    assert touch_profile(ramp, 2.5) == 0.0
+
+
+def pads():
+    return tuple(Pad(i, f"p{i}", "wrist", "l", np.zeros(3), np.array([0, 0, 1.0])) for i in range(3))
+
+
+def test_sim_skin_with_gateway_recovers_the_script():
+    script = TouchScript(duration_s=10.0, touch=[Touch(pad="p1", start_s=4.0, duration_s=1.0, peak_hpa=9.0)])
+    sim = SimSkin(SimSkinSection(), pads(), script)
+    gw = Gateway(GatewaySection(), 3)
+    changes = []
+    for i in range(250):
+        t = i / RATE
+        msg, _ = gw.process(t, i, sim.sample(t))
+        changes.append(msg.change_hpa)
+    c = np.array(changes)
+    inside = c[int(4.1 * RATE):int(4.9 * RATE), 1]
+    assert np.all(np.abs(inside - 9.0) < 0.5)
+    assert np.abs(c[int(6 * RATE):, :]).max() < 0.6
+    assert np.abs(c[:, [0, 2]]).max() < 0.6
+
+
+def test_sim_skin_rejects_unknown_pad():
+    script = TouchScript(duration_s=10.0, touch=[Touch(pad="nope", start_s=1.0, duration_s=1.0, peak_hpa=9.0)])
+    with pytest.raises(ConfigError, match="nope"):
+        SimSkin(SimSkinSection(), pads(), script)
