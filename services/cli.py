@@ -26,6 +26,8 @@ SERVICES = {
     "bridge": "robot bridge: robot/command -> the (simulated) arm -> robot/state",
     "recorder": "recorder: everything under nwr/<robot>/ -> MCAP",
 }
+# Modules that add subcommands of their own (see build_parser).
+COMMAND_MODULES: list[str] = []
 # Started in this order; the gateway starts its clock once the others are alive.
 START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
 
@@ -66,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     summary = sub.add_parser("summary", help="print the per-touch table of a recording")
     summary.add_argument("file", help="MCAP recording")
     summary.add_argument("--script", help="touch script to compare the recording with")
+
+    # Tools that live beside their service register their own subcommands:
+    # each module has register(subparsers), whose parsers set_defaults(handler=
+    # fn(args) -> int).
+    for name in COMMAND_MODULES:
+        import_module(name).register(sub)
     return parser
 
 
@@ -122,7 +130,11 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
             if name == "recorder":
                 extra = ["--session", session, "--output", str(output)]
             if name == "gateway":
-                extra = ["--wait-for", ",".join(s for s in services if s != "gateway")]
+                from nwr.services.planner.main import planner_service
+
+                planner = planner_service(load_profile(args.profile).planner.name)
+                waits = [planner if s == "planner" else s for s in services if s != "gateway"]
+                extra = ["--wait-for", ",".join(waits)]
                 if args.script:
                     extra += ["--script", args.script]
                 if until_script_end:
@@ -220,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
             return print_summary(path, args.script)
         if args.command == "summary":
             return print_summary(Path(args.file), args.script)
+        if hasattr(args, "handler"):
+            return int(args.handler(args) or 0)
     except NwrError as exc:
         log.error("%s", exc)
         return 2

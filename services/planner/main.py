@@ -17,6 +17,10 @@ from nwr.services.planner.core import Planner
 log = logging.getLogger(__name__)
 
 
+def planner_service(name: str) -> str:
+    return f"planner-{name}"
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", help="planner instance name (overrides planner.name)")
 
@@ -28,7 +32,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     desc = load_description(profile.robot.description or None)
     planner = Planner(cfg, desc, RobotModel(desc))
     lock = threading.Lock()
-    with Node("planner", profile.robot.name, profile.zenoh, listen_slot="planner") as node:
+    # Each planner instance has its own liveliness token and diagnostics key,
+    # alive/planner-<name> and diag/planner-<name>: the bridge watches the
+    # token of the active one.
+    with Node(planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner") as node:
         node.install_signal_handlers()
         send = node.publisher(keys.ROBOT_COMMAND)
         send_status = node.publisher(keys.planner_status(cfg.name))
