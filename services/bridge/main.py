@@ -1,127 +1,206 @@
-"""Robot bridge process: robot/command -> the arm (simulated) -> robot/state."""
+"""Robot bridge process: robot/command + skin/pressure + the planner's liveliness -> the arm -> robot/state.
+
+A thin adapter: :class:`~nwr.services.bridge.core.BridgeCore` decides, a
+backend (:class:`~nwr.services.bridge.backend.SimBackend` or
+:class:`~nwr.services.bridge.ur_rtde.URRtdeBackend`) moves the arm. The
+command callback and the control loop share both under one lock.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import threading
+import time
 
 import numpy as np
+import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import BridgeSection, Profile
+from nwr.common.errors import ConfigError
 from nwr.common.node import Node
-from nwr.common.pacing import Rate
 from nwr.common.robot import load_description
-from nwr.services.bridge.core import Limits, SimArm, check_command
+from nwr.services.bridge.backend import Backend, SimBackend
+from nwr.services.bridge.core import BridgeCore, Envelope, Event, at_rest, make_envelope
+from nwr.services.planner.main import planner_service
 
 log = logging.getLogger(__name__)
+
+CONFIRM_FLAG = "--i-am-next-to-the-robot"
+# After SIGTERM, the controlled stop may take at most this long beyond its own duration, s.
+SHUTDOWN_SLACK_S = 0.5
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--active", help="the planner whose commands move the arm (overrides bridge.active_planner)")
+    parser.add_argument("--backend", choices=["sim", "ur_rtde"], help="overrides bridge.backend")
+    parser.add_argument("--robot-ip", default="", help="IP address of the UR controller (ur_rtde backend only)")
+    parser.add_argument(CONFIRM_FLAG, dest="confirmed", action="store_true",
+                        help="confirm that a person watches the real arm with the emergency stop at hand "
+                             "(required by the ur_rtde backend)")
+    parser.add_argument("--print-envelope", action="store_true", help="print the enforced envelope and exit")
+
+
+def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
+    """The envelope, the initial pose and the number of pads, from the profile."""
+    cfg = profile.bridge
+    desc = load_description(profile.robot.description or None)
+    env = make_envelope(
+        desc.joints,
+        {"q_min": desc.q_min, "q_max": desc.q_max, "v_max": desc.v_max, "a_max": desc.a_max, "j_max": desc.j_max},
+        speed_fraction=cfg.speed_fraction, acceleration_fraction=cfg.acceleration_fraction,
+        jerk_fraction=cfg.jerk_fraction,
+        tighter={"q_min": cfg.q_min, "q_max": cfg.q_max, "v_max": cfg.v_max, "a_max": cfg.a_max, "j_max": cfg.j_max},
+        position_jump_rad=cfg.position_jump_rad,
+    )
+    q0 = np.asarray(cfg.initial_q, dtype=float) if cfg.initial_q else np.asarray(desc.home, dtype=float)
+    if q0.shape != (env.n,):
+        raise ConfigError(f"bridge.initial_q has {q0.size} joints, the robot has {env.n}: give {env.n} or none")
+    return env, q0, len(desc.pads)
+
+
+def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
+    dt = 1.0 / cfg.rate_hz
+    if cfg.backend == "sim":
+        return SimBackend(env, dt, q0)
+    if not getattr(args, "robot_ip", ""):
+        raise ConfigError("the ur_rtde backend moves a real arm: give the controller's address with --robot-ip")
+    if not getattr(args, "confirmed", False):
+        raise ConfigError(
+            f"the ur_rtde backend moves a real arm at {args.robot_ip}: add {CONFIRM_FLAG} once a person watches it "
+            "with the emergency stop at hand (docs/bridge.md)"
+        )
+    from nwr.services.bridge.ur_rtde import URRtdeBackend
+
+    return URRtdeBackend(env, dt, args.robot_ip, lookahead_s=cfg.servo_lookahead_s, gain=cfg.servo_gain,
+                         reconnect_min_s=cfg.reconnect_min_s, reconnect_max_s=cfg.reconnect_max_s)
 
 
 class Bridge:
-    """Owns the arm; the command callback and the control loop share it under a lock."""
+    """Wires the core and a backend to the node; every entry point takes the lock."""
 
-    def __init__(self, profile: Profile, node: Node) -> None:
+    def __init__(self, profile: Profile, node: Node, backend: Backend, env: Envelope, q0: np.ndarray,
+                 n_pads: int) -> None:
         cfg = profile.bridge
-        desc = load_description(profile.robot.description or None)
-        limits = Limits(desc.q_min, desc.q_max, cfg.speed_fraction * desc.v_max, cfg.acceleration_fraction * desc.a_max)
-        q0 = np.asarray(cfg.initial_q, dtype=float) if cfg.initial_q else desc.home
-        if q0.shape != desc.home.shape:
-            raise ValueError(f"bridge.initial_q has {q0.size} joints, the robot has {desc.home.size}")
         self.cfg = cfg
         self.node = node
-        self.n = len(desc.joints)
-        self.arm = SimArm(limits, q0)
+        self.backend = backend
         self.lock = threading.Lock()
-        self.active = cfg.active_planner
-        self.status: m.RobotStatus = "idle"
-        self.last_command_ns = 0
-        self.reflex_seq = 0
-        self.accepted: m.Trace | None = None
-        self.accepted_ns = 0
-        self.rejected = 0
+        self.core = BridgeCore(
+            env, q0, node.clock.now_ns(), active=cfg.active_planner, n_pads=n_pads,
+            command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
+            seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
+        )
         self.seq = 0
         self.publish_state = node.publisher(keys.ROBOT_STATE)
 
+    # -- callbacks (Zenoh's threads) -------------------------------------------------
     def on_command(self, cmd: m.Command) -> None:
-        reason = check_command(cmd, self.active, self.n)
-        now = self.node.clock.now_ns()
-        if reason is not None:
-            with self.lock:
-                self.rejected += 1
-            self.node.diag("warning", "command_rejected", reason)
-            return
         with self.lock:
-            if isinstance(cmd, m.PositionCommand):
-                self.arm.command_position(np.asarray(cmd.q, dtype=float))
-            else:
-                self.arm.command_velocity(np.asarray(cmd.dq, dtype=float))
-            self.last_command_ns = now
-            self.status = "ok"
-            onset = cmd.reflex_seq != self.reflex_seq and cmd.phase == "REFLEX"
-            self.reflex_seq = cmd.reflex_seq
-            if onset:
+            now = self.node.clock.now_ns()
+            verdict = self.core.on_command(cmd, now)
+            if verdict.onset:
                 # The first command of a reflex goes to the backend now, not at
                 # the next cycle, and its acceptance is published at once.
-                self.accepted = cmd.trace
-                self.accepted_ns = now
+                self._cycle(now)
                 self._publish(now)
+            events = self.core.drain_events()
+        self._report(events)
 
-    def tick(self, dt: float) -> None:
-        now = self.node.clock.now_ns()
+    def on_skin(self, pressure: m.SkinPressure) -> None:
         with self.lock:
-            if self.status == "ok" and now - self.last_command_ns > self.cfg.command_timeout_s * 1e9:
-                self.status = "stale_command"
-                self.arm.stop()
-                stop = self.arm.stopping_distance()
-                self.node.diag(
-                    "warning", "stale_command",
-                    f"no command for {self.cfg.command_timeout_s * 1e3:.0f} ms: decelerating to rest "
-                    f"(stopping distance up to {np.max(stop):.4f} rad)",
-                )
-            self.arm.step(dt)
+            self.core.on_skin(pressure, self.node.clock.now_ns())
+            events = self.core.drain_events()
+        self._report(events)
 
-    def publish(self) -> None:
+    def on_liveliness(self, sample: zenoh.Sample) -> None:
         with self.lock:
-            self._publish(self.node.clock.now_ns())
+            self.core.on_planner_alive(sample.kind == zenoh.SampleKind.PUT, self.node.clock.now_ns())
+            events = self.core.drain_events()
+        self._report(events)
+
+    # -- the control loop --------------------------------------------------------------
+    def tick(self, publish: bool) -> None:
+        with self.lock:
+            now = self.node.clock.now_ns()
+            obs = self.backend.get_observation()
+            if obs.fault != self.core.fault:
+                self.core.on_fault(obs.fault, obs.detail, obs.q, now)
+                self.backend.resync(obs.q)
+            self.core.observe(obs.q)
+            self._cycle(now)
+            if publish:
+                self._publish(now)
+            events = self.core.drain_events()
+        self._report(events)
+
+    def _cycle(self, now: int) -> None:
+        setpoint = self.core.step(now)
+        if self.core.fault is None:
+            self.backend.send_action(setpoint)
 
     def _publish(self, now: int) -> None:
-        arm = self.arm
-        self.publish_state(m.RobotState(
-            seq=self.seq, stamp_ns=now, q=arm.q.tolist(), dq=arm.dq.tolist(), status=self.status,
-            owner=self.active, backend=arm.backend, command_mode=arm.mode,  # type: ignore[arg-type]
-            reflex_seq=self.reflex_seq, accepted=self.accepted, accepted_ns=self.accepted_ns,
-            rejected=self.rejected, clipped=arm.clipped,
-        ))
+        obs = self.backend.get_observation()
+        state = self.core.state(self.seq, now, obs.q, obs.dq, self.backend.name)
+        state.clipped += self.backend.guarded
+        self.publish_state(state)
         self.seq += 1
+
+    def at_rest(self) -> bool:
+        with self.lock:
+            return self.core.stop is None or self.core.stop.done or at_rest(self.core.dq)
+
+    def _report(self, events: list[Event]) -> None:
+        for event in events:
+            self.node.diag(event.level, event.code, event.message)
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
-    if args.active:
-        profile.bridge.active_planner = args.active
     cfg = profile.bridge
-    with Node("bridge", profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
-        node.install_signal_handlers()
-        bridge = Bridge(profile, node)
-        node.subscribe(keys.ROBOT_COMMAND, bridge.on_command)
-        log.info("simulated arm at %.0f Hz, following planner %r", cfg.rate_hz, bridge.active)
-        rate = Rate(cfg.rate_hz, "bridge")
-        dt = 1.0 / cfg.rate_hz
-        state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
-        try:
-            while rate.sleep(node.stop):
-                bridge.tick(dt)
-                if rate.ticks % state_every == 0:
-                    bridge.publish()
-        finally:
-            with bridge.lock:
-                bridge.arm.stop()
-                bridge.status = "stopped"
-            log.info(rate.summary())
-            log.info("%d commands rejected, %d clipped", bridge.rejected, bridge.arm.clipped)
+    if getattr(args, "active", None):
+        cfg.active_planner = args.active
+    if getattr(args, "backend", None):
+        cfg.backend = args.backend
+    env, q0, n_pads = envelope_for(profile)
+    if getattr(args, "print_envelope", False):
+        print(env.describe())
+        return 0
+    backend = make_backend(cfg, env, q0, args)
+    log.info("%s backend; the envelope it enforces:\n%s", backend.name, env.describe())
+    backend.connect()
+    if backend.name != "sim":
+        q0 = backend.get_observation().q
+    try:
+        with Node("bridge", profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
+            node.install_signal_handlers()
+            bridge = Bridge(profile, node, backend, env, q0, n_pads)
+            node.subscribe(keys.ROBOT_COMMAND, bridge.on_command)
+            node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin)
+            token_key = keys.key(profile.robot.name, keys.alive(planner_service(cfg.active_planner)))
+            watcher = node.session.liveliness().declare_subscriber(token_key, bridge.on_liveliness, history=True)
+            log.info("following planner %r (token %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",
+                     cfg.active_planner, token_key, cfg.rate_hz, cfg.command_timeout_s * 1e3,
+                     cfg.skin_timeout_s * 1e3)
+            pacer = backend.pacer(cfg.rate_hz)
+            state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
+            try:
+                while pacer.sleep(node.stop):
+                    bridge.tick(pacer.ticks % state_every == 0)
+            finally:
+                # One shutdown path: a controlled stop, then the robot released.
+                with bridge.lock:
+                    bridge.core.request_stop(node.clock.now_ns(), "bridge shutting down")
+                    deadline = time.monotonic() + bridge.core.stop_time_s + SHUTDOWN_SLACK_S
+                while not bridge.at_rest() and time.monotonic() < deadline:
+                    pacer.sleep(None)
+                    bridge.tick(pacer.ticks % state_every == 0)
+                bridge.tick(True)
+                watcher.undeclare()
+                log.info(pacer.summary())
+                log.info("%d commands rejected, %d clipped; stop distance %s rad", bridge.core.rejected,
+                         bridge.core.clipped, np.round(bridge.core.stop_distance, 4).tolist())
+    finally:
+        backend.disconnect()
     return 0

@@ -1,0 +1,144 @@
+"""The robot behind one small interface, and the simulated arm.
+
+Every backend (``sim`` here, ``ur_rtde`` in :mod:`nwr.services.bridge.ur_rtde`)
+does the same four things, lerobot-style:
+
+- ``connect()`` / ``disconnect()``: take and release the robot (disconnect
+  leaves it at rest and is safe to call twice);
+- ``get_observation()``: the measured joints and any fault of the robot;
+- ``send_action(setpoint)``: pass a setpoint through :func:`guard` (the pure
+  last check: finite, within the joint limits, a step the speed limit allows)
+  and send it; returns what was really sent;
+- ``pacer(rate_hz)``: the object whose ``sleep(stop)`` paces the control
+  loop (the UR's own ``initPeriod`` / ``waitPeriod`` for ur_rtde).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from nwr.common import messages as m
+from nwr.common.errors import SafetyError
+from nwr.common.pacing import Rate
+from nwr.services.bridge.core import Envelope, Setpoint
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """The robot as measured, and its fault if it has one."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    fault: m.RobotStatus | None = None  # protective_stop, emergency_stop, script_not_running, disconnected
+    detail: str = ""
+
+
+class Pacer(Protocol):
+    ticks: int
+
+    def sleep(self, stop: threading.Event | None = None) -> bool: ...
+
+    def summary(self) -> str: ...
+
+
+def guard(env: Envelope, previous: np.ndarray, setpoint: Setpoint, dt: float) -> tuple[Setpoint, str | None]:
+    """The last check before a backend: what may really be sent, and why it differs.
+
+    The core already keeps every setpoint within the envelope, so this never
+    binds unless the core has a bug; it exists so that no bug can reach the
+    arm. Non-finite setpoints raise :class:`SafetyError` (nothing sensible can
+    be sent). Position setpoints are clipped into the joint limits and to the
+    step the speed limit allows since ``previous`` (over the setpoint's own
+    step ``h``, at least ``dt``); velocity setpoints to the speed limits.
+    """
+    if not (np.all(np.isfinite(setpoint.q)) and np.all(np.isfinite(setpoint.dq))):
+        raise SafetyError(f"non-finite setpoint q={setpoint.q.tolist()} dq={setpoint.dq.tolist()}: not sent")
+    q, dq = setpoint.q, np.clip(setpoint.dq, -env.v_max, env.v_max)
+    step = env.v_max * max(setpoint.h, dt) * 1.5 + 1e-9  # half a cycle of timing slack
+    if setpoint.mode == "position":
+        q = np.clip(np.clip(setpoint.q, previous - step, previous + step), env.q_min, env.q_max)
+    if np.array_equal(q, setpoint.q) and np.array_equal(dq, setpoint.dq):
+        return setpoint, None
+    i = int(np.argmax(np.abs(q - setpoint.q) + np.abs(dq - setpoint.dq)))
+    why = (f"{setpoint.mode} setpoint of joint {env.joints[i]} (q {setpoint.q[i]:.5f} rad, dq {setpoint.dq[i]:.4f} "
+           f"rad/s) outside the envelope (q in [{env.q_min[i]:.3f}, {env.q_max[i]:.3f}], step {step[i]:.5f} rad "
+           f"from {previous[i]:.5f}, v_max {env.v_max[i]:.3f} rad/s): clipped")
+    return Setpoint(setpoint.mode, q, dq, setpoint.ddq, setpoint.h), why
+
+
+class Backend(ABC):
+    """One robot: simulated or real."""
+
+    name: str = "?"
+
+    def __init__(self, env: Envelope, dt: float) -> None:
+        self.env = env
+        self.dt = dt
+        self.guarded = 0  # setpoints the guard had to change (a core bug if ever > 0)
+        self.last_sent: np.ndarray | None = None
+
+    @abstractmethod
+    def connect(self) -> None: ...
+
+    @abstractmethod
+    def disconnect(self) -> None: ...
+
+    @abstractmethod
+    def get_observation(self) -> Observation: ...
+
+    def send_action(self, setpoint: Setpoint) -> Setpoint:
+        """Guard the setpoint and send it; returns what was really sent."""
+        previous = self.last_sent if self.last_sent is not None else self.get_observation().q
+        sent, why = guard(self.env, previous, setpoint, self.dt)
+        if why is not None:
+            self.guarded += 1
+            log.error("%s (this is a bug of the bridge core: please report it)", why)
+        self._send(sent)
+        self.last_sent = sent.q
+        return sent
+
+    @abstractmethod
+    def _send(self, setpoint: Setpoint) -> None: ...
+
+    def resync(self, q: np.ndarray) -> None:
+        """The core restarted from the measured pose ``q`` (after a fault)."""
+        self.last_sent = np.asarray(q, dtype=float).copy()
+
+    def pacer(self, rate_hz: float) -> Pacer:
+        return Rate(rate_hz, "bridge")
+
+
+class SimBackend(Backend):
+    """An ideal arm: it is wherever the last setpoint put it."""
+
+    name = "sim"
+
+    def __init__(self, env: Envelope, dt: float, q0: np.ndarray) -> None:
+        super().__init__(env, dt)
+        self.q = np.asarray(q0, dtype=float).copy()
+        self.dq = np.zeros_like(self.q)
+        self.connected = False
+        self.holding = True
+
+    def connect(self) -> None:
+        self.connected = True
+
+    def disconnect(self) -> None:
+        self.dq[:] = 0.0
+        self.connected = False
+
+    def get_observation(self) -> Observation:
+        return Observation(self.q.copy(), self.dq.copy())
+
+    def _send(self, setpoint: Setpoint) -> None:
+        self.q = setpoint.q.copy()
+        self.dq = setpoint.dq.copy() if setpoint.mode != "hold" else np.zeros_like(self.q)
+        self.holding = setpoint.mode == "hold"

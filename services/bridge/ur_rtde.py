@@ -1,0 +1,302 @@
+"""The real UR (e-Series, or URSim) through ur_rtde.
+
+- Position setpoints stream with ``servoJ`` (lookahead time and gain from the
+  profile), velocity setpoints with ``speedJ``; a "hold" setpoint ends the
+  stream with ``servoStop`` / ``speedStop`` once the bridge's own
+  jerk-limited stop has brought the arm to rest.
+- The control loop is paced by the controller's clock: ``initPeriod`` /
+  ``waitPeriod`` at the profile's rate (500 Hz on e-Series).
+- Faults are read every cycle from RTDEReceiveInterface and
+  RTDEControlInterface: emergency stop, protective stop, the control script
+  not running, a lost connection. The controller has stopped the arm by then;
+  the bridge reports the fault in the robot state and sends nothing until it
+  is cleared. Protective and emergency stops are cleared by a person at the
+  pendant, never by the bridge; once they are, the bridge re-uploads its
+  control script. A lost connection is retried with exponential backoff.
+- ``disconnect()`` ends any stream, stops the control script and closes both
+  interfaces: the robot is released at rest.
+
+``rtde_control`` / ``rtde_receive`` are imported only when this backend
+connects, so the simulated bridge and the tests never need them: the tests
+pass a ``factory`` returning test doubles of the two interfaces.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from nwr.common.errors import NwrError
+from nwr.services.bridge.backend import Backend, Observation
+from nwr.services.bridge.core import Envelope, Setpoint
+
+log = logging.getLogger(__name__)
+
+# Ports the two interfaces use on the controller (see docs/bridge.md).
+RTDE_PORT = 30004  # RTDE: joint state out, registers in
+SCRIPT_PORTS = (30001, 30002, 30003)  # primary / secondary / real-time: the control script is sent here
+
+Factory = Callable[[str, float], tuple[Any, Any]]
+
+
+class RobotConnectionError(NwrError):
+    """The robot controller cannot be reached or refuses the control script."""
+
+
+def rtde_factory(robot_ip: str, frequency_hz: float) -> tuple[Any, Any]:
+    """The real ur_rtde interfaces (imported here, lazily)."""
+    try:
+        import rtde_control
+        import rtde_receive
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise RobotConnectionError(
+            f"the ur_rtde backend needs the ur-rtde package ({exc}): pip install ur-rtde"
+        ) from exc
+    # Receive first: it fails fast when the IP is wrong, before a script is uploaded.
+    receive = rtde_receive.RTDEReceiveInterface(robot_ip, frequency_hz)
+    control = rtde_control.RTDEControlInterface(robot_ip, frequency_hz)
+    return control, receive
+
+
+class RtdePacer:
+    """Paces the bridge loop with the controller's ``initPeriod`` / ``waitPeriod``."""
+
+    def __init__(self, backend: URRtdeBackend, rate_hz: float) -> None:
+        self.backend = backend
+        self.period_s = 1.0 / rate_hz
+        self.ticks = 0
+        self._t: Any = None
+        self._t_local = time.monotonic()
+
+    def sleep(self, stop: threading.Event | None = None) -> bool:
+        control = self.backend.control
+        if control is not None and self.backend.connected:
+            try:
+                if self._t is not None:
+                    control.waitPeriod(self._t)
+                self._t = control.initPeriod()
+            except RuntimeError:
+                self._t = None
+                self.backend.lost("waitPeriod failed")
+        else:
+            # Disconnected: keep the loop alive (the state reports the fault).
+            self._t = None
+            self._t_local += self.period_s
+            delay = self._t_local - time.monotonic()
+            if delay > 0:
+                if stop is None:
+                    time.sleep(delay)
+                elif stop.wait(delay):
+                    return False
+            else:
+                self._t_local = time.monotonic()
+        self.ticks += 1
+        return stop is None or not stop.is_set()
+
+    def summary(self) -> str:
+        return f"bridge: {self.ticks} cycles paced by the UR controller at {1 / self.period_s:.0f} Hz"
+
+
+class URRtdeBackend(Backend):
+    """A UR arm through ur_rtde's RTDEControlInterface and RTDEReceiveInterface."""
+
+    name = "ur_rtde"
+
+    def __init__(
+        self,
+        env: Envelope,
+        dt: float,
+        robot_ip: str,
+        *,
+        lookahead_s: float = 0.1,
+        gain: float = 300.0,
+        reconnect_min_s: float = 0.5,
+        reconnect_max_s: float = 8.0,
+        factory: Factory = rtde_factory,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(env, dt)
+        if not robot_ip:
+            raise RobotConnectionError("the ur_rtde backend needs the robot's IP address (--robot-ip)")
+        self.robot_ip = robot_ip
+        self.lookahead_s = lookahead_s
+        self.gain = gain
+        self.reconnect_min_s = reconnect_min_s
+        self.reconnect_max_s = reconnect_max_s
+        self.factory = factory
+        self.clock = clock
+        self.control: Any = None
+        self.receive: Any = None
+        self.connected = False
+        self.streaming: str | None = None  # "servo" or "speed" while a stream runs on the controller
+        self.backoff_s = reconnect_min_s
+        self.next_attempt = 0.0
+        self.reconnects = 0
+        self.fault_reason = ""
+        self.last_q = np.zeros(env.n)
+        # The controller's own ramps: never steeper than the envelope's
+        # slowest joint (the bridge's setpoints already are).
+        self.acceleration = float(np.min(env.a_max))
+        self.speed = float(np.min(env.v_max))
+
+    # -- connection -------------------------------------------------------------------
+    def connect(self) -> None:
+        """Connect, or raise RobotConnectionError with what to check."""
+        try:
+            self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
+        except RobotConnectionError:
+            raise
+        except (RuntimeError, OSError) as exc:
+            raise RobotConnectionError(
+                f"cannot connect to the UR controller at {self.robot_ip} ({exc}): check the IP, that the robot "
+                f"is powered on and in remote control mode, and that ports {RTDE_PORT} (RTDE) and "
+                f"{', '.join(map(str, SCRIPT_PORTS))} are reachable (docs/bridge.md)"
+            ) from exc
+        self.connected = True
+        self.streaming = None
+        self.backoff_s = self.reconnect_min_s
+        self.last_q = self._read_q()
+        self.last_sent = self.last_q.copy()
+        log.info("connected to the UR controller at %s (RTDE at %.0f Hz)", self.robot_ip, 1.0 / self.dt)
+
+    def lost(self, reason: str) -> None:
+        """The connection dropped: schedule a reconnection with backoff."""
+        if self.connected:
+            log.error("connection to the UR controller at %s lost: %s", self.robot_ip, reason)
+        self.connected = False
+        self.streaming = None
+        self.fault_reason = reason
+        self.next_attempt = max(self.next_attempt, self.clock())
+
+    def _try_reconnect(self) -> None:
+        now = self.clock()
+        if now < self.next_attempt:
+            return
+        self.reconnects += 1
+        ok = False
+        try:
+            if self.control is not None and self.receive is not None:
+                ok = bool(self.receive.reconnect()) and bool(self.control.reconnect())
+            if not ok:
+                self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
+                ok = True
+        except (RuntimeError, OSError) as exc:
+            self.fault_reason = f"reconnection {self.reconnects} failed ({exc})"
+            ok = False
+        if ok:
+            log.info("reconnected to the UR controller at %s (attempt %d)", self.robot_ip, self.reconnects)
+            self.connected = True
+            self.streaming = None
+            self.backoff_s = self.reconnect_min_s
+            self.last_sent = None
+        else:
+            self.next_attempt = now + self.backoff_s
+            log.warning("%s: next attempt in %.1f s", self.fault_reason, self.backoff_s)
+            self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
+
+    def disconnect(self) -> None:
+        """Release the robot: end the stream, stop the control script, close both interfaces."""
+        control, receive = self.control, self.receive
+        if control is not None:
+            for call in (self._end_stream, control.stopScript, control.disconnect):
+                try:
+                    call()
+                except RuntimeError as exc:
+                    log.warning("while releasing the robot: %s", exc)
+        if receive is not None:
+            try:
+                receive.disconnect()
+            except RuntimeError as exc:
+                log.warning("while releasing the robot: %s", exc)
+        self.control = self.receive = None
+        self.connected = False
+        self.streaming = None
+
+    # -- observation ------------------------------------------------------------------
+    def _read_q(self) -> np.ndarray:
+        return np.asarray(self.receive.getActualQ(), dtype=float)
+
+    def get_observation(self) -> Observation:
+        if not self.connected or self.receive is None or self.control is None:
+            self._try_reconnect()
+            if not self.connected:
+                return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected",
+                                   f"{self.robot_ip}: {self.fault_reason}")
+        try:
+            if not (self.receive.isConnected() and self.control.isConnected()):
+                self.lost("isConnected() is false")
+                return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected",
+                                   f"{self.robot_ip}: connection lost, reconnecting")
+            q = self._read_q()
+            dq = np.asarray(self.receive.getActualQd(), dtype=float)
+            if q.shape != (self.env.n,) or not np.all(np.isfinite(q)):
+                self.lost(f"getActualQ returned {q.tolist()}")
+                return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
+            self.last_q = q
+            if self.receive.isEmergencyStopped():
+                self.streaming = None
+                return Observation(q, dq, "emergency_stop", "emergency stop pressed: release it and restart the arm")
+            if self.receive.isProtectiveStopped():
+                self.streaming = None
+                return Observation(q, dq, "protective_stop",
+                                   "protective stop: check the cell, then unlock it on the pendant")
+            if not self.control.isProgramRunning():
+                self.streaming = None
+                if self.clock() >= self.next_attempt:
+                    # Uploading the script moves nothing; the bridge sends a
+                    # setpoint only after the fault has cleared.
+                    self.next_attempt = self.clock() + self.backoff_s
+                    self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
+                    if self.control.reuploadScript():
+                        self.backoff_s = self.reconnect_min_s
+                        log.info("control script re-uploaded")
+                return Observation(q, dq, "script_not_running",
+                                   "the ur_rtde control script is not running (remote control mode? program stopped "
+                                   "on the pendant?): re-uploading it with backoff")
+        except RuntimeError as exc:
+            self.lost(str(exc))
+            return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
+        self.backoff_s = self.reconnect_min_s
+        return Observation(q, dq)
+
+    # -- commands ---------------------------------------------------------------------
+    def _end_stream(self) -> None:
+        if self.streaming == "servo":
+            self.control.servoStop(self.acceleration)
+        elif self.streaming == "speed":
+            self.control.speedStop(self.acceleration)
+        self.streaming = None
+
+    def _send(self, setpoint: Setpoint) -> None:
+        if not self.connected or self.control is None:
+            return
+        try:
+            if setpoint.mode == "hold":
+                self._end_stream()
+                return
+            if setpoint.mode == "position":
+                # ur_rtde's Python servoJ takes positional arguments only:
+                # (q, speed, acceleration, time, lookahead_time, gain); speed
+                # and acceleration are not used by the controller in servoj.
+                ok = self.control.servoJ(setpoint.q.tolist(), self.speed, self.acceleration, self.dt,
+                                         self.lookahead_s, self.gain)
+                self.streaming = "servo"
+            else:
+                ok = self.control.speedJ(setpoint.dq.tolist(), self.acceleration, self.dt)
+                self.streaming = "speed"
+            if not ok:
+                log.warning("the controller refused a %s setpoint (script not running?)", setpoint.mode)
+        except RuntimeError as exc:
+            self.lost(str(exc))
+
+    def resync(self, q: np.ndarray) -> None:
+        super().resync(q)
+        self.streaming = None
+
+    def pacer(self, rate_hz: float) -> RtdePacer:
+        return RtdePacer(self, rate_hz)

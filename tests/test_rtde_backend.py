@@ -1,0 +1,262 @@
+"""The ur_rtde backend against a test double of RTDEControlInterface / RTDEReceiveInterface."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from nwr.common.config import Profile
+from nwr.services.bridge.core import Setpoint
+from nwr.services.bridge.main import envelope_for
+from nwr.services.bridge.ur_rtde import RobotConnectionError, URRtdeBackend
+
+DT = 0.002
+
+
+class FakeRobot:
+    """Shared state of the fake controller: what was called, and injectable faults."""
+
+    def __init__(self, q) -> None:
+        self.q = list(q)
+        self.calls: list[tuple] = []
+        self.connected = True
+        self.protective = False
+        self.estop = False
+        self.program = True
+        self.refuse_connect = False
+
+
+class FakeControl:
+    def __init__(self, robot: FakeRobot) -> None:
+        self.r = robot
+
+    def _call(self, name, *args):
+        if not self.r.connected and name not in ("disconnect", "isConnected", "reconnect"):
+            raise RuntimeError(f"{name}: not connected")
+        self.r.calls.append((name, *args))
+
+    # ur_rtde's servoJ takes positional arguments only: so does the double.
+    def servoJ(self, q, speed, acceleration, time, lookahead_time, gain, /):
+        self._call("servoJ", list(q), speed, acceleration, time, lookahead_time, gain)
+        self.r.q = list(q)
+        return self.r.program
+
+    def speedJ(self, qd, acceleration, time, /):
+        self._call("speedJ", list(qd), acceleration, time)
+        return self.r.program
+
+    def servoStop(self, a, /):
+        self._call("servoStop", a)
+        return True
+
+    def speedStop(self, a, /):
+        self._call("speedStop", a)
+        return True
+
+    def initPeriod(self):
+        self._call("initPeriod")
+        return 0
+
+    def waitPeriod(self, t, /):
+        self._call("waitPeriod", t)
+
+    def isConnected(self):
+        return self.r.connected
+
+    def isProgramRunning(self):
+        self._call("isProgramRunning")
+        return self.r.program
+
+    def reuploadScript(self):
+        self._call("reuploadScript")
+        self.r.program = True
+        return True
+
+    def reconnect(self):
+        self.r.calls.append(("reconnect",))
+        return not self.r.refuse_connect and self.r.connected
+
+    def stopScript(self):
+        self._call("stopScript")
+
+    def disconnect(self):
+        self.r.calls.append(("disconnect",))
+
+
+class FakeReceive:
+    def __init__(self, robot: FakeRobot) -> None:
+        self.r = robot
+
+    def _check(self):
+        if not self.r.connected:
+            raise RuntimeError("receive: not connected")
+
+    def getActualQ(self):
+        self._check()
+        return list(self.r.q)
+
+    def getActualQd(self):
+        self._check()
+        return [0.0] * len(self.r.q)
+
+    def isProtectiveStopped(self):
+        return self.r.protective
+
+    def isEmergencyStopped(self):
+        return self.r.estop
+
+    def isConnected(self):
+        return self.r.connected
+
+    def reconnect(self):
+        return not self.r.refuse_connect and self.r.connected
+
+    def disconnect(self):
+        self.r.calls.append(("receive.disconnect",))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def setup():
+    env, q0, _ = envelope_for(Profile())
+    robot = FakeRobot(q0)
+    clock = Clock()
+    made = []
+
+    def factory(ip, hz):
+        if robot.refuse_connect:
+            raise RuntimeError("connection refused")
+        made.append((ip, hz))
+        return FakeControl(robot), FakeReceive(robot)
+
+    backend = URRtdeBackend(env, DT, "192.0.2.10", lookahead_s=0.1, gain=300.0, reconnect_min_s=0.5,
+                            reconnect_max_s=4.0, factory=factory, clock=clock)
+    return backend, robot, clock, made, np.asarray(q0)
+
+
+def names(robot):
+    return [c[0] for c in robot.calls]
+
+
+def test_rtde_is_not_imported_by_the_bridge():
+    import nwr.services.bridge.main  # noqa: F401
+
+    assert "rtde_control" not in sys.modules and "rtde_receive" not in sys.modules
+
+
+def test_position_and_velocity_streams(setup):
+    backend, robot, _, made, q0 = setup
+    backend.connect()
+    assert made == [("192.0.2.10", 500.0)]
+    q = q0 + 0.001
+    sent = backend.send_action(Setpoint("position", q, np.zeros(6), np.zeros(6), DT))
+    assert np.array_equal(sent.q, q)
+    name, q_sent, speed, acc, time, lookahead, gain = robot.calls[-1]
+    assert name == "servoJ" and q_sent == q.tolist() and time == DT and lookahead == 0.1 and gain == 300.0
+    backend.send_action(Setpoint("velocity", q, np.full(6, 0.2), np.zeros(6), DT))
+    assert robot.calls[-1] == ("speedJ", [0.2] * 6, 8.0, DT)
+    backend.send_action(Setpoint("hold", q, np.zeros(6), np.zeros(6), DT))
+    assert robot.calls[-1] == ("speedStop", 8.0)
+    backend.send_action(Setpoint("hold", q, np.zeros(6), np.zeros(6), DT))
+    assert names(robot).count("speedStop") == 1  # the stream ends once
+
+
+def test_send_returns_what_the_guard_let_through(setup):
+    backend, robot, _, _, q0 = setup
+    backend.connect()
+    wild = q0 + 0.5
+    sent = backend.send_action(Setpoint("position", wild, np.zeros(6), np.zeros(6), DT))
+    assert backend.guarded == 1
+    assert np.all(np.abs(sent.q - q0) <= backend.env.v_max * DT * 1.5 + 1e-9)
+    assert robot.calls[-1][1] == sent.q.tolist()
+
+
+def test_pacing_uses_init_and_wait_period(setup):
+    backend, robot, _, _, _ = setup
+    backend.connect()
+    pacer = backend.pacer(500.0)
+    assert pacer.sleep() and pacer.sleep()
+    assert names(robot) == ["initPeriod", "waitPeriod", "initPeriod"]
+
+
+def test_faults_are_reported(setup):
+    backend, robot, _, _, _ = setup
+    backend.connect()
+    assert backend.get_observation().fault is None
+    robot.protective = True
+    obs = backend.get_observation()
+    assert obs.fault == "protective_stop" and "pendant" in obs.detail
+    robot.protective, robot.estop = False, True
+    assert backend.get_observation().fault == "emergency_stop"
+    robot.estop, robot.program = False, False
+    assert backend.get_observation().fault == "script_not_running"
+    assert "reuploadScript" in names(robot)
+    assert backend.get_observation().fault is None  # re-uploaded
+
+
+def test_protective_stop_is_never_cleared_by_the_bridge(setup):
+    backend, robot, _, _, _ = setup
+    backend.connect()
+    robot.protective = True
+    for _ in range(10):
+        assert backend.get_observation().fault == "protective_stop"
+    assert "reuploadScript" not in names(robot)
+
+
+def test_disconnect_and_reconnect_with_backoff(setup):
+    backend, robot, clock, made, q0 = setup
+    backend.connect()
+    backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    robot.connected = False
+    robot.refuse_connect = True
+    obs = backend.get_observation()
+    assert obs.fault == "disconnected" and np.array_equal(obs.q, q0)
+    # Sending while disconnected does nothing and does not raise.
+    backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    attempts = []
+    for t in np.arange(0.0, 10.0, 0.1):
+        clock.t = float(t)
+        before = backend.reconnects
+        assert backend.get_observation().fault == "disconnected"
+        if backend.reconnects > before:
+            attempts.append(round(float(t), 1))
+    gaps = np.diff(attempts)
+    assert attempts[0] == 0.0 and list(gaps[:3]) == pytest.approx([0.5, 1.0, 2.0], abs=0.11)
+    assert max(gaps) <= 4.0 + 0.11  # capped at reconnect_max_s
+    robot.connected, robot.refuse_connect = True, False
+    clock.t = 100.0
+    assert backend.get_observation().fault is None and backend.connected
+
+
+def test_a_call_that_raises_marks_the_connection_lost(setup):
+    backend, robot, _, _, q0 = setup
+    backend.connect()
+    robot.connected = False
+    backend.send_action(Setpoint("velocity", q0, np.zeros(6), np.zeros(6), DT))
+    assert not backend.connected
+
+
+def test_clean_release_on_shutdown(setup):
+    backend, robot, _, _, q0 = setup
+    backend.connect()
+    backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    backend.disconnect()
+    assert names(robot)[-4:] == ["servoStop", "stopScript", "disconnect", "receive.disconnect"]
+    backend.disconnect()  # twice is fine
+    assert backend.control is None
+
+
+def test_connection_failure_says_what_to_check(setup):
+    backend, robot, _, _, _ = setup
+    robot.refuse_connect = True
+    with pytest.raises(RobotConnectionError, match="remote control mode.*30004"):
+        backend.connect()
