@@ -1,4 +1,9 @@
-"""Recorder process: every message under nwr/<robot>/ -> one MCAP file."""
+"""Recorder process: every message under nwr/<robot>/ -> MCAP file(s).
+
+The Zenoh callback only queues (key, payload, receive time); decoding,
+writing, the time-based chunk flush and file splitting happen in this
+process's own loop (:mod:`.core`).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ import datetime as dt
 import logging
 import queue
 from pathlib import Path
+from typing import IO
 
 import zenoh
 
@@ -14,89 +20,131 @@ from nwr.common import keys
 from nwr.common.config import Profile, encode_profile
 from nwr.common.errors import DecodeError
 from nwr.common.node import Node
-from nwr.services.recorder.core import McapRecorder, _version
+from nwr.services.recorder.core import (
+    RecordingError,
+    SessionRecorder,
+    SplitPolicy,
+    parse_labels,
+    part_path,
+    session_metadata,
+)
 
 log = logging.getLogger(__name__)
 
+MB = 1024 * 1024
+# How long the loop waits for a message before it checks the chunk's age and
+# the stop event: the time-based flush is this much late at worst.
+POLL_S = 0.1
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--output", "-o", help="MCAP file to write (default: <recorder.directory>/<session>.mcap)")
+    parser.add_argument("--output", "-o",
+                        help="MCAP file to write (default: <recorder.directory>/<session>.mcap); split sessions "
+                             "write <stem>-000.mcap, <stem>-001.mcap, ... beside it")
     parser.add_argument("--session", help="session name (default: the start time)")
     parser.add_argument("--label", action="append", default=[], metavar="KEY=VALUE",
                         help="free label stored in the session metadata (repeatable), e.g. participant=P07")
+    parser.add_argument("--strategy", metavar="NAME",
+                        help="reflex strategy to note in the session metadata when the planner runs another one "
+                             "than the profile's (default: planner.strategy)")
+    parser.add_argument("--split-size", type=float, metavar="MB",
+                        help="start a new file when the current one reaches this size, MB of 2^20 bytes "
+                             "(overrides recorder.split_size_mb; 0 = never)")
+    parser.add_argument("--split-duration", type=float, metavar="S",
+                        help="start a new file when the current one spans this many seconds "
+                             "(overrides recorder.split_duration_s; 0 = never)")
 
 
 def session_name() -> str:
     return dt.datetime.now().strftime("session-%Y%m%d-%H%M%S")
 
 
+def split_policy(profile: Profile, args: argparse.Namespace) -> SplitPolicy:
+    cfg = profile.recorder
+    size_mb = cfg.split_size_mb if getattr(args, "split_size", None) is None else args.split_size
+    duration_s = cfg.split_duration_s if getattr(args, "split_duration", None) is None else args.split_duration
+    if size_mb < 0 or duration_s < 0:
+        raise RecordingError(f"--split-size ({size_mb}) and --split-duration ({duration_s}) must be >= 0 "
+                             "(0 = never split)")
+    return SplitPolicy(max_bytes=round(size_mb * MB), max_duration_ns=round(duration_s * 1e9))
+
+
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.recorder
     session = args.session or session_name()
-    path = Path(args.output) if args.output else Path(cfg.directory) / f"{session}.mcap"
-    labels = {}
-    for label in args.label:
-        key, sep, value = label.partition("=")
-        if not sep or not key:
-            log.error("label %r is not KEY=VALUE", label)
-            return 2
-        labels[key] = value
-    path.parent.mkdir(parents=True, exist_ok=True)
+    labels = parse_labels(args.label)
+    split = split_policy(profile, args)
+    base = Path(args.output) if args.output else Path(cfg.directory) / f"{session}.mcap"
+    base.parent.mkdir(parents=True, exist_ok=True)
     robot = profile.robot.name
-    inbox: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
-    with Node("recorder", robot, profile.zenoh, listen_slot="recorder") as node, path.open("wb") as stream:
+    inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
+
+    def open_part(part: int) -> IO[bytes]:
+        path = part_path(base, part, split.enabled)
+        log.info("writing %s", path)
+        return path.open("wb")
+
+    def close_part(_part: int, stream: IO[bytes]) -> None:
+        stream.close()
+
+    with Node("recorder", robot, profile.zenoh, listen_slot="recorder") as node:
         node.install_signal_handlers()
-        recorder = McapRecorder(stream, robot, compression=cfg.compression, chunk_size=cfg.chunk_size)
-        recorder.metadata("session", {
-            "robot": robot,
-            "session": session,
-            "profile": encode_profile(profile).decode(),
-            "software_version": _version(),
-            "start_time": dt.datetime.now(dt.timezone.utc).isoformat(),
-            **{f"label.{k}": v for k, v in labels.items()},
-        })
+        metadata = session_metadata(
+            robot=robot, session=session, profile_json=encode_profile(profile).decode(),
+            strategy=getattr(args, "strategy", None) or profile.planner.strategy, planner=profile.planner.name,
+            start_time_iso=dt.datetime.now(dt.timezone.utc).isoformat(), start_monotonic_ns=node.clock.now_ns(),
+            labels=labels,
+        )
+        recorder = SessionRecorder(
+            open_part, close_part, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
+            chunk_interval_ns=round(cfg.chunk_interval_s * 1e9), split=split,
+        )
 
         def on_sample(sample: zenoh.Sample) -> None:
             # Cheap on Zenoh's thread: decoding and writing happen below.
             inbox.put((str(sample.key_expr), sample.payload.to_bytes(), node.clock.now_ns()))
 
         sub = node.session.declare_subscriber(f"{keys.prefix(robot)}/**", on_sample)
-        log.info("recording %s/** to %s", keys.prefix(robot), path)
+        log.info("recording %s/** to %s%s", keys.prefix(robot), base,
+                 f" (split: {split.max_bytes / MB:g} MB, {split.max_duration_ns / 1e9:g} s)" if split.enabled else "")
         bad = 0
+
+        def record(item: tuple[str, bytes, int]) -> None:
+            nonlocal bad
+            full_key, payload, received = item
+            try:
+                message = keys.codec(keys.relative_key(robot, full_key)).decode(payload)
+            except (DecodeError, ValueError) as exc:
+                # ValueError too: Codec.decode lets UnicodeDecodeError (a string
+                # that is not UTF-8) escape, and no sample may stop the recorder.
+                bad += 1
+                node.diag("warning", "decode_error", f"not recorded: {exc}")
+                return
+            recorder.write(full_key, message, received)
+
         try:
-            while True:
+            while not node.stop.is_set():
                 try:
-                    item = inbox.get(timeout=0.1)
+                    item = inbox.get(timeout=POLL_S)
                 except queue.Empty:
-                    if node.stop.is_set():
-                        break
-                    continue
-                if item is None:
-                    break
-                full_key, payload, received = item
-                try:
-                    relative = keys.relative_key(robot, full_key)
-                    message = keys.codec(relative).decode(payload)
-                except DecodeError as exc:
-                    bad += 1
-                    node.diag("warning", "decode_error", f"not recorded: {exc}")
-                    continue
-                recorder.write(full_key, message, received)
+                    item = None
+                if item is not None:
+                    record(item)
+                # Also when nothing arrives: a quiet pipeline must not keep its last chunk in memory.
+                recorder.flush_if_due(node.clock.now_ns())
         finally:
             sub.undeclare()
-            while True:  # what arrived before the subscriber closed is kept
-                try:
-                    item = inbox.get_nowait()
-                except queue.Empty:
-                    break
-                if item is not None:
+            try:
+                while True:  # what arrived before the subscriber closed is kept
                     try:
-                        recorder.write(item[0], keys.codec(keys.relative_key(robot, item[0])).decode(item[1]), item[2])
-                    except DecodeError:
-                        bad += 1
-            recorder.finish()
-            total = sum(s.count for s in recorder.channels.values())
-            gaps = {k: s.gaps for k, s in recorder.channels.items() if s.gaps}
-            log.info("wrote %d messages on %d channels to %s; %d malformed dropped; sequence gaps: %s",
-                     total, len(recorder.channels), path, bad, gaps or "none")
+                        item = inbox.get_nowait()
+                    except queue.Empty:
+                        break
+                    record(item)
+            finally:
+                report = recorder.finish()
+            log.info("wrote %s; %d malformed samples dropped", report.format(), bad)
+            if any(report.gaps.values()):
+                log.warning("sequence gaps: messages were lost before they reached the recorder: %s",
+                            {k: v for k, v in report.gaps.items() if v})
     return 0

@@ -1,0 +1,63 @@
+"""The recorder's subcommands of ``nwr``: ``record``, ``info`` and ``recover``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import Any
+
+from nwr.common.config import load_profile
+from nwr.services.recorder import main as recorder_main
+from nwr.services.recorder import salvage
+
+log = logging.getLogger(__name__)
+
+
+def register(subparsers: Any) -> None:
+    record = subparsers.add_parser(
+        "record", help="run the recorder alone (same as `nwr run recorder`)",
+        description="Record every message under nwr/<robot>/ to MCAP until Ctrl-C or SIGTERM. Chunks are closed "
+                    "every recorder.chunk_interval_s, so a killed recorder leaves a file `nwr recover` can repair.",
+    )
+    recorder_main.add_arguments(record)
+    record.set_defaults(handler=_record)
+
+    info = subparsers.add_parser(
+        "info", help="print a recording's channels, counts, rates, duration, gaps and metadata",
+        description="Describe an MCAP recording. Works on unfinished (crashed) files too, reading up to the "
+                    "first damaged record.",
+    )
+    info.add_argument("file", help="MCAP recording")
+    info.add_argument("--full", action="store_true", help="print long metadata values (the profile) in full")
+    info.set_defaults(handler=_info)
+
+    recover = subparsers.add_parser(
+        "recover", help="rewrite a damaged recording (no summary, truncated last chunk) into a valid one",
+        description="Read a damaged MCAP file front to back up to the first unreadable record and write what "
+                    "could be saved to a new valid file, then say how much was saved and what was lost.",
+    )
+    recover.add_argument("file", help="damaged MCAP recording (left untouched)")
+    recover.add_argument("--output", "-o", help="file to write (default: <file stem>-recovered.mcap)")
+    recover.set_defaults(handler=_recover)
+
+
+def _record(args: argparse.Namespace) -> int:
+    return int(recorder_main.run(load_profile(args.profile), args) or 0)
+
+
+def _info(args: argparse.Namespace) -> int:
+    report = salvage.info_file(Path(args.file))
+    print(salvage.format_info(report, full=args.full))
+    return 0
+
+
+def _recover(args: argparse.Namespace) -> int:
+    path = Path(args.file)
+    output = Path(args.output) if args.output else salvage.default_recovery_path(path)
+    result = salvage.recover_file(path, output)
+    print(salvage.format_recovery(result))
+    if result.written == 0:
+        log.error("no message of %s could be saved", path)
+        return 1
+    return 0
