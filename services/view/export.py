@@ -1,0 +1,154 @@
+"""``nwr export --foxglove IN OUT``: a recording plus the view's channels, for Foxglove.
+
+OUT holds every record of IN unchanged (schemas, channels, messages with
+their log and publish times and sequence numbers, metadata) and, merged in
+log-time order, the view's channels (:data:`nwr.services.view.core.CHANNELS`):
+the robot description, the link transforms, the pad, contact and reflex
+scene updates (Foxglove's protobuf schemas, as the foxglove-sdk encodes
+them) and the plottable JSON signals. A ``foxglove_export`` metadata record
+says where they came from.
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from nwr.common import keys
+from nwr.common.errors import DecodeError, NwrError
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.recorder.core import SESSION_METADATA, Recorded, read_recording
+from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
+
+log = logging.getLogger(__name__)
+
+EXPORT_METADATA = "foxglove_export"
+
+
+class ExportError(NwrError):
+    """A recording cannot be exported or played in the view."""
+
+
+def load_records(path: Path) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
+    """The pipeline's messages of a recording (an exported one too), decoded strictly."""
+    if not path.exists():
+        raise FileNotFoundError(f"recording {path} does not exist")
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        metadata = {rec.name: dict(rec.metadata) for rec in reader.iter_metadata()}
+        f.seek(0)
+        summary = make_reader(f).get_summary()
+    robot = metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
+    head = keys.prefix(robot) + "/"
+    topics = {c.topic for c in summary.channels.values()} if summary is not None else None
+    if topics is not None and all(t.startswith(head) for t in topics):
+        return read_recording(path, robot)
+    # An exported file (or one without a summary): only the robot's own channels
+    # are the pipeline's; everything else (the view's channels) is skipped.
+    decoders: dict[str, msgspec.json.Decoder] = {}
+    out: list[Recorded] = []
+    with path.open("rb") as f:
+        for _schema, channel, msg in make_reader(f).iter_messages(log_time_order=True):
+            if not channel.topic.startswith(head):
+                continue
+            relative = keys.relative_key(robot, channel.topic)
+            dec = decoders.get(relative)
+            if dec is None:
+                dec = decoders[relative] = msgspec.json.Decoder(keys.topic_for(relative).type)
+            try:
+                out.append(Recorded(relative, msg.log_time, dec.decode(msg.data)))
+            except msgspec.ValidationError as exc:
+                raise DecodeError(f"{path}: message on {channel.topic} at {msg.log_time}: {exc}") from exc
+    return out, metadata
+
+
+def make_core(description: str | None = None) -> ViewCore:
+    desc = load_description(description or None)
+    return ViewCore(desc, RobotModel(desc))
+
+
+def recording_timeline(records: list[Recorded], rate_hz: float = DEFAULT_RATE_HZ,
+                       description: str | None = None) -> list[Output]:
+    return list(timeline(records, make_core(description), rate_hz))
+
+
+@dataclass
+class ExportReport:
+    copied: int
+    added: dict[str, int]
+
+    def format(self) -> str:
+        added = ", ".join(f"{t} {n}" for t, n in self.added.items())
+        return f"copied {self.copied} messages; added {sum(self.added.values())} ({added})"
+
+
+def export_foxglove(src: Path, dst: Path, *, rate_hz: float = DEFAULT_RATE_HZ,
+                    description: str | None = None) -> ExportReport:
+    """Write ``dst``: ``src`` plus the view's channels (see the module docstring)."""
+    if src.resolve() == dst.resolve():
+        raise ExportError(f"output {dst} is the input: write the export to another file")
+    records, metadata = load_records(src)
+    if EXPORT_METADATA in metadata:
+        raise ExportError(f"{src} was already exported for Foxglove ({metadata[EXPORT_METADATA]}); "
+                          "export the original recording instead")
+    if not records:
+        raise ExportError(f"{src} holds no message of the pipeline: nothing to draw")
+    outputs = recording_timeline(records, rate_hz, description)
+    added: dict[str, int] = {}
+    copied = 0
+    with src.open("rb") as fin, dst.open("wb") as fout:
+        writer = Writer(fout, compression=CompressionType.ZSTD)
+        writer.start(profile="nwr", library="nwr view export")
+        reader = make_reader(fin)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, dict(record.metadata))
+        fin.seek(0)
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        view_ids: dict[str, int] = {}
+        for spec in CHANNELS:
+            sid = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema)
+            view_ids[spec.topic] = writer.register_channel(spec.topic, spec.message_encoding, sid)
+
+        def originals() -> Iterator[tuple[int, int, Any]]:
+            for schema, channel, msg in make_reader(fin).iter_messages(log_time_order=True):
+                if channel.topic in CHANNEL_BY_TOPIC:
+                    raise ExportError(f"{src} already has a channel {channel.topic!r}: export the original recording")
+                if channel.id not in channel_ids:
+                    sid = 0
+                    if schema is not None:
+                        if schema.id not in schema_ids:
+                            schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                        sid = schema_ids[schema.id]
+                    channel_ids[channel.id] = writer.register_channel(
+                        channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+                yield msg.log_time, 0, msg
+
+        def views() -> Iterator[tuple[int, int, Any]]:
+            for out in outputs:
+                yield out.log_time_ns, 1, out
+
+        for _t, kind, item in heapq.merge(originals(), views(), key=lambda x: (x[0], x[1])):
+            if kind == 0:
+                writer.add_message(channel_ids[item.channel_id], item.log_time, item.data, item.publish_time,
+                                   item.sequence)
+                copied += 1
+            else:
+                writer.add_message(view_ids[item.topic], item.log_time_ns, item.data, item.log_time_ns)
+                added[item.topic] = added.get(item.topic, 0) + 1
+        writer.add_metadata(EXPORT_METADATA, {
+            "source": src.name, "scene_rate_hz": f"{rate_hz:g}",
+            "channels": json.dumps({spec.topic: spec.schema_name for spec in CHANNELS}),
+        })
+        writer.finish()
+    log.info("exported %s -> %s", src, dst)
+    return ExportReport(copied, added)
