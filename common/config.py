@@ -120,13 +120,52 @@ class TaskSection(_Section):
     ramp_s: NonNegative = 0.5
 
 
+STRATEGIES = ("uniform", "location", "cartesian", "cartesian-smooth")
+Strategy = Literal["uniform", "location", "cartesian", "cartesian-smooth"]
+
+
+def _w(*rows: list[float]) -> dict[str, list[float]]:
+    return dict(zip(("shoulder", "upper_arm", "elbow", "forearm", "wrist"), rows))
+
+
+class LocationWeights(_Section):
+    # The paper's Table II: [w_base, w_shoulder, w_elbow, w_wrist] per body
+    # region, for pain level 3 and 4 (PL 1-2: all zero, no motion). The wrist
+    # weight applies to all three wrist joints.
+    pl3: dict[str, list[float]] = msgspec.field(default_factory=lambda: _w(
+        [0.2, 0.8, 0.6, 0.0], [0.2, 0.8, 0.6, 0.0], [0.0, 0.6, 0.8, 0.2], [0.0, 0.6, 0.8, 0.2], [0.0, 0.3, 0.6, 0.8]))
+    pl4: dict[str, list[float]] = msgspec.field(default_factory=lambda: _w(
+        [0.5, 1.0, 0.7, 0.1], [0.5, 1.0, 0.7, 0.1], [0.0, 0.8, 1.0, 0.4], [0.0, 0.8, 1.0, 0.4], [0.0, 0.6, 0.8, 1.0]))
+
+
 class PlannerSection(_Section):
     # Instance name: the planner publishes reflex/<name>/status and signs its
     # commands with it; the bridge follows the planner named active_planner.
     name: Name = "cartesian"
-    strategy: Literal["cartesian"] = "cartesian"
+    # Reflex: "uniform" (UR), "location" (LR), "cartesian" (CR) or
+    # "cartesian-smooth" (CR with its velocity ramped in and out).
+    strategy: Strategy = "cartesian"
     # Command rate, Hz (the UR e-Series control period is 2 ms).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
+    # Joint-space reflexes: the paper's human range of motion q_max, degrees,
+    # per joint (base, shoulder, elbow, wrist 1-3). UR adds uniform_fraction of
+    # it (the paper's 1/2), LR adds G(p) W(PL, region) q_max; both in the
+    # robot description's reflex_direction, clipped to the joint limits.
+    q_max_deg: list[float] = msgspec.field(default_factory=lambda: [40.0, 70.0, 146.0, 73.0, 0.0, 0.0])
+    uniform_fraction: Fraction = 0.5
+    location_weights: LocationWeights = msgspec.field(default_factory=LocationWeights)
+    # Smoothed Cartesian reflex: rise and fall time of its velocity (a raised
+    # cosine), s; the plateau is raised so the displacement equals the plain
+    # reflex's.
+    smooth_ramp_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.1
+    # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
+    # motion would move the touched pad toward the contact, and report it.
+    guarded: bool = False
+    # The study's target pads in the order they light up (names); empty = every
+    # pad, in an order shuffled with target_seed. The target moves on after
+    # each touch of it.
+    target_order: list[str] = []
+    target_seed: int = 1
     # Cartesian reflex: speed of the pad at G(p) = 1, m/s (the paper leaves it
     # open; 0.25 m/s withdraws the pad 12.5 cm in the 0.5 s reflex).
     v_max_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.25
@@ -150,20 +189,47 @@ class PlannerSection(_Section):
 
 
 class BridgeSection(_Section):
-    backend: Literal["sim"] = "sim"
-    # Simulation and control rate, Hz.
+    # "sim": simulated arm. "ur_rtde": a real UR (or URSim) through ur_rtde;
+    # it also needs --robot-ip and --i-am-next-to-the-robot on the command line.
+    backend: Literal["sim", "ur_rtde"] = "sim"
+    # Simulation and control rate, Hz (the UR e-Series controller runs at 500 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
     # Robot state publication rate, Hz (plus one out of schedule per reflex onset).
     state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 125.0
     # The only planner whose commands move the arm.
     active_planner: Name = "cartesian"
-    # No command for this long: decelerate to rest and hold, s.
-    command_timeout_s: Positive = 0.02
-    # Fractions of the robot description's joint speed / acceleration limits.
+    # No command for this long: decelerate to rest and hold, s (10 control cycles).
+    command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.02
+    # Skin data older than this holds task and return motions, s (three periods
+    # of the 25 Hz AIRSKIN stream). Reflexes already under way may finish.
+    skin_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.12
+    # Fractions of the robot description's joint speed / acceleration / jerk limits.
     speed_fraction: Fraction = 1.0
     acceleration_fraction: Fraction = 1.0
+    jerk_fraction: Fraction = 1.0
+    # Tighter per-joint limits than the robot description's (rad, rad/s, rad/s^2,
+    # rad/s^3); empty = the description's. Values looser than the description's
+    # are a configuration error, never silently used.
+    q_min: list[float] = []
+    q_max: list[float] = []
+    v_max: list[float] = []
+    a_max: list[float] = []
+    j_max: list[float] = []
+    # A position target farther than this from the commanded pose is rejected,
+    # rad: a planner that lost track of the arm must not swing it there.
+    position_jump_rad: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.1
+    # A command whose seq is at most the last accepted one is a duplicate or out
+    # of order and is rejected, unless it is this far below it: a restarted planner.
+    seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500
     # Initial pose, rad; empty = the robot description's home pose.
     initial_q: list[float] = []
+    # ur_rtde backend: servoJ lookahead time, s (UR allows 0.03-0.2; longer is
+    # smoother but lags more) and proportional gain (UR allows 100-2000).
+    servo_lookahead_s: Annotated[float, msgspec.Meta(ge=0.03, le=0.2)] = 0.1
+    servo_gain: Annotated[float, msgspec.Meta(ge=100, le=2000)] = 300.0
+    # ur_rtde backend: reconnection backoff, doubling from min to max, s.
+    reconnect_min_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+    reconnect_max_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 8.0
 
 
 class RecorderSection(_Section):
@@ -172,6 +238,13 @@ class RecorderSection(_Section):
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     # Chunks are closed at this size, bytes: small chunks lose little on a crash.
     chunk_size: Annotated[int, msgspec.Meta(ge=1024, le=64 * 1024 * 1024)] = 256 * 1024
+    # ... and once their first message is this old, s, however small they are,
+    # and flushed to the OS: a kill -9 loses at most about this much.
+    chunk_interval_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+    # Split a session into <session>-000.mcap, -001, ... when a file reaches this
+    # size, MB (1 MB = 2^20 bytes), or spans this long, s; 0 = never.
+    split_size_mb: Annotated[float, msgspec.Meta(ge=0, le=1024 * 1024)] = 0.0
+    split_duration_s: Annotated[float, msgspec.Meta(ge=0, le=7 * 24 * 3600)] = 0.0
 
 
 class Profile(_Section):

@@ -118,7 +118,7 @@ class Codec:
     def decode(self, payload: bytes | bytearray | memoryview) -> Any:
         try:
             return self._decoder.decode(payload)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+        except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError) as exc:
             reason = str(exc)
             if str(m.FINITE_BOUND) in reason:
                 reason = f"a number is NaN, infinite or beyond +-{m.FINITE_BOUND:g} ({reason})"

@@ -43,6 +43,12 @@ RobotStatus = Literal[
     "idle",  # no command received yet: holding still
     "stale_command",  # commands stopped arriving: decelerating to rest and holding
     "stopped",  # stopped on request or at shutdown
+    "stale_skin",  # skin data too old: task and return motions held (reflexes may finish)
+    "planner_lost",  # the active planner's liveliness token vanished: decelerating to rest and holding
+    "protective_stop",  # the robot controller is in a protective stop (ur_rtde backend)
+    "emergency_stop",  # the robot's emergency stop is pressed (ur_rtde backend)
+    "script_not_running",  # the ur_rtde control script is not running on the controller
+    "disconnected",  # no connection to the robot controller: reconnecting with backoff
 ]
 
 
@@ -142,6 +148,33 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     accepted_ns: int = 0
     rejected: int = 0
     clipped: int = 0
+    # True while the bridge runs a controlled (jerk-limited) stop.
+    stopping: bool = False
+    # Per-joint distance (rad) and duration (s) of the current or last controlled stop.
+    stop_distance: list[Finite] = []
+    stop_time_s: Finite = 0.0
+    # Age of the newest skin sample at the bridge, s; -1 before the first one.
+    skin_age_s: Finite = -1.0
+    # Why the status is what it is, readable (empty while following normally).
+    detail: str = ""
+
+
+class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Does the touched pad retreat? Computed from the kinematics of the planned reflex.
+
+    Distances in m, speeds in m/s; "toward" is along the touched pad's outward
+    normal at the onset, i.e. toward the person touching it.
+    """
+
+    sample_dt_s: Finite
+    normal_speed_m_s: list[Finite]  # touched pad's speed along its normal, + toward the contact
+    toward_m: Finite  # furthest the touched pad moves toward the contact (0: it only retreats)
+    withdrawal_m: Finite  # where it ends, away from the contact
+    approach_m: list[Finite]  # per pad: how much closer it gets to the contact point
+    worst_pad: int
+    worst_approach_m: Finite
+    approached: bool  # the touched pad moved toward the contact
+    corrected: bool  # guarded mode changed the reflex so that it retreats
 
 
 class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -153,7 +186,11 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     trace: Trace
     started_ns: int
     duration_s: Finite
+    # Cartesian reflexes: the pad's commanded velocity v_c (m/s, base frame).
     direction: list[Finite] = []
+    # Joint-space reflexes: the joint target (rad).
+    target: list[Finite] = []
+    retreat: Retreat | None = None
 
 
 class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):
@@ -167,6 +204,8 @@ class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forb
     task_time_s: Finite
     saved_pose: list[Finite] | None = None
     reflex: ReflexInfo | None = None
+    # The study's target pad (the one whose LEDs turn red), -1 if none.
+    target_pad: int = -1
 
 
 class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unknown_fields=True):

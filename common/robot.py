@@ -51,7 +51,8 @@ _UNIT_TOLERANCE = 1e-6
 _NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 
 _ROBOT_KEYS: frozenset[str] = frozenset(
-    {"name", "urdf", "skin", "base_frame", "tool_frame", "joints", "max_acceleration", "max_jerk", "home"}
+    {"name", "urdf", "skin", "base_frame", "tool_frame", "joints", "max_acceleration", "max_jerk", "home",
+     "reflex_direction"}
 )
 _PAD_KEYS: frozenset[str] = frozenset({"id", "name", "region", "link", "point", "normal"})
 
@@ -79,7 +80,9 @@ class RobotDescription:
 
     Arrays have one entry per joint, in ``joints`` order, and are read-only:
     ``q_min``/``q_max`` (rad) and ``v_max`` (rad/s) come from the URDF,
-    ``a_max`` (rad/s^2), ``j_max`` (rad/s^3) and ``home`` (rad) from robot.toml.
+    ``a_max`` (rad/s^2), ``j_max`` (rad/s^3), ``home`` (rad) and
+    ``reflex_direction`` (+1/-1 per joint: the sign that makes a positive
+    joint-space reflex displacement a withdrawal) from robot.toml.
     ``pads`` is sorted by id, and ids are 0..n-1, so ``pads[i].id == i``.
     """
 
@@ -96,6 +99,7 @@ class RobotDescription:
     j_max: np.ndarray
     home: np.ndarray
     pads: tuple[Pad, ...]
+    reflex_direction: np.ndarray
 
     def pad(self, key: int | str) -> Pad:
         """Return a pad by id (int) or by name (str); raise ConfigError otherwise."""
@@ -170,6 +174,9 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
     a_max = _vector(doc["max_acceleration"], n, robot_path, "max_acceleration", positive=True)
     j_max = _vector(doc["max_jerk"], n, robot_path, "max_jerk", positive=True)
     home = _vector(doc["home"], n, robot_path, "home")
+    direction = _vector(doc.get("reflex_direction", [1.0] * n), n, robot_path, "reflex_direction")
+    if not np.all(np.isin(direction, (-1.0, 1.0))):
+        raise ConfigError(f"{robot_path}: reflex_direction must hold +1 or -1 per joint, got {direction.tolist()}")
     outside = [i for i in range(n) if not q_min[i] <= home[i] <= q_max[i]]
     if outside:
         details = "; ".join(
@@ -195,6 +202,7 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
         j_max=j_max,
         home=home,
         pads=pads,
+        reflex_direction=direction,
     )
 
 

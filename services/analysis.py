@@ -37,6 +37,12 @@ class TouchSummary:
     reflex_seq: int = 0
     onset_latency_ms: float | None = None
     withdrawal_mm: float | None = None
+    toward_mm: float | None = None  # touched pad's furthest move toward the contact
+    other_approach_mm: float | None = None  # any other pad's largest approach to the contact point
+    other_pad: str = ""
+    planned_toward_mm: float | None = None  # the planner's own retreat check
+    corrected: bool = False
+    strategy: str = ""
     resumed_after_s: float | None = None
     return_error_rad: float | None = None
 
@@ -88,12 +94,31 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         if resumed is not None:
             touch.resumed_after_s = (resumed.stamp_ns - t0) / 1e9
         window = (state_t >= t0) & (state_t <= end)
+        touch.strategy = reflex.strategy
         if window.any():
             q0 = state_q[np.argmax(state_t >= t0)]
-            p0 = model.pad_point(q0, touch.pad)
+            points0 = model.pad_points(q0)
+            p0 = points0[touch.pad]
             n0 = model.pad_normal(q0, touch.pad)
-            moved = [float(-(model.pad_point(q, touch.pad) - p0) @ n0) for q in state_q[window]]
-            touch.withdrawal_mm = 1e3 * max(moved)
+            d0 = np.linalg.norm(points0 - p0, axis=1)
+            along, closest = [], d0.copy()
+            for q in state_q[window]:
+                points = model.pad_points(q)
+                along.append(float((points[touch.pad] - p0) @ n0))
+                closest = np.minimum(closest, np.linalg.norm(points - p0, axis=1))
+            touch.withdrawal_mm = -1e3 * min(along)
+            touch.toward_mm = 1e3 * max(0.0, max(along))
+            approach = np.maximum(0.0, d0 - closest)
+            approach[touch.pad] = 0.0
+            worst = int(np.argmax(approach))
+            touch.other_approach_mm = 1e3 * float(approach[worst])
+            touch.other_pad = desc.pads[worst].name
+        planned = next((st.reflex.retreat for st in statuses
+                        if st.reflex is not None and st.reflex.reflex_seq == reflex.reflex_seq
+                        and st.reflex.retreat is not None), None)
+        if planned is not None:
+            touch.planned_toward_mm = 1e3 * planned.toward_m
+            touch.corrected = planned.corrected
         saved = next((st.saved_pose for st in statuses if st.stamp_ns >= t0 and st.saved_pose is not None), None)
         if resumed is not None and saved is not None and len(state_t):
             after = np.argmax(state_t >= resumed.stamp_ns) if (state_t >= resumed.stamp_ns).any() else len(state_t) - 1
@@ -129,13 +154,19 @@ def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
         [
             f"{(t.start_ns - t0_ns) / 1e9:6.2f}", t.name, t.region, f"{t.peak_hpa:5.1f}", str(t.level), f"{t.gain:.3f}",
             "yes" if t.reflex_seq else "no", f(t.onset_latency_ms, ".2f"), f(t.withdrawal_mm, ".1f"),
+            f(t.toward_mm, ".1f") + ("*" if t.corrected else ""),
+            "-" if t.other_approach_mm is None else f"{t.other_approach_mm:.1f} {t.other_pad}",
             f(t.resumed_after_s, ".2f"),
         ]
         for t in touches
     ]
 
 
-HEADER = ["t (s)", "pad", "region", "peak (hPa)", "PL", "gain", "reflex", "onset (ms)", "withdrawal (mm)", "resumed (s)"]
+HEADER = ["t (s)", "pad", "region", "peak (hPa)", "PL", "gain", "reflex", "onset (ms)", "withdrawal (mm)",
+          "toward (mm)", "other pad closer (mm)", "resumed (s)"]
+# withdrawal: furthest the touched pad moved away from the contact along its normal;
+# toward: furthest it moved toward the contact (* = guarded mode corrected the reflex);
+# other pad closer: the largest approach of any other pad to the contact point.
 
 
 def format_table(header: list[str], rows: list[list[str]]) -> str:

@@ -13,7 +13,7 @@ from importlib import import_module
 from pathlib import Path
 from typing import Any
 
-from nwr.common.config import load_profile, load_script
+from nwr.common.config import STRATEGIES, load_profile, load_script
 from nwr.common.errors import NwrError
 from nwr.common.node import setup_logging
 
@@ -25,9 +25,10 @@ SERVICES = {
     "planner": "reflex planner: task, state machine and reflex -> robot/command",
     "bridge": "robot bridge: robot/command -> the (simulated) arm -> robot/state",
     "recorder": "recorder: everything under nwr/<robot>/ -> MCAP",
+    "view": "view (read-only): the live 3D scene and signals for Foxglove over WebSocket",
 }
 # Modules that add subcommands of their own (see build_parser).
-COMMAND_MODULES: list[str] = []
+COMMAND_MODULES: list[str] = ["nwr.services.recorder.commands", "nwr.services.figures", "nwr.services.view.commands"]
 # Started in this order; the gateway starts its clock once the others are alive.
 START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
 
@@ -82,6 +83,13 @@ def _launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", help="session name of the recording (default: the start time)")
     p.add_argument("--output", "-o", help="recording file (default: recordings/<session>.mcap)")
     p.add_argument("--no-record", action="store_true", help="do not start the recorder")
+    p.add_argument("--view", nargs="?", type=int, const=8765, metavar="PORT",
+                   help="also start the Foxglove view (read-only) on ws://127.0.0.1:PORT (default 8765)")
+    p.add_argument("--follow-target", type=float, metavar="SECONDS",
+                   help="simulated participant: press the study's target pad every SECONDS")
+    p.add_argument("--reflex", choices=STRATEGIES,
+                   help="reflex strategy; the planner is then named after it and is the active one "
+                        "(default: the profile's planner)")
 
 
 def _spawn(profile: str, log_level: str, service: str, extra: list[str]) -> subprocess.Popen[bytes]:
@@ -113,9 +121,15 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     """Start every service; wait for Ctrl-C/SIGTERM (or the script's end); stop them all."""
     from nwr.services.recorder.main import session_name
 
+    from nwr.services.planner.main import planner_service
+
+    profile = load_profile(args.profile)
     session = args.session or session_name()
-    output = Path(args.output) if args.output else Path(load_profile(args.profile).recorder.directory) / f"{session}.mcap"
+    output = Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
+    strategy = args.reflex or profile.planner.strategy
     services = [s for s in START_ORDER if not (s == "recorder" and args.no_record)]
+    if getattr(args, "view", None):
+        services.insert(services.index("gateway"), "view")  # read-only: nobody waits for it
     procs: dict[str, subprocess.Popen[bytes]] = {}
     stop = False
 
@@ -128,17 +142,23 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
         for name in services:
             extra: list[str] = []
             if name == "recorder":
-                extra = ["--session", session, "--output", str(output)]
+                extra = ["--session", session, "--output", str(output), "--strategy", strategy]
+            if name == "view":
+                extra = ["--port", str(args.view)]
+            if args.reflex and name == "planner":
+                extra = ["--name", args.reflex, "--reflex", args.reflex]
+            if args.reflex and name == "bridge":
+                extra = ["--active", args.reflex]
             if name == "gateway":
-                from nwr.services.planner.main import planner_service
-
-                planner = planner_service(load_profile(args.profile).planner.name)
-                waits = [planner if s == "planner" else s for s in services if s != "gateway"]
+                planner = planner_service(args.reflex or profile.planner.name)
+                waits = [planner if s == "planner" else s for s in services if s not in ("gateway", "view")]
                 extra = ["--wait-for", ",".join(waits)]
                 if args.script:
                     extra += ["--script", args.script]
                 if until_script_end:
                     extra.append("--exit-at-end")
+                if args.follow_target:
+                    extra += ["--follow-target", str(args.follow_target)]
             procs[name] = _spawn(args.profile, args.log_level, name, extra)
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
         while not stop:

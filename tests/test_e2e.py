@@ -29,20 +29,20 @@ SCRIPT = Path(__file__).parent / "data" / "short.toml"
 BASE_PORT = 17450  # away from the default mesh, so a running demo does not interfere
 
 
-def write_profile(tmp_path: Path) -> Path:
+def write_profile(tmp_path: Path, port: int) -> Path:
     profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {BASE_PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+    profile.write_text(f'[zenoh]\nbase_port = {port}\n[recorder]\ndirectory = "{tmp_path}"\n')
     return profile
 
 
-def intruder(stop: threading.Event, counts: dict[str, int]) -> None:
+def intruder(stop: threading.Event, counts: dict[str, int], port: int, owner: str) -> None:
     """Publishes garbage and a foreign planner's commands into the running pipeline."""
-    cfg = ZenohSection(base_port=BASE_PORT)
+    cfg = ZenohSection(base_port=port)
     with zenoh.open(zenoh_config(cfg)) as session:
         pressure = session.declare_publisher(keys.key("ur10e", keys.SKIN_PRESSURE))
         command = session.declare_publisher(keys.key("ur10e", keys.ROBOT_COMMAND))
         foreign = m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder", dq=[3.0] * 6, trace=m.Trace(0, 0))
-        nan = m.PositionCommand(seq=0, stamp_ns=0, owner="cartesian", q=[float("nan")] * 6, trace=m.Trace(0, 0))
+        nan = m.PositionCommand(seq=0, stamp_ns=0, owner=owner, q=[float("nan")] * 6, trace=m.Trace(0, 0))
         time.sleep(3.0)
         while not stop.wait(0.5):
             pressure.put(b"\x92\x01garbage")
@@ -51,17 +51,18 @@ def intruder(stop: threading.Event, counts: dict[str, int]) -> None:
             counts["sent"] += 1
 
 
-def test_scripted_session_end_to_end(tmp_path):
-    profile = write_profile(tmp_path)
+@pytest.mark.parametrize(("reflex", "port"), [("cartesian", BASE_PORT), ("uniform", BASE_PORT + 10)])
+def test_scripted_session_end_to_end(tmp_path, reflex, port):
+    profile = write_profile(tmp_path, port)
     output = tmp_path / "session.mcap"
     stop = threading.Event()
     counts = {"sent": 0}
-    thread = threading.Thread(target=intruder, args=(stop, counts), daemon=True)
+    thread = threading.Thread(target=intruder, args=(stop, counts, port, reflex), daemon=True)
     thread.start()
     try:
         proc = subprocess.run(
             [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo",
-             "--script", str(SCRIPT), "--output", str(output)],
+             "--script", str(SCRIPT), "--output", str(output), "--reflex", reflex],
             capture_output=True, text=True, timeout=120,
         )
     finally:
@@ -74,7 +75,7 @@ def test_scripted_session_end_to_end(tmp_path):
 
     records, metadata = read_recording(output)
     assert metadata["session"]["robot"] == "ur10e"
-    assert '"base_port":17450' in metadata["session"]["profile"]
+    assert f'"base_port":{port}' in metadata["session"]["profile"]
     desc = load_description()
     touches = analysis.summarize(records, desc)
     script = load_script(str(SCRIPT))
@@ -89,20 +90,22 @@ def test_scripted_session_end_to_end(tmp_path):
             assert touch.onset_latency_ms is not None and 0 < touch.onset_latency_ms < 1000
             assert touch.withdrawal_mm is not None and touch.withdrawal_mm > 1.0, touch  # moved away
             assert touch.resumed_after_s is not None and touch.resumed_after_s < 5.0
-            assert touch.return_error_rad is not None and touch.return_error_rad < 2e-3  # back at the saved pose
+            assert touch.return_error_rad is not None and touch.return_error_rad < 5e-3  # back at the saved pose
         else:
             assert touch.reflex_seq == 0, touch
 
     # The task went on after the last reflex.
-    status = [r.message for r in records if r.key == "reflex/cartesian/status"]
+    status = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")]
     last_reflex = max(i for i, s in enumerate(status) if s.mode == "REFLEX")
     after = [s for s in status[last_reflex:] if s.mode == "TASK"]
     assert after and after[-1].task_time_s > after[0].task_time_s + 1.0
 
     # Every command that moved the arm carries the trace of a real skin sample.
     skin_seqs = {r.message.seq for r in records if r.key == "skin/pressure"}
-    commands = [r.message for r in records if r.key == "robot/command" and r.message.owner == "cartesian"]
-    traced = {c.trace.seq for c in commands if c.trace.seq >= 0 and all(np.isfinite(getattr(c, "q", c.dq if hasattr(c, "dq") else [0])))}
+    commands = [r.message for r in records if r.key == "robot/command" and r.message.owner == reflex]
+    assert {type(c) for c in commands if c.phase == "REFLEX"} == {
+        m.VelocityCommand if reflex == "cartesian" else m.PositionCommand}
+    traced = {c.trace.seq for c in commands if c.trace.seq >= 0}
     assert traced and traced <= skin_seqs
 
     # Hostile input was reported, not obeyed.
@@ -112,4 +115,6 @@ def test_scripted_session_end_to_end(tmp_path):
     assert ("bridge", "command_rejected") in codes
     states = [r.message for r in records if r.key == "robot/state"]
     assert max(s.rejected for s in states) > 5
-    assert max(np.max(np.abs(s.dq)) for s in states) < 3.0  # the intruder's 3 rad/s never reached the arm
+    # The intruder's 3 rad/s never reached the arm: no reflex or task of this
+    # script moves wrist 3, which the intruder drives at 3 rad/s.
+    assert max(abs(s.dq[5]) for s in states) < 0.5

@@ -122,3 +122,17 @@ def test_sim_skin_rejects_unknown_pad():
     script = TouchScript(duration_s=10.0, touch=[Touch(pad="nope", start_s=1.0, duration_s=1.0, peak_hpa=9.0)])
     with pytest.raises(ConfigError, match="nope"):
         SimSkin(SimSkinSection(), pads(), script)
+
+
+def test_target_follower_presses_the_target_periodically():
+    from nwr.services.gateway.core import TargetFollower
+
+    f = TargetFollower(2.0, seed=3)
+    assert f.poll(1.0, 4) is None
+    pad, touch = f.poll(2.0, 4)
+    assert pad == 4 and touch.start_s == 2.0 and touch.peak_hpa == TargetFollower.PEAKS_HPA[0]
+    assert f.poll(2.5, 4) is None
+    assert f.poll(4.1, -1) is None  # no target published yet
+    sim = SimSkin(SimSkinSection(noise_hpa=0.0, drift_walk_hpa=0.0, drift_sine_hpa=0.0), pads(), None)
+    sim.add_touch(1, touch)
+    assert sim.touch_pressure(2.0 + touch.ramp_s + 0.1)[1] == pytest.approx(touch.peak_hpa)

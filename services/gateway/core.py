@@ -98,6 +98,12 @@ class SimSkin:
                     raise ConfigError(f"touch script names pad {touch.pad!r}; the skin has {sorted(by_name)}")
                 self.touches.append((pad, touch))
 
+    def add_touch(self, pad: int, touch: Touch) -> None:
+        """A touch decided while running (the study's target pad, say)."""
+        self.touches.append((pad, touch))
+        # Finished touches no longer matter; keep the list short over long sessions.
+        self.touches = [(p, x) for p, x in self.touches if x.start_s + x.duration_s + 2 * x.ramp_s >= touch.start_s]
+
     def touch_pressure(self, t: float) -> np.ndarray:
         """The scripted pressure change of every pad at time t, hPa."""
         out = np.zeros(len(self.pads))
@@ -153,3 +159,28 @@ class Gateway:
         )
         self.seq += 1
         return msg, events
+
+
+class TargetFollower:
+    """Touches the study's target pad every ``interval_s``, cycling through pressure levels.
+
+    The planner publishes which pad is the target (it lights up red in the
+    study); a simulated participant presses it, like the study's game.
+    """
+
+    PEAKS_HPA = (9.0, 16.0, 4.0, 25.0, 12.0, 7.0)
+
+    def __init__(self, interval_s: float, seed: int = 0) -> None:
+        self.interval_s = interval_s
+        self.next_s = interval_s
+        self.rng = np.random.default_rng(seed)
+        self.count = 0
+
+    def poll(self, t: float, target_pad: int) -> tuple[int, Touch] | None:
+        if target_pad < 0 or t < self.next_s:
+            return None
+        self.next_s = t + self.interval_s
+        peak = self.PEAKS_HPA[self.count % len(self.PEAKS_HPA)]
+        self.count += 1
+        return target_pad, Touch(pad=str(target_pad), start_s=t, duration_s=0.3, peak_hpa=peak, shape="ramp",
+                                 ramp_s=float(self.rng.uniform(0.05, 0.2)))

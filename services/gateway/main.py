@@ -10,7 +10,8 @@ from nwr.common.config import Profile, load_script
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.common.robot import load_description
-from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.common import messages as m
+from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated services to wait for (liveliness) before the script's clock starts",
     )
     parser.add_argument("--exit-at-end", action="store_true", help="exit when the touch script ends")
+    parser.add_argument(
+        "--follow-target", type=float, metavar="SECONDS",
+        help="simulated participant: press the planner's current target pad every SECONDS (the study's game)",
+    )
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
@@ -37,6 +42,14 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     with Node("gateway", profile.robot.name, profile.zenoh, listen_slot="gateway") as node:
         node.install_signal_handlers()
         publish = node.publisher(keys.SKIN_PRESSURE)
+        follower = TargetFollower(args.follow_target, cfg.sim.seed) if args.follow_target else None
+        target = [-1]
+        if follower is not None:
+
+            def on_status(status: m.PlannerStatus) -> None:
+                target[0] = status.target_pad
+
+            node.subscribe(keys.planner_status("*"), on_status)
         wait_for = [s for s in args.wait_for.split(",") if s]
         if wait_for:
             missing = node.wait_for(wait_for, timeout_s=30.0)
@@ -53,6 +66,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             while rate.sleep(node.stop):
                 now = node.clock.now_ns()
                 t = (now - t0) / 1e9
+                if follower is not None:
+                    touch = follower.poll(t, target[0])
+                    if touch is not None:
+                        sim.add_touch(*touch)
                 msg, events = gateway.process(t, now, sim.sample(t))
                 publish(msg)
                 for pad in events.reacquired:

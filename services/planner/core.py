@@ -4,10 +4,13 @@
   a non-zero gain G(p) saves the current pose (the task's own reference at
   that instant, so the return lands exactly on the task path), pauses the
   task and starts a reflex.
-- REFLEX: the strategy's motion runs for its duration. A *new* contact (a pad
-  that had no gain in the previous pain message) or a *stronger* one (gain
-  above the current reflex's by ``update_margin``) updates the reflex: new
-  direction, duration restarted, new reflex number.
+- REFLEX: the strategy's motion runs: a jerk-limited trajectory (ruckig) to
+  the joint target of a joint-space reflex (uniform, location), ending when
+  the target is reached, or the Cartesian velocity stream for its duration.
+  A *new* contact (a pad that had no gain in the previous pain message) or a
+  *stronger* one (gain above the current reflex's by ``update_margin``)
+  updates the reflex: new target or direction from the current motion state
+  (the trajectory blends, nothing jumps), duration restarted, new number.
 - RETURNING: a jerk-limited trajectory (ruckig) from wherever the reflex
   left the arm, velocity included, back to the saved pose. A new or stronger
   contact here starts a new reflex but keeps the saved pose: the arm always
@@ -34,7 +37,8 @@ from ruckig import InputParameter, OutputParameter, Result, Ruckig
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner.reflexes import CartesianReflex
+from nwr.services.planner import retreat
+from nwr.services.planner.reflexes import CartesianReflex, JointReflex, smooth_profile
 from nwr.services.planner.task import FigureEight, TaskClock
 
 log = logging.getLogger(__name__)
@@ -50,6 +54,9 @@ class Reflex:
     started_ns: int
     elapsed_s: float = 0.0
     direction: list[float] = field(default_factory=list)
+    target: np.ndarray | None = None
+    corrected: bool = False
+    retreat: m.Retreat | None = None
 
 
 class Planner:
@@ -63,10 +70,20 @@ class Planner:
         self.a_limit = cfg.speed_fraction * desc.a_max
         self.task = FigureEight(cfg.task, desc.home)
         self.clock = TaskClock(cfg.task.ramp_s)
-        self.strategy = CartesianReflex(
-            model, cfg.v_max_m_s, cfg.reflex_duration_s, cfg.damping_max, cfg.singular_threshold, self.v_limit,
-            hold_orientation=cfg.hold_orientation,
-        )
+        self.model = model
+        self.strategy_name = cfg.strategy
+        self.joint_reflex: JointReflex | None = None
+        self.cartesian: CartesianReflex | None = None
+        if cfg.strategy in ("uniform", "location"):
+            self.joint_reflex = JointReflex(cfg.strategy, cfg, desc)
+        else:
+            self.cartesian = CartesianReflex(
+                model, cfg.v_max_m_s, cfg.reflex_duration_s, cfg.damping_max, cfg.singular_threshold,
+                self.v_limit, hold_orientation=cfg.hold_orientation, guarded=cfg.guarded,
+            )
+        self.smooth = cfg.strategy == "cartesian-smooth"
+        self.targets = self._target_order(cfg, desc)
+        self.target_index = 0
         self.mode: m.Mode = "TASK"
         self.q = np.zeros(n)
         self.dq = np.zeros(n)
@@ -76,17 +93,29 @@ class Planner:
         self.reflex: Reflex | None = None
         self.reflex_count = 0
         self.last_gain = np.zeros(len(desc.pads))
+        self.last_level = [1] * len(desc.pads)
         self.trace = m.Trace(-1, 0)
         self.seq = 0
         self.status_seq = 0
         self.changed = True  # a transition not yet published on the status
         self.resyncs = 0
+        self._advanced_early = False
         self._otg = Ruckig(n, self.dt)
         self._otg_in = InputParameter(n)
         self._otg_out = OutputParameter(n)
         self._otg_in.max_velocity = self.v_limit.tolist()
         self._otg_in.max_acceleration = self.a_limit.tolist()
         self._otg_in.max_jerk = (cfg.speed_fraction * desc.j_max).tolist()
+
+    @staticmethod
+    def _target_order(cfg: PlannerSection, desc: RobotDescription) -> list[int]:
+        if cfg.target_order:
+            return [desc.pad(name).id for name in cfg.target_order]
+        return [int(i) for i in np.random.default_rng(cfg.target_seed).permutation(len(desc.pads))]
+
+    @property
+    def target_pad(self) -> int:
+        return self.targets[self.target_index % len(self.targets)] if self.targets else -1
 
     # -- inputs -------------------------------------------------------------
     def on_state(self, q: np.ndarray, following: bool) -> None:
@@ -100,7 +129,11 @@ class Planner:
         # the arm is not where this planner believes: start again from there.
         if error > RESYNC_RAD or (not following and error > 1e-3):
             self.resyncs += 1
-            log.warning("the arm is %.3f rad from the commanded pose: resynchronising", error)
+            # While the bridge holds the arm (stale input, before the skin
+            # starts) this repeats every state message: say it now and then.
+            if self.resyncs == 1 or self.resyncs % 250 == 0:
+                log.warning("the arm is %.3f rad from the commanded pose (%s): resynchronising (%d times so far)",
+                            error, "bridge following" if following else "bridge not following", self.resyncs)
             self.q = q.copy()
             self.dq[:] = 0.0
             self.ddq[:] = 0.0
@@ -124,6 +157,11 @@ class Planner:
         previous = self.last_gain
         self.last_gain = np.where(np.isfinite(gains), gains, 0.0)
         self.trace = pain.trace
+        target = self.target_pad
+        if 0 <= target < len(pain.level) and pain.level[target] >= 2 and self.last_level[target] < 2:
+            self.target_index += 1  # the study's target was touched: the next pad lights up
+            self.changed = True
+        self.last_level = list(pain.level)
         contact = pain.strongest
         if not self.initialized or contact is None or not contact.gain > 0:
             return None
@@ -136,26 +174,60 @@ class Planner:
             if not (new_pad or stronger):
                 return None
         self._start_reflex(contact, pain.trace, now_ns)
-        return self._reflex_command(now_ns, advance=False)
+        # This command is the reflex's first cycle: the control loop skips its
+        # next tick rather than advancing the motion twice in one period.
+        self._advanced_early = True
+        return self._advance_reflex(now_ns)
 
     # -- transitions --------------------------------------------------------
     def _start_reflex(self, contact: m.Contact, trace: m.Trace, now_ns: int) -> None:
         self.reflex_count += 1
-        v_c = self.strategy.start(self.q, contact.pad, contact.gain)
-        self.reflex = Reflex(self.reflex_count, contact, trace, now_ns, direction=v_c.tolist())
+        reflex = Reflex(self.reflex_count, contact, trace, now_ns)
+        if self.joint_reflex is not None:
+            target = self.joint_reflex.target(self.q, contact)
+            if self.cfg.guarded:
+                delta, reflex.corrected = retreat.guard_displacement(
+                    self.model, self.q, target - self.q, contact.pad, self.desc.q_min, self.desc.q_max
+                )
+                target = self.q + delta
+            reflex.target = target
+            self._ruckig_to(target)
+        else:
+            assert self.cartesian is not None
+            reflex.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
+        self.reflex = reflex
         self.mode = "REFLEX"
         self.changed = True
 
-    def _begin_return(self) -> None:
-        assert self.saved is not None
+    def _ruckig_to(self, target: np.ndarray) -> None:
+        """Start a jerk-limited trajectory from the current commanded state to rest at ``target``."""
         inp = self._otg_in
         inp.current_position = self.q.tolist()
         inp.current_velocity = self.dq.tolist()
         inp.current_acceleration = self.ddq.tolist()
-        inp.target_position = self.saved.tolist()
+        inp.target_position = target.tolist()
         inp.target_velocity = [0.0] * len(self.q)
         inp.target_acceleration = [0.0] * len(self.q)
         self._otg.reset()
+
+    def _ruckig_step(self) -> bool:
+        """Advance the trajectory one cycle; True once it has arrived."""
+        result = self._otg.update(self._otg_in, self._otg_out)
+        out = self._otg_out
+        self.q = np.asarray(out.new_position)
+        self.dq = np.asarray(out.new_velocity)
+        self.ddq = np.asarray(out.new_acceleration)
+        out.pass_to_input(self._otg_in)
+        if result not in (Result.Working, Result.Finished):
+            log.error("trajectory generation failed (%s): stopping this motion where it is", result)
+            self.dq[:] = 0.0
+            self.ddq[:] = 0.0
+            return True
+        return result == Result.Finished
+
+    def _begin_return(self) -> None:
+        assert self.saved is not None
+        self._ruckig_to(self.saved)
         self.mode = "RETURNING"
         self.changed = True
 
@@ -175,27 +247,17 @@ class Planner:
         """One control cycle: advance the motion and return its command."""
         if not self.initialized:
             return None
+        if self._advanced_early:
+            self._advanced_early = False
+            return None
         if self.mode == "REFLEX":
-            assert self.reflex is not None
-            self.reflex.elapsed_s += self.dt
-            if self.reflex.elapsed_s >= self.strategy.duration_s:
-                self._begin_return()
-            else:
-                return self._reflex_command(now_ns, advance=True)
+            command = self._advance_reflex(now_ns)
+            if command is not None:
+                return command
         if self.mode == "RETURNING":
-            result = self._otg.update(self._otg_in, self._otg_out)
-            out = self._otg_out
-            self.q = np.asarray(out.new_position)
-            self.dq = np.asarray(out.new_velocity)
-            self.ddq = np.asarray(out.new_acceleration)
-            out.pass_to_input(self._otg_in)
-            if result == Result.Finished:
-                self._resume_task()
-            elif result != Result.Working:
-                log.error("return trajectory failed (%s): holding the saved pose", result)
-                self._resume_task()
-            else:
+            if not self._ruckig_step():
                 return self._position_command(now_ns)
+            self._resume_task()
         rate = self.clock.advance(self.dt)
         q_new = self.task.position(self.clock.s)
         dq_new = rate * self.task.velocity(self.clock.s)
@@ -203,28 +265,78 @@ class Planner:
         self.q, self.dq = q_new, dq_new
         return self._position_command(now_ns)
 
-    def _reflex_command(self, now_ns: int, *, advance: bool) -> m.VelocityCommand:
-        """Velocity command of the reflex, acceleration-limited from the current velocity."""
-        target = self.strategy.joint_velocity(self.q)
+    def _advance_reflex(self, now_ns: int) -> m.Command | None:
+        """One cycle of the reflex; None (and RETURNING) once it is over."""
+        reflex = self.reflex
+        assert reflex is not None
+        if self.joint_reflex is not None:
+            if self._ruckig_step():
+                self._begin_return()
+                return None
+            reflex.elapsed_s += self.dt
+            return self._position_command(now_ns)
+        if reflex.elapsed_s >= self.cfg.reflex_duration_s:
+            self._begin_return()
+            return None
+        return self._velocity_command(now_ns)
+
+    def _velocity_command(self, now_ns: int) -> m.VelocityCommand:
+        """The Cartesian stream, acceleration-limited from the current velocity."""
+        assert self.cartesian is not None and self.reflex is not None
+        target = self.cartesian.joint_velocity(self.q)
+        if self.smooth:
+            target = target * smooth_profile(self.reflex.elapsed_s, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s)
+        self.reflex.elapsed_s += self.dt
         delta = target - self.dq
         ratio = float(np.max(np.abs(delta) / (self.a_limit * self.dt)))
         dq = self.dq + (delta / ratio if ratio > 1.0 else delta)
-        if advance:
-            q = self.q + dq * self.dt
-            # Never command past a joint limit: stop that joint at the limit.
-            low, high = q < self.desc.q_min, q > self.desc.q_max
-            if low.any() or high.any():
-                q = np.clip(q, self.desc.q_min, self.desc.q_max)
-                dq[low | high] = 0.0
-            self.ddq = (dq - self.dq) / self.dt
-            self.q, self.dq = q, dq
-        assert self.reflex is not None
+        q = self.q + dq * self.dt
+        # Never command past a joint limit: stop that joint at the limit.
+        low, high = q < self.desc.q_min, q > self.desc.q_max
+        if low.any() or high.any():
+            q = np.clip(q, self.desc.q_min, self.desc.q_max)
+            dq[low | high] = 0.0
+        self.ddq = (dq - self.dq) / self.dt
+        self.q, self.dq = q, dq
         msg = m.VelocityCommand(
             seq=self.seq, stamp_ns=now_ns, owner=self.name, dq=dq.tolist(), trace=self.trace,
             reflex_seq=self.reflex.seq, phase="REFLEX",
         )
         self.seq += 1
         return msg
+
+    # -- the retreat check ------------------------------------------------------
+    def assess(self) -> m.Retreat | None:
+        """Retreat figures of the current reflex's planned motion (off the event path)."""
+        reflex = self.reflex
+        if reflex is None or self.mode != "REFLEX":
+            return None
+        path, dt = self.planned_path()
+        reflex.retreat = retreat.assess(self.model, path, dt, reflex.contact.pad).to_message(
+            reflex.contact.pad, reflex.corrected or (self.cartesian is not None and self.cartesian.corrections > 0)
+        )
+        self.changed = True
+        return reflex.retreat
+
+    def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
+        """Joint positions over the rest of the current reflex, from its planned motion."""
+        assert self.reflex is not None
+        if self.joint_reflex is not None:
+            traj = self._otg_out.trajectory
+            duration = max(traj.duration, self.dt)
+            times = np.linspace(0.0, duration, samples + 1)
+            return np.array([traj.at_time(t)[0] for t in times]), float(times[1] - times[0])
+        assert self.cartesian is not None
+        dt = self.cfg.reflex_duration_s / samples
+        q = self.q.copy()
+        path = [q.copy()]
+        t = self.reflex.elapsed_s
+        for _ in range(samples):
+            scale = smooth_profile(t, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s) if self.smooth else 1.0
+            q = np.clip(q + scale * self.cartesian.joint_velocity(q, count=False) * dt, self.desc.q_min, self.desc.q_max)
+            path.append(q.copy())
+            t += dt
+        return np.array(path), dt
 
     def _position_command(self, now_ns: int) -> m.PositionCommand:
         msg = m.PositionCommand(
@@ -239,14 +351,17 @@ class Planner:
         reflex = None
         if self.reflex is not None:
             r = self.reflex
+            duration = self.cfg.reflex_duration_s if self.cartesian is not None else self._otg_out.trajectory.duration
             reflex = m.ReflexInfo(
-                reflex_seq=r.seq, strategy=self.strategy.strategy, contact=r.contact, trace=r.trace,
-                started_ns=r.started_ns, duration_s=self.strategy.duration_s, direction=r.direction,
+                reflex_seq=r.seq, strategy=self.strategy_name, contact=r.contact, trace=r.trace,
+                started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
+                target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
             )
         msg = m.PlannerStatus(
-            seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy.strategy,
+            seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy_name,
             mode=self.mode, task_time_s=self.clock.s,
             saved_pose=self.saved.tolist() if self.saved is not None else None, reflex=reflex,
+            target_pad=self.target_pad,
         )
         self.status_seq += 1
         self.changed = False

@@ -8,7 +8,7 @@ import threading
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import STRATEGIES, Profile
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.common.robot import RobotModel, load_description
@@ -23,12 +23,15 @@ def planner_service(name: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", help="planner instance name (overrides planner.name)")
+    parser.add_argument("--reflex", choices=STRATEGIES, help="reflex strategy (overrides planner.strategy)")
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.planner
     if args.name:
         cfg.name = args.name
+    if args.reflex:
+        cfg.strategy = args.reflex
     desc = load_description(profile.robot.description or None)
     planner = Planner(cfg, desc, RobotModel(desc))
     lock = threading.Lock()
@@ -58,12 +61,15 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     return
                 if command is not None:
                     send(command)
+                    # Off the onset's critical path: the retreat check of the
+                    # planned motion, published with the reflex on the status.
+                    planner.assess()
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
         node.subscribe(keys.ROBOT_STATE, on_state)
         node.subscribe(keys.SKIN_PAIN, on_pain)
-        log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.strategy, cfg.rate_hz)
+        log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy_name, cfg.rate_hz)
         rate = Rate(cfg.rate_hz, "planner")
         status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
         try:
