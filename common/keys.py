@@ -10,6 +10,7 @@ skin/pain                    SkinPain                               real-time   
 robot/command                PositionCommand | VelocityCommand      real-time   yes        block
 robot/state                  RobotState                             interactive no         drop
 reflex/<name>/status         PlannerStatus                          data        no         drop
+control/active               SwitchRequest                          interactive yes        block
 diag/<service>               Diagnostic                             data-low    no         drop
 alive/<service>              (liveliness token, no payload)
 ===========================  =====================================  ==========  =========  =======
@@ -58,6 +59,8 @@ TOPICS: tuple[Topic, ...] = (
           "joint positions and velocities, status, command owner, reflex onsets"),
     Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
           "a planner's state machine: mode, strategy, saved pose, reflex"),
+    Topic("control/active", m.SwitchRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
+          "which planner should be active (the bridge carries the switch out)"),
     Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
           "warnings and errors with a code and a readable message"),
 )
@@ -66,6 +69,7 @@ SKIN_PRESSURE = "skin/pressure"
 SKIN_PAIN = "skin/pain"
 ROBOT_COMMAND = "robot/command"
 ROBOT_STATE = "robot/state"
+CONTROL_ACTIVE = "control/active"
 
 
 def prefix(robot: str) -> str:

@@ -126,6 +126,25 @@ class VelocityCommand(msgspec.Struct, tag="velocity", tag_field="kind", forbid_u
 Command = PositionCommand | VelocityCommand
 
 
+class SwitchRequest(msgspec.Struct, tag="switch_request", tag_field="kind", forbid_unknown_fields=True):
+    """Make ``name`` the active planner (anyone may ask; the bridge decides when)."""
+
+    seq: int
+    stamp_ns: int
+    name: str
+    requested_by: str = ""
+
+
+class Handover(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One switch of the active planner, as the bridge carried it out."""
+
+    previous: str
+    owner: str
+    requested_ns: int  # the request's stamp
+    switched_ns: int  # when the bridge made the new planner the owner
+    first_command_ns: int = 0  # when it accepted the new owner's first command (0: not yet)
+
+
 class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unknown_fields=True):
     """Bridge output: the arm's joint state and what the bridge is doing.
 
@@ -157,6 +176,10 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     skin_age_s: Finite = -1.0
     # Why the status is what it is, readable (empty while following normally).
     detail: str = ""
+    # A requested switch of the active planner not yet carried out (it waits
+    # for the outgoing planner's reflex and return to end), and the last one.
+    pending_owner: str = ""
+    handover: Handover | None = None
 
 
 class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -191,6 +214,8 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     # Joint-space reflexes: the joint target (rad).
     target: list[Finite] = []
     retreat: Retreat | None = None
+    # Computed by an inactive planner: what it would have done.
+    shadow: bool = False
 
 
 class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):
@@ -204,6 +229,10 @@ class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forb
     task_time_s: Finite
     saved_pose: list[Finite] | None = None
     reflex: ReflexInfo | None = None
+    # False while another planner moves the arm: this one then mirrors the arm
+    # and the active planner's task (ready to take over), and computes what it
+    # would do on each touch (a shadow reflex, ``reflex.shadow``).
+    active: bool = True
     # The study's target pad (the one whose LEDs turn red), -1 if none.
     target_pad: int = -1
 
@@ -220,7 +249,8 @@ class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unkn
     count: int = 1
 
 
-Message = SkinPressure | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
+Message = (SkinPressure | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
+           | SwitchRequest)
 
 
 def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:

@@ -87,7 +87,16 @@ class Node:
         self.robot = robot
         self.clock = clock or MonotonicClock()
         self.stop = threading.Event()
-        self.session = zenoh.open(zenoh_config(zcfg, listen_slot))
+        try:
+            self.session = zenoh.open(zenoh_config(zcfg, listen_slot))
+        except zenoh.ZError:
+            if listen_slot is None or zcfg.router:
+                raise
+            # Another process holds this slot's port (a second planner, say):
+            # listen on a free port instead; gossip tells the others about it.
+            log.info("%s: port %d of the %s slot is taken: listening on a free port", service,
+                     zcfg.base_port + SLOTS[listen_slot], listen_slot)
+            self.session = zenoh.open(zenoh_config(zcfg, None))
         self._publishers: list[Any] = []
         self._subscribers: list[Any] = []
         self._diag_seq = 0
@@ -192,7 +201,7 @@ class Node:
         """Wait until every named service is alive; returns those still missing."""
         deadline = time.monotonic() + timeout_s
         missing = list(services)
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self.stop.is_set():
             alive = set(self.alive_services(0.5))
             missing = [s for s in services if s not in alive]
             if not missing:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from nwr.common.config import STRATEGIES, load_profile, load_script
-from nwr.common.errors import NwrError
+from nwr.common.errors import ConfigError, NwrError
 from nwr.common.node import setup_logging
 
 log = logging.getLogger("nwr")
@@ -28,7 +28,12 @@ SERVICES = {
     "view": "view (read-only): the live 3D scene and signals for Foxglove over WebSocket",
 }
 # Modules that add subcommands of their own (see build_parser).
-COMMAND_MODULES: list[str] = ["nwr.services.recorder.commands", "nwr.services.figures", "nwr.services.view.commands"]
+COMMAND_MODULES: list[str] = [
+    "nwr.services.recorder.commands",
+    "nwr.services.figures",
+    "nwr.services.view.commands",
+    "nwr.services.switch",
+]
 # Started in this order; the gateway starts its clock once the others are alive.
 START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
 
@@ -85,6 +90,9 @@ def _launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-record", action="store_true", help="do not start the recorder")
     p.add_argument("--view", nargs="?", type=int, const=8765, metavar="PORT",
                    help="also start the Foxglove view (read-only) on ws://127.0.0.1:PORT (default 8765)")
+    p.add_argument("--planners", metavar="R1,R2,...",
+                   help="run one planner per reflex strategy, each named after it, all at once (switch between "
+                        "them with `nwr switch NAME`); the first (or --reflex) is active")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the study's target pad every SECONDS")
     p.add_argument("--reflex", choices=STRATEGIES,
@@ -119,17 +127,48 @@ def _stop_all(procs: dict[str, subprocess.Popen[bytes]], timeout_s: float = 10.0
 
 def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float = 2.0) -> tuple[int, Path | None]:
     """Start every service; wait for Ctrl-C/SIGTERM (or the script's end); stop them all."""
-    from nwr.services.recorder.main import session_name
-
     from nwr.services.planner.main import planner_service
+    from nwr.services.recorder.main import session_name
 
     profile = load_profile(args.profile)
     session = args.session or session_name()
     output = Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
     strategy = args.reflex or profile.planner.strategy
-    services = [s for s in START_ORDER if not (s == "recorder" and args.no_record)]
-    if getattr(args, "view", None):
-        services.insert(services.index("gateway"), "view")  # read-only: nobody waits for it
+    planners = [p for p in (args.planners or "").split(",") if p]
+    unknown = [p for p in planners if p not in STRATEGIES]
+    if unknown:
+        raise ConfigError(f"--planners names {unknown}; the strategies are {list(STRATEGIES)}")
+    active = args.reflex or (planners[0] if planners else None)
+    if active and planners and active not in planners:
+        planners.insert(0, active)
+    # (process label, service, extra arguments)
+    units: list[tuple[str, str, list[str]]] = []
+    for name in START_ORDER:
+        if name == "recorder" and args.no_record:
+            continue
+        if name == "planner":
+            for p in planners or ([active] if active else [None]):
+                units.append((f"planner-{p}" if p else "planner", "planner", ["--name", p, "--reflex", p] if p else []))
+        elif name == "bridge":
+            units.append(("bridge", "bridge", ["--active", active] if active else []))
+        elif name == "recorder":
+            units.append(("recorder", "recorder",
+                          ["--session", session, "--output", str(output), "--strategy", active or strategy]))
+        elif name == "gateway":
+            waits = [planner_service(p or profile.planner.name) for p in (planners or [active])]
+            waits += [u[0] for u in units if u[1] not in ("planner", "view")]
+            extra = ["--wait-for", ",".join(waits)]
+            if args.script:
+                extra += ["--script", args.script]
+            if until_script_end:
+                extra.append("--exit-at-end")
+            if args.follow_target:
+                extra += ["--follow-target", str(args.follow_target)]
+            if getattr(args, "view", None):
+                units.append(("view", "view", ["--port", str(args.view)]))  # read-only: nobody waits for it
+            units.append(("gateway", "gateway", extra))
+        else:
+            units.append((name, name, []))
     procs: dict[str, subprocess.Popen[bytes]] = {}
     stop = False
 
@@ -139,27 +178,8 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        for name in services:
-            extra: list[str] = []
-            if name == "recorder":
-                extra = ["--session", session, "--output", str(output), "--strategy", strategy]
-            if name == "view":
-                extra = ["--port", str(args.view)]
-            if args.reflex and name == "planner":
-                extra = ["--name", args.reflex, "--reflex", args.reflex]
-            if args.reflex and name == "bridge":
-                extra = ["--active", args.reflex]
-            if name == "gateway":
-                planner = planner_service(args.reflex or profile.planner.name)
-                waits = [planner if s == "planner" else s for s in services if s not in ("gateway", "view")]
-                extra = ["--wait-for", ",".join(waits)]
-                if args.script:
-                    extra += ["--script", args.script]
-                if until_script_end:
-                    extra.append("--exit-at-end")
-                if args.follow_target:
-                    extra += ["--follow-target", str(args.follow_target)]
-            procs[name] = _spawn(args.profile, args.log_level, name, extra)
+        for label, service, extra in units:
+            procs[label] = _spawn(args.profile, args.log_level, service, extra)
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
         while not stop:
             dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
@@ -179,7 +199,7 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     if bad:
         log.error("service(s) stopped with errors: %s", bad)
         return 1, None
-    return 0, (output if "recorder" in services else None)
+    return 0, (output if "recorder" in procs else None)
 
 
 def print_summary(path: Path, script_name: str | None) -> int:

@@ -39,6 +39,7 @@ EXAMPLES = {
     "reflex/fuzz/status": m.PlannerStatus(seq=0, stamp_ns=1, name="c", strategy="cartesian", mode="TASK",
                                           task_time_s=0.0),
     "diag/fuzz": m.Diagnostic(seq=0, stamp_ns=1, service="s", level="info", code="c", message="m"),
+    "control/active": m.SwitchRequest(seq=0, stamp_ns=1, name="location", requested_by="fuzz"),
 }
 
 

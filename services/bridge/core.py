@@ -45,6 +45,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
+import msgspec
 import numpy as np
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
@@ -65,6 +66,9 @@ SPEED_TOLERANCE = 1.01
 ACCEL_JITTER_CYCLES = 2.0
 # Below this speed (rad/s) on every joint a stopped arm counts as at rest.
 REST_SPEED = 1e-6
+# After a switch, the outgoing planner's commands are dropped quietly this long
+# (it learns of the switch from the next robot state), ns.
+PREVIOUS_OWNER_GRACE_NS = 200_000_000
 
 Level = Literal["info", "warning", "error"]
 SetpointMode = Literal["position", "velocity", "hold"]
@@ -292,6 +296,7 @@ class Setpoint:
 class Verdict:
     accepted: bool
     onset: bool  # the first command of a new reflex: send it to the backend now
+    switched: bool = False  # a pending switch of the active planner happened: publish the state now
 
 
 @dataclass
@@ -367,6 +372,13 @@ class BridgeCore:
         self.accepted: m.Trace | None = None
         self.accepted_ns = 0
         self.events: list[Event] = []
+        # Switching the active planner.
+        self.alive_planners: set[str] = set()
+        self.pending: m.SwitchRequest | None = None
+        self.handover: m.Handover | None = None
+        self.previous_owner = ""
+        self.previous_until_ns = 0
+        self.publish_now = False  # something others must learn at once (a switch)
         self._clip_reported = False  # the tracker's clip of the current command was reported
         self._otg = Ruckig(n)
         self._otg_in = InputParameter(n)
@@ -380,6 +392,10 @@ class BridgeCore:
     # -- inputs -----------------------------------------------------------------
     def on_command(self, cmd: m.Command, now_ns: int) -> Verdict:
         """A command from robot/command: checked, and followed if accepted."""
+        if cmd.owner == self.previous_owner and cmd.owner != self.active and now_ns < self.previous_until_ns:
+            # The outgoing planner has not seen the switch yet: expected, not hostile.
+            self.rejected += 1
+            return Verdict(False, False)
         # A running position stream must continue from its own last target
         # (the arm may lag it while the bridge limits it); anything else must
         # start from where the bridge has the arm.
@@ -417,8 +433,16 @@ class BridgeCore:
         if onset:
             self.accepted = cmd.trace
             self.accepted_ns = now_ns
+        if self.handover is not None and self.handover.first_command_ns == 0 and cmd.owner == self.handover.owner:
+            self.handover = msgspec.structs.replace(self.handover, first_command_ns=now_ns)
+            self.events.append(Event(
+                "info", "handover_done",
+                f"planner {self.handover.owner!r} moves the arm: "
+                f"{(now_ns - self.handover.requested_ns) / 1e6:.1f} ms after the request",
+            ))
         self._evaluate(now_ns)
-        return Verdict(True, onset)
+        switched = self._maybe_switch(now_ns)
+        return Verdict(True, onset, switched)
 
     def _follow_position(self, cmd: m.PositionCommand, q: np.ndarray, now_ns: int) -> None:
         env = self.env
@@ -478,6 +502,67 @@ class BridgeCore:
                 f"planner {self.active!r} lost its liveliness token: decelerating to rest and holding until it is back",
             ))
         self._evaluate(now_ns)
+
+    def on_planner_token(self, name: str, alive: bool, now_ns: int) -> None:
+        """Any planner's liveliness token (``name`` is the planner's name)."""
+        if alive:
+            self.alive_planners.add(name)
+        else:
+            self.alive_planners.discard(name)
+        if name == self.active:
+            self.on_planner_alive(alive, now_ns)
+
+    def request_switch(self, request: m.SwitchRequest, now_ns: int) -> bool:
+        """Make ``request.name`` the active planner; True if the switch happened now.
+
+        The switch never drops a reflex or its return to the saved pose: it
+        waits until the outgoing planner commands its task again (or is not
+        commanding at all), then happens between two commands. The incoming
+        planner mirrors the arm and the task while inactive, so its first
+        command continues the motion.
+        """
+        name = request.name
+        if name == self.active:
+            self.pending = None
+            self.events.append(Event("info", "switch_noop", f"planner {name!r} is already the active one"))
+            return False
+        if name not in self.alive_planners:
+            self.events.append(Event(
+                "warning", "switch_rejected",
+                f"switch to planner {name!r} refused: it is not running (alive: {sorted(self.alive_planners)})",
+            ))
+            return False
+        self.pending = request
+        self.events.append(Event("info", "switch_requested", f"switch from {self.active!r} to {name!r} requested"
+                                 + (f" by {request.requested_by}" if request.requested_by else "")))
+        return self._maybe_switch(now_ns)
+
+    def _maybe_switch(self, now_ns: int) -> bool:
+        request = self.pending
+        if request is None:
+            return False
+        if request.name not in self.alive_planners:
+            self.pending = None
+            self.events.append(Event("warning", "switch_rejected",
+                                     f"switch to planner {request.name!r} abandoned: it stopped running"))
+            return False
+        if self.status == "ok" and self.phase != "TASK":
+            return False  # a reflex or its return is under way: hand over after it
+        previous = self.active
+        self.active = request.name
+        self.pending = None
+        self.handover = m.Handover(previous=previous, owner=request.name, requested_ns=request.stamp_ns,
+                                   switched_ns=now_ns)
+        self.previous_owner = previous
+        self.previous_until_ns = now_ns + PREVIOUS_OWNER_GRACE_NS
+        # The incoming planner counts its own seq; its first position target is
+        # checked against the stream so far, so the commanded pose cannot jump.
+        self.last_seq = None
+        self.planner_alive = True
+        self.planner_seen = True
+        self.events.append(Event("info", "switched", f"active planner is now {request.name!r} (was {previous!r})"))
+        self.publish_now = True
+        return True
 
     def on_fault(self, fault: m.RobotStatus | None, detail: str, q: np.ndarray, now_ns: int) -> None:
         """The backend's fault (protective stop, ...) or None once it is cleared.
@@ -561,6 +646,7 @@ class BridgeCore:
         h = min(max((now_ns - self.last_step_ns) / 1e9, 0.0), MAX_STEP_S)
         self.last_step_ns = max(now_ns, self.last_step_ns)
         self._evaluate(now_ns)
+        self._maybe_switch(now_ns)  # a pending switch while the outgoing planner is not commanding
         if h <= 0.0:
             return self._setpoint(0.0)
         if self.fault is not None:
@@ -685,12 +771,14 @@ class BridgeCore:
     # -- output -----------------------------------------------------------------------
     def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str) -> m.RobotState:
         """The robot state to publish, with the measured joints ``q`` and ``dq``."""
+        self.publish_now = False
         return m.RobotState(
             seq=seq, stamp_ns=now_ns, q=q.tolist(), dq=dq.tolist(), status=self.status, owner=self.active,
             backend=backend, command_mode=self.mode, reflex_seq=self.reflex_seq, accepted=self.accepted,
             accepted_ns=self.accepted_ns, rejected=self.rejected, clipped=self.clipped,
             stopping=self.stop is not None and not self.stop.done, stop_distance=self.stop_distance.tolist(),
             stop_time_s=self.stop_time_s, skin_age_s=min(self.skin_age_s(now_ns), 1e9), detail=self.detail,
+            pending_owner=self.pending.name if self.pending is not None else "", handover=self.handover,
         )
 
     def drain_events(self) -> list[Event]:

@@ -26,6 +26,7 @@ from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.core import BridgeCore, Envelope, Event, at_rest, make_envelope
 from nwr.services.planner.main import planner_service
 
+PLANNER_PREFIX = planner_service("")
 log = logging.getLogger(__name__)
 
 CONFIRM_FLAG = "--i-am-next-to-the-robot"
@@ -106,6 +107,8 @@ class Bridge:
                 # the next cycle, and its acceptance is published at once.
                 self._cycle(now)
                 self._publish(now)
+            elif self.core.publish_now:
+                self._publish(now)
             events = self.core.drain_events()
         self._report(events)
 
@@ -116,8 +119,20 @@ class Bridge:
         self._report(events)
 
     def on_liveliness(self, sample: zenoh.Sample) -> None:
+        """Any planner's token (alive/planner-<name>) appearing or vanishing."""
+        service = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = service.removeprefix(PLANNER_PREFIX)
         with self.lock:
-            self.core.on_planner_alive(sample.kind == zenoh.SampleKind.PUT, self.node.clock.now_ns())
+            self.core.on_planner_token(name, sample.kind == zenoh.SampleKind.PUT, self.node.clock.now_ns())
+            events = self.core.drain_events()
+        self._report(events)
+
+    def on_switch(self, request: m.SwitchRequest) -> None:
+        with self.lock:
+            now = self.node.clock.now_ns()
+            self.core.request_switch(request, now)
+            if self.core.publish_now:
+                self._publish(now)  # the planners learn who is active at once
             events = self.core.drain_events()
         self._report(events)
 
@@ -131,7 +146,7 @@ class Bridge:
                 self.backend.resync(obs.q)
             self.core.observe(obs.q)
             self._cycle(now)
-            if publish:
+            if publish or self.core.publish_now:
                 self._publish(now)
             events = self.core.drain_events()
         self._report(events)
@@ -178,10 +193,11 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             bridge = Bridge(profile, node, backend, env, q0, n_pads)
             node.subscribe(keys.ROBOT_COMMAND, bridge.on_command)
             node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin)
-            token_key = keys.key(profile.robot.name, keys.alive(planner_service(cfg.active_planner)))
-            watcher = node.session.liveliness().declare_subscriber(token_key, bridge.on_liveliness, history=True)
-            log.info("following planner %r (token %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",
-                     cfg.active_planner, token_key, cfg.rate_hz, cfg.command_timeout_s * 1e3,
+            node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch)
+            tokens = keys.key(profile.robot.name, keys.alive(PLANNER_PREFIX + "$*"))
+            watcher = node.session.liveliness().declare_subscriber(tokens, bridge.on_liveliness, history=True)
+            log.info("following planner %r (tokens %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",
+                     cfg.active_planner, tokens, cfg.rate_hz, cfg.command_timeout_s * 1e3,
                      cfg.skin_timeout_s * 1e3)
             pacer = backend.pacer(cfg.rate_hz)
             state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))

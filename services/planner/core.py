@@ -32,7 +32,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import InputParameter, OutputParameter, Result, Ruckig
+from ruckig import InputParameter, OutputParameter, Result, Ruckig, Trajectory
 
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
@@ -100,6 +100,10 @@ class Planner:
         self.changed = True  # a transition not yet published on the status
         self.resyncs = 0
         self._advanced_early = False
+        self.active = True  # until the bridge says it follows another planner
+        self.peer: m.PlannerStatus | None = None  # the active planner's status, when another one is
+        self.peer_ns = 0
+        self.shadow: Reflex | None = None  # what this planner would do, while inactive
         self._otg = Ruckig(n, self.dt)
         self._otg_in = InputParameter(n)
         self._otg_out = OutputParameter(n)
@@ -118,8 +122,17 @@ class Planner:
         return self.targets[self.target_index % len(self.targets)] if self.targets else -1
 
     # -- inputs -------------------------------------------------------------
-    def on_state(self, q: np.ndarray, following: bool) -> None:
-        """Measured joint positions from the bridge, and whether it follows this planner."""
+    def on_state(self, q: np.ndarray, following: bool, *, dq: np.ndarray | None = None,
+                 owner: str | None = None, now_ns: int = 0) -> None:
+        """Measured joints from the bridge, whether it follows this planner, and whom it follows."""
+        if owner is not None and owner != self.name:
+            self._mirror(q, dq, now_ns)
+            return
+        if not self.active:
+            self.active = True
+            if self.initialized:  # this planner was mirroring another one: take over from it
+                self._take_over(q, dq, now_ns)
+                return
         if not self.initialized:
             self._start_from(q)
             return
@@ -142,6 +155,62 @@ class Planner:
             if self.mode != "REFLEX":
                 self._begin_return()
 
+    # -- inactive: mirror the arm and the active planner, ready to take over -------
+    def on_peer_status(self, status: m.PlannerStatus, now_ns: int) -> None:
+        """Another planner's status; the active one's is mirrored while this one is inactive."""
+        if status.name != self.name and status.active:
+            self.peer = status
+            self.peer_ns = now_ns
+            if not self.active:
+                if status.target_pad in self.targets:  # one study target, whoever is active
+                    self.target_index = self.targets.index(status.target_pad)
+                self.mode = status.mode
+                self.clock.s = self._peer_task_time(now_ns)
+
+    def _peer_task_time(self, now_ns: int) -> float:
+        peer = self.peer
+        if peer is None:
+            return self.clock.s
+        # The status is up to one status period old; the task runs at rate 1 in TASK.
+        ahead = (now_ns - self.peer_ns) / 1e9 if peer.mode == "TASK" else 0.0
+        return peer.task_time_s + max(0.0, ahead)
+
+    def _mirror(self, q: np.ndarray, dq: np.ndarray | None, now_ns: int) -> None:
+        if self.active and self.initialized:
+            log.info("planner %r is no longer active: mirroring the arm and the active planner", self.name)
+        self.active = False
+        self.initialized = True
+        self.q = q.copy()
+        self.dq = np.zeros_like(q) if dq is None else dq.copy()
+        self.ddq[:] = 0.0
+        self.saved = None
+        self.reflex = None
+        self._advanced_early = False
+        if self.peer is not None:
+            self.mode = self.peer.mode
+            self.clock.s = self._peer_task_time(now_ns)
+
+    def _take_over(self, q: np.ndarray, dq: np.ndarray | None, now_ns: int) -> None:
+        """Become the active planner, continuing the motion of the outgoing one."""
+        self.q = q.copy()
+        self.dq = np.zeros_like(q) if dq is None else dq.copy()
+        self.ddq[:] = 0.0
+        self.shadow = None
+        self.clock.s = self._peer_task_time(now_ns)
+        peer = self.peer
+        log.info("planner %r takes over at task time %.3f s (outgoing planner in %s)", self.name, self.clock.s,
+                 peer.mode if peer is not None else "unknown mode")
+        self.changed = True
+        if peer is None or peer.mode == "TASK":
+            # The arm is on the task path at this task time: carry on at full speed.
+            self.mode = "TASK"
+            self.clock.since_resume = self.clock.ramp_s
+            self.saved = None
+            return
+        # Taken over mid-reflex (the outgoing planner died): go back where it paused.
+        self.saved = np.asarray(peer.saved_pose) if peer.saved_pose else self.task.position(self.clock.s)
+        self._begin_return()
+
     def _start_from(self, q: np.ndarray) -> None:
         """First contact with the arm: return to the task's start, then run it."""
         self.initialized = True
@@ -163,6 +232,9 @@ class Planner:
             self.changed = True
         self.last_level = list(pain.level)
         contact = pain.strongest
+        if not self.active:
+            self._on_pain_inactive(contact, previous, pain.trace, now_ns)
+            return None
         if not self.initialized or contact is None or not contact.gain > 0:
             return None
         if self.mode == "TASK":
@@ -178,6 +250,55 @@ class Planner:
         # next tick rather than advancing the motion twice in one period.
         self._advanced_early = True
         return self._advance_reflex(now_ns)
+
+    def _on_pain_inactive(self, contact: m.Contact | None, previous: np.ndarray, trace: m.Trace, now_ns: int) -> None:
+        """Shadow mode: what this planner would do on the same touch, from the arm's pose now."""
+        if not self.initialized:
+            return
+        if contact is None or not contact.gain > 0:
+            if self.shadow is not None and self.mode == "TASK":
+                self.shadow = None
+                self.changed = True
+            return
+        current = self.shadow.contact.gain if self.shadow is not None else 0.0
+        if not (previous[contact.pad] <= 0.0 or contact.gain > current + self.cfg.update_margin):
+            return
+        self.reflex_count += 1
+        shadow = Reflex(self.reflex_count, contact, trace, now_ns)
+        if self.joint_reflex is not None:
+            target = self.joint_reflex.target(self.q, contact)
+            if self.cfg.guarded:
+                delta, shadow.corrected = retreat.guard_displacement(
+                    self.model, self.q, target - self.q, contact.pad, self.desc.q_min, self.desc.q_max
+                )
+                target = self.q + delta
+            shadow.target = target
+            path, dt = self._preview_to(target)
+        else:
+            assert self.cartesian is not None
+            shadow.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
+            path, dt = self._integrate_cartesian(self.q, 0.0)
+        shadow.retreat = retreat.assess(self.model, path, dt, contact.pad).to_message(
+            contact.pad, shadow.corrected or (self.cartesian is not None and self.cartesian.corrections > 0)
+        )
+        self.shadow = shadow
+        self.changed = True
+
+    def _preview_to(self, target: np.ndarray, samples: int = 40) -> tuple[np.ndarray, float]:
+        """The jerk-limited path from the current state to ``target``, computed offline."""
+        n = len(self.q)
+        inp = InputParameter(n)
+        inp.max_velocity = self._otg_in.max_velocity
+        inp.max_acceleration = self._otg_in.max_acceleration
+        inp.max_jerk = self._otg_in.max_jerk
+        inp.current_position = self.q.tolist()
+        inp.current_velocity = self.dq.tolist()
+        inp.current_acceleration = [0.0] * n
+        inp.target_position = target.tolist()
+        traj = Trajectory(n)
+        Ruckig(n).calculate(inp, traj)
+        times = np.linspace(0.0, max(traj.duration, self.dt), samples + 1)
+        return np.array([traj.at_time(t)[0] for t in times]), float(times[1] - times[0])
 
     # -- transitions --------------------------------------------------------
     def _start_reflex(self, contact: m.Contact, trace: m.Trace, now_ns: int) -> None:
@@ -245,7 +366,7 @@ class Planner:
     # -- the control cycle ----------------------------------------------------
     def step(self, now_ns: int) -> m.Command | None:
         """One control cycle: advance the motion and return its command."""
-        if not self.initialized:
+        if not self.initialized or not self.active:
             return None
         if self._advanced_early:
             self._advanced_early = False
@@ -326,11 +447,15 @@ class Planner:
             duration = max(traj.duration, self.dt)
             times = np.linspace(0.0, duration, samples + 1)
             return np.array([traj.at_time(t)[0] for t in times]), float(times[1] - times[0])
+        return self._integrate_cartesian(self.q, self.reflex.elapsed_s, samples)
+
+    def _integrate_cartesian(self, q0: np.ndarray, t0: float, samples: int = 40) -> tuple[np.ndarray, float]:
+        """The Cartesian stream from ``t0`` to its end, integrated from ``q0``."""
         assert self.cartesian is not None
         dt = self.cfg.reflex_duration_s / samples
-        q = self.q.copy()
+        q = q0.copy()
         path = [q.copy()]
-        t = self.reflex.elapsed_s
+        t = t0
         for _ in range(samples):
             scale = smooth_profile(t, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s) if self.smooth else 1.0
             q = np.clip(q + scale * self.cartesian.joint_velocity(q, count=False) * dt, self.desc.q_min, self.desc.q_max)
@@ -349,19 +474,21 @@ class Planner:
     # -- status ---------------------------------------------------------------
     def status(self, now_ns: int) -> m.PlannerStatus:
         reflex = None
-        if self.reflex is not None:
-            r = self.reflex
-            duration = self.cfg.reflex_duration_s if self.cartesian is not None else self._otg_out.trajectory.duration
+        r = self.reflex if self.active else self.shadow
+        if r is not None:
+            duration = self.cfg.reflex_duration_s if self.cartesian is not None or not self.active \
+                else self._otg_out.trajectory.duration
             reflex = m.ReflexInfo(
                 reflex_seq=r.seq, strategy=self.strategy_name, contact=r.contact, trace=r.trace,
                 started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
                 target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
+                shadow=not self.active,
             )
         msg = m.PlannerStatus(
             seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy_name,
             mode=self.mode, task_time_s=self.clock.s,
             saved_pose=self.saved.tolist() if self.saved is not None else None, reflex=reflex,
-            target_pad=self.target_pad,
+            target_pad=self.target_pad, active=self.active,
         )
         self.status_seq += 1
         self.changed = False

@@ -49,7 +49,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 node.diag("warning", "bad_state", f"robot state has {q.size} joints, the robot has {planner.q.size}")
                 return
             with lock:
-                planner.on_state(q, following=state.owner == cfg.name and state.status == "ok")
+                planner.on_state(q, following=state.owner == cfg.name and state.status == "ok",
+                                 dq=m.as_array(state.dq), owner=state.owner, now_ns=node.clock.now_ns())
+                if planner.changed:
+                    send_status(planner.status(node.clock.now_ns()))
 
         def on_pain(pain: m.SkinPain) -> None:
             # The event path: a reflex starts the moment its pain message arrives.
@@ -67,7 +70,12 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
+        def on_peer_status(status: m.PlannerStatus) -> None:
+            with lock:
+                planner.on_peer_status(status, node.clock.now_ns())
+
         node.subscribe(keys.ROBOT_STATE, on_state)
+        node.subscribe(keys.planner_status("*"), on_peer_status)
         node.subscribe(keys.SKIN_PAIN, on_pain)
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy_name, cfg.rate_hz)
         rate = Rate(cfg.rate_hz, "planner")
