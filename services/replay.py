@@ -1,0 +1,207 @@
+"""``nwr replay FILE``: play a recorded touch session again, live or in lockstep.
+
+Three ways, all from the recorded skin stream (``skin/pressure``):
+
+- live, into a running pipeline (``nwr up`` without its gateway, or any
+  process speaking the keys): the selected topics are published under
+  ``nwr/<robot>/`` with fresh stamps (sequence numbers kept), at ``--speed``,
+  between ``--start`` and ``--end``, ``--loop``-ed if asked;
+- live against a reflex service (``--reflex NAME`` or ``--planner-cmd CMD``):
+  the gain estimator, that planner, the simulated bridge and a recorder are
+  started for the replay and stopped after it; the result is a new recording
+  to compare with the first (``nwr compare``);
+- ``--fast``: the same cores chained in this process on simulated time
+  (:mod:`nwr.services.lockstep`), as fast as they go, deterministic: the same
+  file and strategy give the same messages every run.
+
+Replay is open loop: a recorded press is replayed as it was recorded, even
+if the new reflex moves the pad away sooner (the simulated skin's ground
+truth is not re-simulated against the new motion).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from nwr.common import keys
+from nwr.common.config import STRATEGIES, Profile, load_profile
+from nwr.common.errors import ConfigError
+from nwr.common.node import Node
+from nwr.services.recorder.core import McapRecorder, Recorded, read_recording, session_metadata
+
+log = logging.getLogger(__name__)
+
+REPLAYABLE = ("skin/pressure",)
+
+
+def select(records: list[Recorded], topics: list[str], start_s: float, end_s: float | None) -> list[Recorded]:
+    """The records of ``topics`` between ``start_s`` and ``end_s`` (from the recording's first message)."""
+    if not records:
+        return []
+    t0 = records[0].log_time_ns
+    lo = t0 + round(start_s * 1e9)
+    hi = t0 + round(end_s * 1e9) if end_s is not None else None
+    return [r for r in records if r.key in topics and r.log_time_ns >= lo and (hi is None or r.log_time_ns <= hi)]
+
+
+def restamped(message: Any, stamp_ns: int) -> Any:
+    return msgspec.structs.replace(message, stamp_ns=stamp_ns)
+
+
+def play(node: Node, robot_records: list[Recorded], speed: float, loop: bool, stop: threading.Event) -> int:
+    """Publish the records in real time (divided by ``speed``); returns how many were sent."""
+    publishers = {key: node.publisher(key) for key in {r.key for r in robot_records}}
+    sent = 0
+    while True:
+        start_wall = time.monotonic_ns()
+        first = robot_records[0].log_time_ns
+        for record in robot_records:
+            due = start_wall + round((record.log_time_ns - first) / speed)
+            delay = (due - time.monotonic_ns()) / 1e9
+            if delay > 0 and stop.wait(delay):
+                return sent
+            publishers[record.key](restamped(record.message, node.clock.now_ns()))
+            sent += 1
+        if not loop or stop.is_set():
+            return sent
+
+
+def run_fast(profile: Profile, records: list[Recorded], strategy: str, output: Path,
+             source: Path, metadata: dict[str, dict[str, str]]) -> tuple[Path, float, float]:
+    """Lockstep replay into ``output``; returns it, the simulated and the wall-clock duration."""
+    from nwr.services.lockstep import Lockstep
+
+    skin = [r.message for r in records if r.key == "skin/pressure"]
+    lockstep = Lockstep(profile, strategy=strategy)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    robot = profile.robot.name
+    with output.open("wb") as stream:
+        recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
+                                chunk_size=profile.recorder.chunk_size)
+        recorder.metadata("session", session_metadata(
+            robot=robot, session=output.stem, profile_json=msgspec.json.encode(profile).decode(), strategy=strategy,
+            planner=strategy, start_time_iso=metadata.get("session", {}).get("start_time", ""),
+            start_monotonic_ns=skin[0].stamp_ns if skin else 0,
+            labels={"replay_of": str(source), "replay_mode": "fast"},
+        ))
+        for sample in skin:  # the recorded input, on its own timeline
+            recorder.write(keys.key(robot, "skin/pressure"), sample, sample.stamp_ns)
+        t = time.perf_counter()
+        report = lockstep.run(skin, lambda key, msg, ts: recorder.write(keys.key(robot, key), msg, ts))
+        wall = time.perf_counter() - t
+        recorder.finish()
+    return output, report.simulated_s, wall
+
+
+def _services_for(args: argparse.Namespace, output: Path) -> tuple[list[tuple[str, list[str]]], str]:
+    """The processes a live replay against a reflex service starts, and the planner's name."""
+    name = args.name or args.reflex or "replayed"
+    services: list[tuple[str, list[str]]] = [("bridge", ["--active", name])]
+    if not args.planner_cmd:
+        services.append(("planner", ["--name", name, "--reflex", args.reflex]))
+    services += [("gain", []), ("recorder", ["--output", str(output), "--session", output.stem,
+                                             "--strategy", args.reflex or "external",
+                                             "--label", f"replay_of={args.file}"])]
+    return services, name
+
+
+def _run(args: argparse.Namespace) -> int:
+    from nwr.services.cli import _spawn, _stop_all
+    from nwr.services.planner.main import planner_service
+
+    profile = load_profile(args.profile)
+    source = Path(args.file)
+    records, metadata = read_recording(source)
+    topics = [t for t in (args.topics.split(",") if args.topics else REPLAYABLE) if t]
+    bad = [t for t in topics if t not in REPLAYABLE]
+    if bad:
+        raise ConfigError(f"--topics {bad}: only {list(REPLAYABLE)} can be replayed (the rest is what a replay "
+                          "produces anew)")
+    chosen = select(records, topics, args.start, args.end)
+    if not chosen:
+        raise ConfigError(f"{source}: nothing to replay on {topics} between {args.start} s and {args.end} s")
+    strategy = args.reflex or metadata.get("session", {}).get("strategy") or profile.planner.strategy
+    default_out = Path(profile.recorder.directory) / f"{source.stem}-replay-{args.reflex or 'external'}.mcap"
+    output = Path(args.output) if args.output else default_out
+    span = (chosen[-1].log_time_ns - chosen[0].log_time_ns) / 1e9
+
+    if args.fast:
+        if args.planner_cmd:
+            raise ConfigError("--fast runs the project's own cores in this process; "
+                              "use a live replay to replay against --planner-cmd")
+        if strategy not in STRATEGIES:
+            raise ConfigError(f"strategy {strategy!r} of the recording is not one of {list(STRATEGIES)}: "
+                              "choose one with --reflex")
+        path, simulated, wall = run_fast(profile, chosen, strategy, output, source, metadata)
+        print(f"replayed {len(chosen)} skin samples ({simulated:.1f} s) against {strategy!r} in lockstep in "
+              f"{wall:.2f} s ({simulated / wall:.0f}x real time): {path}")
+        return 0
+
+    robot = args.robot or metadata.get("session", {}).get("robot") or profile.robot.name
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    stop = threading.Event()
+    try:
+        waits: list[str] = []
+        if args.reflex or args.planner_cmd:
+            services, name = _services_for(args, output)
+            for service, extra in services:
+                procs[service] = _spawn(args.profile, args.log_level, service, extra)
+            if args.planner_cmd:
+                procs["planner"] = subprocess.Popen([*shlex.split(args.planner_cmd)])
+            waits = [s for s, _ in services if s != "planner"] + [planner_service(name)]
+        with Node("replay", robot, profile.zenoh, token=False) as node:
+            node.install_signal_handlers()
+            if waits:
+                missing = node.wait_for(waits, timeout_s=30.0)
+                if missing:
+                    log.error("services %s did not come up within 30 s", missing)
+                    return 1
+            log.info("replaying %d messages (%.1f s) of %s at %gx%s", len(chosen), span, source, args.speed,
+                     ", looping" if args.loop else "")
+            sent = play(node, chosen, args.speed, args.loop, node.stop)
+            log.info("sent %d messages", sent)
+            if procs:
+                node.stop.wait(2.0)  # the last reflex returns, the recorder catches up
+    finally:
+        if procs:
+            codes = _stop_all(procs)
+            failed = {n: c for n, c in codes.items() if c not in (0, -15, -2)}
+            if failed:
+                log.error("services stopped with errors: %s", failed)
+                return 1
+            print(f"replay against {args.reflex or args.planner_cmd!r} recorded to {output}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "replay", help="play a recorded session again: live, against any reflex service, or in lockstep",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("file", help="MCAP recording")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (live replay; default 1)")
+    p.add_argument("--start", type=float, default=0.0, help="start at this offset from the recording's start, s")
+    p.add_argument("--end", type=float, default=None, help="stop at this offset from the recording's start, s")
+    p.add_argument("--loop", action="store_true", help="start again at the end (live replay without a service)")
+    p.add_argument("--topics", help=f"comma-separated topics to replay (default and only choice: {REPLAYABLE[0]})")
+    p.add_argument("--robot", help="publish under nwr/<ROBOT>/ (default: the recording's robot)")
+    p.add_argument("--reflex", choices=STRATEGIES,
+                   help="replay against a planner of this strategy with the simulated bridge, into a new recording")
+    p.add_argument("--planner-cmd", metavar="CMD",
+                   help="replay against this command instead of the project's planner (any process speaking the "
+                        "keys; give its planner name with --name), with the simulated bridge, into a new recording")
+    p.add_argument("--name", help="name of the planner to replay against (default: the strategy)")
+    p.add_argument("--fast", action="store_true",
+                   help="lockstep in this process on simulated time, as fast as the cores go; deterministic")
+    p.add_argument("--output", "-o", help="recording to write (default: recordings/<FILE>-replay-<reflex>.mcap)")
+    p.set_defaults(handler=_run)

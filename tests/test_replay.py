@@ -1,0 +1,129 @@
+"""Lockstep replay, live replay against any reflex service, and compare."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, load_script
+from nwr.common.robot import RobotModel, load_description
+from nwr.services import analysis, compare
+from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.services.lockstep import Lockstep
+from nwr.services.recorder.core import McapRecorder, Recorded, read_recording
+from nwr.services.replay import select
+
+DATA = Path(__file__).parent / "data"
+DESC = load_description()
+
+
+def skin_samples(script: str = "short.toml") -> list[m.SkinPressure]:
+    """The skin stream of a touch script, from the gateway's cores (25 Hz, no network)."""
+    profile = Profile()
+    sim = SimSkin(profile.gateway.sim, DESC.pads, load_script(str(DATA / script)))
+    gateway = Gateway(profile.gateway, len(DESC.pads))
+    out = []
+    for i in range(int(load_script(str(DATA / script)).duration_s * 25)):
+        t = (i + 1) / 25
+        msg, _ = gateway.process(t, 10**9 + round(t * 1e9), sim.sample(t))
+        out.append(msg)
+    return out
+
+
+def run_lockstep(strategy: str, samples: list[m.SkinPressure]) -> list[tuple[str, bytes, int]]:
+    out: list[tuple[str, bytes, int]] = []
+    Lockstep(Profile(), strategy=strategy).run(samples, lambda k, msg, t: out.append((k, msgspec.msgpack.encode(msg), t)))
+    return out
+
+
+def as_records(samples, produced) -> list[Recorded]:
+    records = [Recorded("skin/pressure", s.stamp_ns, s) for s in samples]
+    records += [Recorded(k, t, keys.codec(k).decode(b)) for k, b, t in produced]
+    return sorted(records, key=lambda r: r.log_time_ns)
+
+
+def test_lockstep_is_deterministic():
+    samples = skin_samples()
+    first, second = run_lockstep("location", samples), run_lockstep("location", samples)
+    assert first == second
+    assert any(k == "robot/command" for k, _, _ in first)
+
+
+@pytest.mark.parametrize("strategy", ["uniform", "cartesian"])
+def test_lockstep_reproduces_the_pipeline_decisions(strategy):
+    samples = skin_samples()
+    touches = analysis.summarize(as_records(samples, run_lockstep(strategy, samples)), DESC)
+    assert [t.name for t in touches] == ["upper_arm_top", "forearm_top", "wrist_2", "elbow_outer"]
+    assert [t.reflex_seq > 0 for t in touches] == [False, True, True, False]
+    for t in touches[1:3]:
+        assert t.withdrawal_mm > 1.0 and t.resumed_after_s is not None
+        assert t.return_error_rad < 1e-3
+
+
+def test_select_by_topic_and_time():
+    records = [Recorded("skin/pressure", 10**9 + i * 10**8, i) for i in range(50)]
+    records.insert(3, Recorded("robot/state", 10**9 + 3 * 10**8, "x"))
+    chosen = select(records, ["skin/pressure"], 1.0, 2.0)
+    assert [r.message for r in chosen] == list(range(10, 21))
+
+
+def write(path: Path, records: list[Recorded], strategy: str) -> Path:
+    with path.open("wb") as stream:
+        rec = McapRecorder(stream, "ur10e")
+        rec.metadata("session", {"robot": "ur10e", "strategy": strategy})
+        for r in records:
+            rec.write(keys.key("ur10e", r.key), r.message, r.log_time_ns)
+        rec.finish()
+    return path
+
+
+def test_compare_lines_up_touches_across_replays(tmp_path, capsys):
+    samples = skin_samples()
+    a = write(tmp_path / "a.mcap", as_records(samples, run_lockstep("uniform", samples)), "uniform")
+    b = write(tmp_path / "b.mcap", as_records(samples, run_lockstep("cartesian", samples)), "cartesian")
+    model = RobotModel(DESC)
+    sessions = [compare.load_session(p, DESC, model) for p in (a, b)]
+    rows = compare.line_up(sessions, 0.3)
+    assert len(rows) == 4 and all(None not in row for row in rows)
+    assert compare.peak_joint_speed(sessions[0], rows[1][0]) > compare.peak_joint_speed(sessions[1], rows[1][1])
+    text = compare.table(sessions, rows)
+    assert "a (uniform)" in text and "b (cartesian)" in text
+    png = compare.figure(sessions, rows, model, tmp_path / "cmp.png")
+    assert png.stat().st_size > 30_000
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_replay_fast_cli_and_live_against_the_outside_planner(tmp_path):
+    samples = skin_samples()
+    source = write(tmp_path / "session.mcap", [Recorded("skin/pressure", s.stamp_ns, s) for s in samples], "cartesian")
+    profile = tmp_path / "profile.toml"
+    profile.write_text(f'[zenoh]\nbase_port = 17950\n[recorder]\ndirectory = "{tmp_path}"\n')
+    cli = [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "--log-level", "WARNING"]
+
+    fast = [subprocess.run([*cli, "replay", str(source), "--fast", "--reflex", "location", "-o", str(tmp_path / f"f{i}.mcap")],
+                           capture_output=True, text=True, timeout=120) for i in range(2)]
+    assert all(p.returncode == 0 for p in fast), fast[0].stderr
+    decoded = [[(r.key, msgspec.msgpack.encode(r.message)) for r in read_recording(tmp_path / f"f{i}.mcap")[0]]
+               for i in range(2)]
+    assert decoded[0] == decoded[1]  # two --fast replays: identical messages
+
+    planner = f"{sys.executable} {Path(__file__).parents[1] / 'examples' / 'minimal_planner.py'} --name mini --base-port 17950"
+    live = subprocess.run([*cli, "replay", str(source), "--planner-cmd", planner, "--name", "mini", "--start", "3.0",
+                           "--end", "8.5", "-o", str(tmp_path / "live.mcap")], capture_output=True, text=True, timeout=120)
+    assert live.returncode == 0, live.stdout + live.stderr
+    records, _ = read_recording(tmp_path / "live.mcap")
+    states = [r.message for r in records if r.key == "robot/state"]
+    assert {s.owner for s in states} == {"mini"}
+    commands = [r.message for r in records if r.key == "robot/command"]
+    assert commands and {c.owner for c in commands} == {"mini"}
+    onsets = {s.reflex_seq for s in states if s.accepted is not None}
+    assert len(onsets) >= 2  # the two supra-threshold touches of the replayed window moved the arm
+    assert max(np.abs(s.dq).max() for s in states) > 0.1  # and the arm moved
