@@ -781,6 +781,12 @@ class BridgeCore:
             pending_owner=self.pending.name if self.pending is not None else "", handover=self.handover,
         )
 
+    def release(self) -> None:
+        """Drop the trajectory generator at shutdown (its objects must not outlive their module)."""
+        self._otg = self._otg_in = None  # type: ignore[assignment]
+        if self.stop is not None:
+            self.stop.trajectory = None
+
     def drain_events(self) -> list[Event]:
         events, self.events = self.events, []
         return events

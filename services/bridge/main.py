@@ -214,6 +214,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     bridge.tick(pacer.ticks % state_every == 0)
                 bridge.tick(True)
                 watcher.undeclare()
+                bridge.core.release()
                 log.info(pacer.summary())
                 log.info("%d commands rejected, %d clipped; stop distance %s rad", bridge.core.rejected,
                          bridge.core.clipped, np.round(bridge.core.stop_distance, 4).tolist())

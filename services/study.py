@@ -1,0 +1,167 @@
+"""``nwr study``: the paper's within-subject protocol on the live pipeline.
+
+Three conditions, uniform (UR), location-dependent (LR) and Cartesian (CR),
+in one of three counterbalanced orders (a Latin square: every condition once
+in every position). All three planners run from the start; between blocks
+the active one is switched (``control/active``) without restarting
+anything, and each block is recorded to its own file,
+``recordings/<participant>/<participant>-b<block>-<condition>.mcap``, with
+the participant, order, block and condition in the session metadata.
+
+During a block the arm draws the figure-eight and the planner lights the
+target pad; with the simulated skin, ``--follow-target`` makes a simulated
+participant press it every few seconds at varying pressures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import load_profile
+from nwr.common.errors import ConfigError
+from nwr.common.node import Node
+
+log = logging.getLogger(__name__)
+
+# The three counterbalanced orders of the study (a 3 x 3 Latin square).
+ORDERS: tuple[tuple[str, str, str], ...] = (
+    ("uniform", "location", "cartesian"),
+    ("location", "cartesian", "uniform"),
+    ("cartesian", "uniform", "location"),
+)
+
+
+def order_of(n: int) -> tuple[str, str, str]:
+    if not 1 <= n <= len(ORDERS):
+        raise ConfigError(f"--order {n}: the study has orders 1 to {len(ORDERS)}: "
+                          + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
+    return ORDERS[n - 1]
+
+
+def block_path(directory: Path, participant: str, block: int, condition: str) -> Path:
+    return directory / participant / f"{participant}-b{block}-{condition}.mcap"
+
+
+class Switcher:
+    """Asks the bridge to follow a planner and waits until it does (after any reflex in progress)."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.owner = ""
+        self.changed = threading.Condition()
+        self.publish = node.publisher(keys.CONTROL_ACTIVE)
+        self.seq = 0
+        node.subscribe(keys.ROBOT_STATE, self._on_state)
+
+    def _on_state(self, state: m.RobotState) -> None:
+        with self.changed:
+            self.owner = state.owner
+            self.changed.notify_all()
+
+    def switch(self, name: str, timeout_s: float = 15.0) -> bool:
+        self.publish(m.SwitchRequest(seq=self.seq, stamp_ns=self.node.clock.now_ns(), name=name,
+                                     requested_by="nwr study"))
+        self.seq += 1
+        with self.changed:
+            return self.changed.wait_for(lambda: self.owner == name, timeout_s)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from nwr.services.cli import _spawn, _stop_all
+    from nwr.services.planner.main import planner_service
+
+    profile = load_profile(args.profile)
+    order = order_of(args.order)
+    if not args.participant.replace("-", "").replace("_", "").isalnum():
+        raise ConfigError(f"--participant {args.participant!r}: letters, digits, '-' and '_' only (it names a folder)")
+    directory = Path(profile.recorder.directory)
+    paths = [block_path(directory, args.participant, i + 1, c) for i, c in enumerate(order)]
+    existing = [p for p in paths if p.exists()]
+    if existing and not args.overwrite:
+        raise ConfigError(f"{existing[0]} exists: choose another participant ID, or --overwrite")
+    paths[0].parent.mkdir(parents=True, exist_ok=True)
+
+    spawn = lambda service, extra: _spawn(args.profile, args.log_level, service, extra)  # noqa: E731
+    procs: dict[str, subprocess.Popen[bytes]] = {"bridge": spawn("bridge", ["--active", order[0]])}
+    for condition in ORDERS[0]:
+        procs[f"planner-{condition}"] = spawn("planner", ["--name", condition, "--reflex", condition])
+    procs["gain"] = spawn("gain", [])
+    done: list[tuple[int, str, Path]] = []
+    try:
+        with Node("study", profile.robot.name, profile.zenoh, token=False) as node:
+            node.install_signal_handlers()
+            missing = node.wait_for(["bridge", "gain", *(planner_service(c) for c in ORDERS[0])], timeout_s=30.0)
+            if missing:
+                log.error("services %s did not come up within 30 s", missing)
+                return 1
+            gateway = ["--follow-target", str(args.follow_target)] if args.follow_target else []
+            procs["gateway"] = spawn("gateway", gateway)
+            switcher = Switcher(node)
+            for block, (condition, path) in enumerate(zip(order, paths), start=1):
+                if not switcher.switch(condition):
+                    log.error("the bridge did not switch to %r within 15 s: stopping the study", condition)
+                    return 1
+                log.info("block %d of 3: %s, %.0f s, recording to %s", block, condition, args.block_s, path)
+                recorder = spawn("recorder", [
+                    "--output", str(path), "--session", path.stem, "--strategy", condition,
+                    "--label", f"participant={args.participant}", "--label", f"order={args.order}",
+                    "--label", f"block={block}", "--label", f"condition={condition}",
+                ])
+                if node.wait_for(["recorder"], timeout_s=15.0):
+                    log.error("the recorder of block %d did not start", block)
+                    recorder.kill()
+                    return 1
+                stopped = node.stop.wait(args.block_s)
+                recorder.send_signal(signal.SIGTERM)
+                recorder.wait(15)
+                done.append((block, condition, path))
+                if stopped:
+                    log.warning("study interrupted during block %d", block)
+                    break
+                for _ in range(20):  # its token must be gone before the next recorder's
+                    if "recorder" not in node.alive_services(0.3):
+                        break
+    finally:
+        _stop_all(procs)
+    _print_blocks(done, profile)
+    return 0 if len(done) == len(order) else 1
+
+
+def _print_blocks(done: list[tuple[int, str, Path]], profile) -> None:  # type: ignore[no-untyped-def]
+    from nwr.common.robot import load_description
+    from nwr.services import analysis
+    from nwr.services.recorder.core import read_recording
+
+    desc = load_description(profile.robot.description or None)
+    print("\nblock  condition  touches  reflexes  onset p50 (ms)  approached  file")
+    for block, condition, path in done:
+        records, _ = read_recording(path)
+        touches = analysis.summarize(records, desc)
+        reflexes = [t for t in touches if t.reflex_seq]
+        onsets = [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
+        approached = sum(1 for t in reflexes if (t.toward_mm or 0) > 1.0)
+        p50 = f"{np.median(onsets):.2f}" if onsets else "-"
+        print(f"{block:5d}  {condition:9s}  {len(touches):7d}  {len(reflexes):8d}  {p50:>14s}  {approached:10d}  {path}")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("study", help="run the paper's three-condition study protocol, one recording per block",
+                       description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--participant", required=True, help="participant ID (names the recordings' folder)")
+    p.add_argument("--order", type=int, required=True,
+                   help="counterbalanced order: " + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
+    p.add_argument("--block-s", type=float, default=300.0, help="duration of each block, s (the study: about 5 min)")
+    p.add_argument("--follow-target", type=float, metavar="SECONDS",
+                   help="simulated participant: press the target pad every SECONDS (simulated skin)")
+    p.add_argument("--overwrite", action="store_true", help="replace the participant's existing recordings")
+    p.set_defaults(handler=_run)

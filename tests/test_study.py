@@ -1,0 +1,46 @@
+"""The study protocol: three blocks, three conditions, one recording each, switched live."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from nwr.common.errors import ConfigError
+from nwr.services.recorder.core import read_recording
+from nwr.services.study import ORDERS, block_path, order_of
+
+
+def test_orders_are_a_latin_square():
+    for position in range(3):
+        assert sorted(order[position] for order in ORDERS) == ["cartesian", "location", "uniform"]
+    assert order_of(2) == ("location", "cartesian", "uniform")
+    with pytest.raises(ConfigError, match="orders 1 to 3"):
+        order_of(4)
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_study_session(tmp_path):
+    profile = tmp_path / "profile.toml"
+    profile.write_text(f'[zenoh]\nbase_port = 17880\n[recorder]\ndirectory = "{tmp_path}"\n')
+    proc = subprocess.run(
+        [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "study", "--participant", "P07",
+         "--order", "3", "--block-s", "6", "--follow-target", "1.5"],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for block, condition in enumerate(ORDERS[2], start=1):
+        records, metadata = read_recording(block_path(tmp_path, "P07", block, condition))
+        session = metadata["session"]
+        assert (session["label.participant"], session["label.condition"], session["label.block"]) == \
+            ("P07", condition, str(block))
+        assert session["strategy"] == condition
+        states = [r.message for r in records if r.key == "robot/state"]
+        assert states and {s.owner for s in states} == {condition}
+        executed = {st.reflex.strategy for r in records if r.key.endswith("/status")
+                    for st in [r.message] if st.reflex is not None and not st.reflex.shadow}
+        assert executed == {condition}  # the simulated participant's touches caused this condition's reflexes
+        targets = {r.message.target_pad for r in records if r.key == f"reflex/{condition}/status"}
+        assert len(targets) >= 2  # the target pad moved on after touches
