@@ -1,0 +1,170 @@
+"""``nwr router``: the project's own Zenoh router, for labs without the official image.
+
+A Zenoh session in router mode that listens on explicit endpoints, with
+multicast scouting off (it does not cross Docker networks or routed LANs,
+and an arm must not join a pipeline by accident). The services connect to it
+by endpoint (``[zenoh] router = [...]`` or ``NWR_ROUTER``) as clients and
+listen nowhere, so all traffic goes through it.
+
+The default listen endpoint is loopback (``tcp/127.0.0.1:7447``): on a
+host, opening the router to the LAN is a decision (``--listen
+tcp/0.0.0.0:7447`` or ``NWR_ROUTER_LISTEN``). The compose deployment passes
+``tcp/0.0.0.0:7447``, inside the container's own network namespace.
+
+The router declares the liveliness token ``nwr/<robot>/alive/router``, so
+``nwr status`` lists it beside the services and ``nwr status --check
+router`` is its health check.
+
+In secure mode (``[zenoh] secure``, or ``NWR_TLS_*`` set, with the router's
+own ``router:NAME`` certificate) it listens on TLS only (``tcp/`` endpoints
+become ``tls/`` on the same port), requires a certificate from the lab CA of
+every client (mutual TLS), and enforces the access control rules of
+``--acl`` (``deploy/acl.json5``), which must deny by default. See
+docs/security.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import signal
+import threading
+from pathlib import Path
+
+import zenoh
+
+from nwr.common import keys
+from nwr.common.config import ZenohSection
+from nwr.common.errors import ConfigError
+from nwr.common.node import check_tls_files, tls_config, tls_endpoints
+
+log = logging.getLogger(__name__)
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+# <protocol>/<address>[:port], Zenoh's endpoint syntax (tcp/10.0.0.2:7447, tcp/[::]:7447).
+# The rules shipped with the deployment, for a router started from a checkout.
+DEFAULT_ACL = "deploy/acl.json5"
+ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+
+
+def parse_endpoints(text: str, what: str) -> list[str]:
+    """Comma-separated Zenoh endpoints; ConfigError naming the bad one."""
+    endpoints = [e.strip() for e in text.split(",") if e.strip()]
+    for e in endpoints:
+        if not ENDPOINT.match(e):
+            raise ConfigError(f"{what}: {e!r} is not a Zenoh endpoint; write <protocol>/<host>:<port>, "
+                              "e.g. tcp/0.0.0.0:7447 or tcp/10.0.0.2:7447")
+    return endpoints
+
+
+def router_config(listen: list[str], connect: list[str], *, tls: ZenohSection | None = None,
+                  acl: str | None = None) -> zenoh.Config:
+    """The router's session configuration; with ``tls``, mutual TLS only and the access control ``acl`` (JSON5)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if tls is not None:
+        tls_config(conf, tls, listen=True)
+        if acl is None:
+            raise ConfigError("a secure router needs its access control rules: --acl deploy/acl.json5")
+        conf.insert_json5("access_control", acl)
+    return conf
+
+
+def load_acl(path: Path) -> str:
+    """The access-control section in ``path`` (JSON5), checked to be on and to deny by default."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read the access control rules {path}: {exc}; the project ships "
+                          "deploy/acl.json5") from exc
+    probe = zenoh.Config()
+    try:
+        probe.insert_json5("access_control", text)
+    except (zenoh.ZError, ValueError) as exc:
+        raise ConfigError(f"{path} is not a Zenoh access_control section: {exc}") from exc
+    section = json.loads(probe.get_json("access_control"))
+    # Deny by default is the point: a rules file that forgets it must not open the router.
+    if section.get("enabled") is not True or section.get("default_permission") != "deny":
+        raise ConfigError(f"{path}: access control must have enabled: true and default_permission: \"deny\" "
+                          f"(got enabled={section.get('enabled')!r}, "
+                          f"default_permission={section.get('default_permission')!r})")
+    return text
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--listen", metavar="ENDPOINTS",
+        help=f"comma-separated endpoints to listen on (default: $NWR_ROUTER_LISTEN or {DEFAULT_LISTEN}; "
+             "tcp/0.0.0.0:7447 for the LAN)",
+    )
+    parser.add_argument("--connect", metavar="ENDPOINTS", default="",
+                        help="comma-separated endpoints of other routers to connect to (a router per site)")
+    parser.add_argument("--acl", metavar="FILE",
+                        help="secure mode: the access control rules, JSON5 (default: $NWR_ROUTER_ACL or "
+                             f"{DEFAULT_ACL}, from the working directory)")
+
+
+def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) -> int:
+    listen = parse_endpoints(args.listen or os.environ.get("NWR_ROUTER_LISTEN") or DEFAULT_LISTEN, "--listen")
+    if not listen:
+        raise ConfigError("--listen names no endpoint: give at least one, e.g. tcp/0.0.0.0:7447")
+    connect = parse_endpoints(args.connect, "--connect")
+    tls = zcfg if zcfg is not None and zcfg.secure else None
+    acl = None
+    if tls is not None:
+        # Secure: TLS links only (tcp/ listens as tls/ on the same port), client
+        # certificates required, and the access control decides every put.
+        cn = check_tls_files(tls, role="router")
+        listen = tls_endpoints(listen, "--listen")
+        connect = tls_endpoints(connect, "--connect")
+        acl_path = Path(getattr(args, "acl", None) or os.environ.get("NWR_ROUTER_ACL") or DEFAULT_ACL)
+        acl = load_acl(acl_path)
+        log.info("secure mode: mutual TLS only, as %s; access control from %s, deny by default", cn, acl_path)
+    else:
+        log.warning("router without TLS or access control: anyone who reaches %s can publish on every key "
+                    "(robot/command included); use secure mode on a lab LAN (docs/security.md)", ", ".join(listen))
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        session = zenoh.open(router_config(listen, connect, tls=tls, acl=acl))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"cannot start the router on {listen}: {exc}; is the port taken (another router?) "
+                          "or the address not one of this host's?") from exc
+    with session:
+        token = session.liveliness().declare_token(keys.key(robot, keys.alive("router")))
+        log.info("Zenoh router %s listening on %s%s (multicast scouting off); token %s", session.zid(),
+                 ", ".join(listen), f", connected to {', '.join(connect)}" if connect else "",
+                 keys.key(robot, keys.alive("router")))
+        stop.wait()
+        token.undeclare()
+    return 0
+
+
+def _handler(args: argparse.Namespace) -> int:
+    from nwr.services.cli import profile_for
+
+    profile = profile_for(args)
+    return run(profile.robot.name, args, profile.zenoh)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "router", help="a Zenoh router for the LAN deployment (listens on loopback unless told otherwise)",
+        description="Run a Zenoh session in router mode with multicast scouting off. Services reach it with "
+                    "NWR_ROUTER=tcp/HOST:7447 (or [zenoh] router). It listens on loopback by default: use "
+                    "--listen tcp/0.0.0.0:7447 to serve the LAN.",
+    )
+    add_arguments(p)
+    p.set_defaults(handler=_handler)
