@@ -50,6 +50,16 @@ class ZenohSection(_Section):
     host: str = "127.0.0.1"
     # First port of the embedded mesh: service i listens on base_port + i.
     base_port: Port = 7450
+    # Secure mode (the LAN deployment): mutual TLS to the router, whose access
+    # control decides by the certificate's common name (ROLE:NAME) what this
+    # service may put. Needs router; tcp/ router endpoints are dialled as tls/.
+    # The environment variable NWR_INSECURE=1 turns it off (with a warning).
+    secure: bool = False
+    # PEM files from `nwr certs`: the lab CA's certificate, this service's
+    # certificate and its private key (mode 0600).
+    ca_certificate: str = ""
+    certificate: str = ""
+    private_key: str = ""
 
 
 class SimSkinSection(_Section):

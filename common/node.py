@@ -20,6 +20,8 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -28,7 +30,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import Clock, MonotonicClock
 from nwr.common.config import ZenohSection
-from nwr.common.errors import DecodeError
+from nwr.common.errors import ConfigError, DecodeError
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,8 @@ def endpoints(cfg: ZenohSection) -> list[str]:
 def zenoh_config(cfg: ZenohSection, listen_slot: str | None = None) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if cfg.secure:
+        return _secure_client_config(conf, cfg)
     if cfg.router:
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", json.dumps(cfg.router))
@@ -67,6 +71,108 @@ def zenoh_config(cfg: ZenohSection, listen_slot: str | None = None) -> zenoh.Con
     mine = set(listen)
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps([e for e in endpoints(cfg) if e not in mine]))
+    return conf
+
+
+# A certificate this close to its end is reported at every start, so that
+# it is re-issued before the router starts refusing the service.
+TLS_EXPIRY_WARNING_DAYS = 30
+
+
+def tls_endpoints(endpoints: list[str], what: str) -> list[str]:
+    """``endpoints`` with ``tcp/`` dialled as ``tls/`` (same host and port); ConfigError for other protocols.
+
+    Secure mode upgrades rather than rejects ``tcp/``, so that NWR_ROUTER
+    stays the same whether NWR_INSECURE=1 is set or not.
+    """
+    out = []
+    for e in endpoints:
+        proto, _, rest = e.partition("/")
+        if proto not in ("tcp", "tls"):
+            raise ConfigError(f"{what}: {e!r} in secure mode: only tls/HOST:PORT (or tcp/, dialled as tls/) "
+                              "carries mutual TLS; set NWR_INSECURE=1 to use other protocols without it")
+        out.append(f"tls/{rest}")
+    return out
+
+
+def check_tls_files(cfg: ZenohSection, *, role: str | None = None) -> str:
+    """The certificate's common name, after checking every TLS file is there and usable.
+
+    ConfigError naming the file and what to do: a service in secure mode must
+    refuse to start rather than retry a router that will never let it in.
+    ``role``: the role the certificate's common name must carry (``router``).
+    """
+    from cryptography import x509  # secure mode only: the embedded default never loads it
+    from cryptography.x509.oid import NameOID
+
+    fix = ("issue one on the admin machine with `nwr certs issue NAME --role ROLE`, copy NAME.crt, NAME.key and "
+           "ca.crt to this host and name them in [zenoh] ca_certificate / certificate / private_key (or "
+           "NWR_TLS_CA, NWR_TLS_CERT, NWR_TLS_KEY); NWR_INSECURE=1 runs without TLS, on a trusted network only")
+    for field in ("ca_certificate", "certificate", "private_key"):
+        value = getattr(cfg, field)
+        if not value:
+            raise ConfigError(f"secure mode but [zenoh] {field} is empty: this service has no certificate; {fix}")
+        path = Path(value)
+        if not path.is_file():
+            raise ConfigError(f"secure mode: [zenoh] {field} {value!r} does not exist; {fix}")
+        try:
+            path.read_bytes()
+        except OSError as exc:
+            raise ConfigError(f"secure mode: cannot read [zenoh] {field} {value!r} ({exc}); the service's user must "
+                              "own it (chown) or be able to read it") from exc
+    key_mode = Path(cfg.private_key).stat().st_mode & 0o777
+    if key_mode & 0o077:
+        log.warning("private key %s has mode %o: anyone on this host who can read it can act as this service; "
+                    "chmod 600 it", cfg.private_key, key_mode)
+    try:
+        cert = x509.load_pem_x509_certificate(Path(cfg.certificate).read_bytes())
+    except ValueError as exc:
+        raise ConfigError(f"secure mode: [zenoh] certificate {cfg.certificate!r} is not a PEM certificate "
+                          f"({exc}); {fix}") from exc
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    cn = str(names[0].value) if names else ""
+    now = datetime.now(timezone.utc)
+    left_days = (cert.not_valid_after_utc - now).total_seconds() / 86400
+    if left_days <= 0:
+        raise ConfigError(f"secure mode: certificate {cfg.certificate} ({cn}) expired on "
+                          f"{cert.not_valid_after_utc:%Y-%m-%d}: re-issue it with `nwr certs issue NAME --role ROLE "
+                          "--force` and copy it here")
+    if left_days <= TLS_EXPIRY_WARNING_DAYS:
+        log.warning("certificate %s (%s) expires in %.0f days (%s): re-issue it with --force", cfg.certificate, cn,
+                    left_days, f"{cert.not_valid_after_utc:%Y-%m-%d}")
+    if role is not None and not cn.startswith(f"{role}:"):
+        raise ConfigError(f"secure mode: certificate {cfg.certificate} has the common name {cn!r}, not {role}:NAME; "
+                          f"issue one with `nwr certs issue NAME --role {role}`")
+    return cn
+
+
+def tls_config(conf: zenoh.Config, cfg: ZenohSection, *, listen: bool) -> None:
+    """Mutual TLS with the lab CA, over TLS links only."""
+    conf.insert_json5("transport/link/protocols", '["tls"]')
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(cfg.ca_certificate))
+    conf.insert_json5("transport/link/tls/enable_mtls", "true")
+    # The router's certificate must name the host it is dialled by.
+    conf.insert_json5("transport/link/tls/verify_name_on_connect", "true")
+    # A link whose peer's certificate expires is closed, not trusted until it drops.
+    conf.insert_json5("transport/link/tls/close_link_on_expiration", "true")
+    conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(cfg.certificate))
+    conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(cfg.private_key))
+    if listen:
+        conf.insert_json5("transport/link/tls/listen_certificate", json.dumps(cfg.certificate))
+        conf.insert_json5("transport/link/tls/listen_private_key", json.dumps(cfg.private_key))
+
+
+def _secure_client_config(conf: zenoh.Config, cfg: ZenohSection) -> zenoh.Config:
+    if not cfg.router:
+        raise ConfigError("secure mode ([zenoh] secure = true) needs a router, which enforces the access control: "
+                          "set [zenoh] router or NWR_ROUTER=tls/HOST:7447 (start one with `nwr router`), or "
+                          "NWR_INSECURE=1 for the embedded mesh without TLS")
+    cn = check_tls_files(cfg)
+    routers = tls_endpoints(cfg.router, "[zenoh] router")
+    log.info("secure mode: mutual TLS to %s as %s", ", ".join(routers), cn)
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps(routers))
+    tls_config(conf, cfg, listen=False)
     return conf
 
 

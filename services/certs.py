@@ -1,0 +1,326 @@
+"""``nwr certs``: the lab's certificate authority and one certificate per service.
+
+The Zenoh router of the LAN deployment accepts only TLS links whose client
+presents a certificate signed by the lab CA (mutual TLS), and its access
+control decides what each connection may put by the certificate's common
+name. This module makes those certificates:
+
+- ``nwr certs init DIR`` creates the CA (``ca.crt``, ``ca.key``) on the lab's
+  admin machine. ``ca.key`` never leaves it.
+- ``nwr certs issue NAME --role ROLE`` writes ``NAME.crt`` and ``NAME.key``,
+  signed by the CA, with the common name ``ROLE:NAME`` (e.g.
+  ``planner:cartesian``, ``bridge:bridge``). The access-control rules
+  (``deploy/acl.json5``) list exactly these common names.
+- ``nwr certs list`` prints every certificate of the directory: name, role,
+  common name, expiry.
+
+Keys are ECDSA P-256 (what rustls, Zenoh's TLS, supports everywhere), written
+with owner-only permissions (0600). Only the router's certificate may act as
+a TLS server (extended key usage ``serverAuth``): a stolen service key cannot
+impersonate the router. All the cryptography is the ``cryptography``
+package's; nothing here is hand-rolled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import ipaddress
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from nwr.common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+ROLES = ("router", "gateway", "gain", "planner", "bridge", "recorder", "view", "operator")
+# A name is a file name and part of the common name, and for a planner also
+# its key (reflex/<name>/...): the same alphabet as planner and robot names.
+NAME = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+CA_CERT = "ca.crt"
+CA_KEY = "ca.key"
+# Long enough that a lab does not re-issue its CA every term; short enough
+# that a forgotten service certificate does not work forever.
+CA_DAYS = 3650
+DEFAULT_DAYS = 365
+# The router's certificate is checked against the host name clients dial
+# (verify_name_on_connect): these cover the compose service name and loopback.
+ROUTER_DEFAULT_SANS = ("router", "localhost", "127.0.0.1")
+EXPIRY_WARNING_DAYS = 30
+
+
+def default_dir() -> Path:
+    """``$NWR_CERTS`` or ``./certs``: read at call time, never at import."""
+    return Path(os.environ.get("NWR_CERTS") or "certs")
+
+
+def common_name(role: str, name: str) -> str:
+    """The certificate's common name, which the router's access control matches: ``ROLE:NAME``."""
+    return f"{role}:{name}"
+
+
+def parse_common_name(cn: str) -> tuple[str, str]:
+    """(role, name) of a ``ROLE:NAME`` common name; ConfigError if it is not one."""
+    role, sep, name = cn.partition(":")
+    if not sep or role not in ROLES or not NAME.match(name):
+        raise ConfigError(f"common name {cn!r} is not ROLE:NAME with a role of {list(ROLES)}: "
+                          "issue the certificate with `nwr certs issue NAME --role ROLE`")
+    return role, name
+
+
+def _write_private(path: Path, data: bytes) -> None:
+    """Write a key readable by its owner only, from the first byte (no window at 0644)."""
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)  # the umask may not lower it, but an existing tmp file keeps its mode
+        os.write(fd, data)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+
+
+def _write_public(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+def init_ca(directory: Path, *, days: int = CA_DAYS, lab: str = "nwr lab", force: bool = False) -> Path:
+    """Create ``ca.crt`` and ``ca.key`` in ``directory``; returns the certificate's path."""
+    directory.mkdir(parents=True, exist_ok=True)
+    cert_path, key_path = directory / CA_CERT, directory / CA_KEY
+    if key_path.exists() and not force:
+        raise ConfigError(f"{key_path} exists: a new CA invalidates every certificate it signed. "
+                          "Use --force to replace it on purpose (then re-issue every certificate)")
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"{lab} CA"),
+                      x509.NameAttribute(NameOID.ORGANIZATION_NAME, lab)])
+    now = _now()
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name).issuer_name(name).public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))  # tolerate small clock skew between hosts
+        .not_valid_after(now + dt.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False, key_encipherment=False,
+                                     data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                     crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    _write_private(key_path, _key_pem(key))
+    _write_public(cert_path, cert.public_bytes(serialization.Encoding.PEM))
+    log.info("created the lab CA %s (valid until %s); keep %s on this machine only", cert_path,
+             cert.not_valid_after_utc.date(), key_path)
+    return cert_path
+
+
+def _load_ca(directory: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    cert_path, key_path = directory / CA_CERT, directory / CA_KEY
+    if not key_path.exists():
+        raise ConfigError(f"no CA key {key_path}: create the lab CA first with `nwr certs init {directory}` "
+                          "(on the admin machine, where ca.key stays)")
+    cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise ConfigError(f"{key_path} is not an EC key made by `nwr certs init`")
+    return cert, key
+
+
+def _san(entry: str) -> x509.GeneralName:
+    try:
+        return x509.IPAddress(ipaddress.ip_address(entry))
+    except ValueError:
+        return x509.DNSName(entry)
+
+
+def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sans: list[str] | None = None,
+          force: bool = False) -> Path:
+    """Write ``NAME.crt`` and ``NAME.key`` signed by the CA in ``directory``; returns the certificate's path.
+
+    The router's certificate also carries subject alternative names (the host
+    names and addresses clients dial), since clients verify them.
+    """
+    if role not in ROLES:
+        raise ConfigError(f"role {role!r} is not one of {list(ROLES)}")
+    if not NAME.match(name):
+        raise ConfigError(f"certificate name {name!r}: lower-case letters, digits, '_' and '-', starting with a "
+                          "letter, at most 32 characters (a planner's name is its planner name, e.g. cartesian)")
+    if name == "ca":
+        raise ConfigError("certificate name 'ca' is the CA's own: choose another name")
+    if not 1 <= days <= CA_DAYS:
+        raise ConfigError(f"--days {days}: give 1 to {CA_DAYS} days")
+    cert_path, key_path = directory / f"{name}.crt", directory / f"{name}.key"
+    if cert_path.exists() and not force:
+        raise ConfigError(f"{cert_path} exists: use --force to re-issue it (rotation), then copy it to its host")
+    ca_cert, ca_key = _load_ca(directory)
+    now = _now()
+    not_after = min(now + dt.timedelta(days=days), ca_cert.not_valid_after_utc)
+    key = ec.generate_private_key(ec.SECP256R1())
+    alt_names = list(sans or [])
+    if role == "router":
+        alt_names += [s for s in ROUTER_DEFAULT_SANS if s not in alt_names]
+    if name not in alt_names:
+        alt_names.append(name)
+    usages = [ExtendedKeyUsageOID.CLIENT_AUTH]
+    if role == "router":
+        usages.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)  # only the router may serve TLS
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name(role, name))]))
+        .issuer_name(ca_cert.subject).public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(not_after)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
+                                     data_encipherment=False, key_agreement=False, key_cert_sign=False,
+                                     crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.ExtendedKeyUsage(usages), critical=False)
+        .add_extension(x509.SubjectAlternativeName([_san(s) for s in alt_names]), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    _write_private(key_path, _key_pem(key))
+    _write_public(cert_path, cert.public_bytes(serialization.Encoding.PEM))
+    log.info("issued %s for %s (valid until %s)", cert_path, common_name(role, name), not_after.date())
+    return cert_path
+
+
+@dataclass(frozen=True)
+class CertInfo:
+    name: str
+    common_name: str
+    role: str
+    not_after: dt.datetime
+    signed_by_ca: bool
+    key_mode: int | None  # permission bits of NAME.key, None if it is not here (copied elsewhere)
+
+    def days_left(self, now: dt.datetime) -> float:
+        return (self.not_after - now).total_seconds() / 86400
+
+
+def read_certificate(path: Path) -> x509.Certificate:
+    """A PEM certificate; ConfigError naming the file and what to do."""
+    try:
+        return x509.load_pem_x509_certificate(path.read_bytes())
+    except FileNotFoundError:
+        raise ConfigError(f"certificate {path} does not exist: issue it on the admin machine with "
+                          "`nwr certs issue NAME --role ROLE` and copy NAME.crt, NAME.key and ca.crt here") from None
+    except ValueError as exc:
+        raise ConfigError(f"{path} is not a PEM certificate: {exc}") from exc
+
+
+def certificate_common_name(cert: x509.Certificate) -> str:
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    value = names[0].value if names else ""
+    return value if isinstance(value, str) else value.decode()
+
+
+def list_certificates(directory: Path) -> list[CertInfo]:
+    """Every ``*.crt`` of ``directory`` but the CA's, by name."""
+    ca_path = directory / CA_CERT
+    ca = read_certificate(ca_path) if ca_path.exists() else None
+    found = []
+    for path in sorted(directory.glob("*.crt")):
+        if path.name == CA_CERT:
+            continue
+        cert = read_certificate(path)
+        cn = certificate_common_name(cert)
+        role = cn.partition(":")[0] if cn.partition(":")[0] in ROLES else "?"
+        signed = False
+        if ca is not None:
+            try:
+                cert.verify_directly_issued_by(ca)
+                signed = True
+            except (InvalidSignature, ValueError, TypeError):  # another CA's, or another key type
+                signed = False
+        key = path.with_suffix(".key")
+        found.append(CertInfo(path.stem, cn, role, cert.not_valid_after_utc, signed,
+                              key.stat().st_mode & 0o777 if key.exists() else None))
+    return found
+
+
+def format_listing(certs: list[CertInfo], now: dt.datetime) -> str:
+    rows = [("name", "role", "common name", "expires (UTC)", "days", "notes")]
+    for c in certs:
+        notes = []
+        days = c.days_left(now)
+        if days <= 0:
+            notes.append("EXPIRED: re-issue with --force")
+        elif days <= EXPIRY_WARNING_DAYS:
+            notes.append("expires soon: re-issue with --force")
+        if not c.signed_by_ca:
+            notes.append("NOT signed by this directory's ca.crt")
+        if c.key_mode is not None and c.key_mode & 0o077:
+            notes.append(f"key mode {c.key_mode:o}: chmod 600")
+        rows.append((c.name, c.role, c.common_name, c.not_after.strftime("%Y-%m-%d %H:%M"), f"{days:.0f}",
+                     "; ".join(notes)))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in rows)
+
+
+# -- command line ---------------------------------------------------------
+def _handler(args: argparse.Namespace) -> int:
+    directory = Path(args.dir) if args.dir else default_dir()
+    if args.certs_command == "init":
+        path = init_ca(directory, days=args.days, lab=args.lab, force=args.force)
+        print(f"CA certificate {path}; its key {directory / CA_KEY} (0600) must stay on this machine")
+        return 0
+    if args.certs_command == "issue":
+        path = issue(directory, args.name, args.role, days=args.days, sans=args.san, force=args.force)
+        print(f"{path} and {path.with_suffix('.key')} (0600), common name {common_name(args.role, args.name)}: "
+              f"copy them and {directory / CA_CERT} to the service's host")
+        return 0
+    if not directory.is_dir():
+        raise ConfigError(f"no certificate directory {directory}: give --dir, set NWR_CERTS, or create it with "
+                          "`nwr certs init DIR`")
+    print(format_listing(list_certificates(directory), _now()))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("certs", help="the lab CA and per-service TLS certificates for the secure LAN deployment",
+                       description="Create the lab certificate authority, issue a certificate per service "
+                                   "(common name ROLE:NAME, matched by the router's access control) and list them.")
+    certs_sub = p.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
+    init = certs_sub.add_parser("init", help="create the lab CA (ca.crt, ca.key) in DIR")
+    init.add_argument("dir", metavar="DIR", help="directory of the CA and the certificates")
+    init.add_argument("--days", type=int, default=CA_DAYS, help=f"validity in days (default {CA_DAYS})")
+    init.add_argument("--lab", default="nwr lab", help="the lab's name, in the CA's subject")
+    init.add_argument("--force", action="store_true", help="replace an existing CA (every certificate must be re-issued)")
+    issue_p = certs_sub.add_parser("issue", help="a key and certificate for one service, signed by the CA")
+    issue_p.add_argument("name", metavar="NAME",
+                         help="certificate name: the file names and the common name ROLE:NAME (a planner: its name)")
+    issue_p.add_argument("--role", required=True, choices=ROLES, help="what the service may do (deploy/acl.json5)")
+    issue_p.add_argument("--san", action="append", metavar="HOST",
+                         help="a host name or address clients dial (router certificates; repeatable; "
+                              f"{', '.join(ROUTER_DEFAULT_SANS)} are always included)")
+    issue_p.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity in days (default {DEFAULT_DAYS})")
+    issue_p.add_argument("--force", action="store_true", help="replace an existing certificate (rotation)")
+    listing = certs_sub.add_parser("list", help="every certificate in the directory: name, role, expiry")
+    for q in (issue_p, listing):
+        q.add_argument("--dir", help="certificate directory (default: $NWR_CERTS or ./certs)")
+    p.set_defaults(handler=_handler, dir=None)
