@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo up test test-fast lock clean
+.PHONY: demo up test test-fast bench bench-quick lock clean
 
 $(BIN)/nwr: pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,12 @@ test: $(BIN)/nwr   ## every test, the multi-process ones included
 
 test-fast: $(BIN)/nwr  ## the fast tests only
 	$(BIN)/python -m pytest -m "not slow and not e2e"
+
+bench: $(BIN)/nwr  ## measure the reflex path of the real pipeline (several minutes); writes bench/<time>/
+	$(BIN)/nwr bench
+
+bench-quick: $(BIN)/nwr  ## the benchmark's smoke run (under a minute)
+	$(BIN)/nwr bench --quick
 
 lock:              ## re-pin requirements.lock from the current environment
 	$(BIN)/python -m pip freeze --exclude-editable | grep -v '^-e' > requirements.lock.new

@@ -10,6 +10,7 @@ skin/pain                    SkinPain                               real-time   
 robot/command                PositionCommand | VelocityCommand      real-time   yes        block
 robot/state                  RobotState                             interactive no         drop
 reflex/<name>/status         PlannerStatus                          data        no         drop
+reflex/<name>/decision       PlannerDecision                        data        no         block
 control/active               SwitchRequest                          interactive yes        block
 diag/<service>               Diagnostic                             data-low    no         drop
 alive/<service>              (liveliness token, no payload)
@@ -17,7 +18,11 @@ alive/<service>              (liveliness token, no payload)
 
 The reflex path (skin -> pain -> command) travels at Zenoh's real-time
 priority with ``express`` (no batching) and never drops; telemetry may drop
-under congestion rather than slow the reflex path down.
+under congestion rather than slow the reflex path down. A planner's
+decisions (one per pain message, published after any command it caused)
+are batched (not express) at data priority but never dropped: they are the
+measurement of the sample latency (``nwr bench``), and a dropped one would
+bias it.
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ TOPICS: tuple[Topic, ...] = (
           "joint positions and velocities, status, command owner, reflex onsets"),
     Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
           "a planner's state machine: mode, strategy, saved pose, reflex"),
+    Topic("reflex/*/decision", m.PlannerDecision, zenoh.Priority.DATA, False, False,
+          "when a planner acted on each pain message (the sample latency's end)"),
     Topic("control/active", m.SwitchRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
           "which planner should be active (the bridge carries the switch out)"),
     Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
@@ -83,6 +90,10 @@ def key(robot: str, relative: str) -> str:
 
 def planner_status(name: str) -> str:
     return f"reflex/{name}/status"
+
+
+def planner_decision(name: str) -> str:
+    return f"reflex/{name}/decision"
 
 
 def diag(service: str) -> str:

@@ -237,6 +237,30 @@ class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forb
     target_pad: int = -1
 
 
+class PlannerDecision(msgspec.Struct, tag="planner_decision", tag_field="kind", forbid_unknown_fields=True):
+    """When a planner acted on one pain message: the end of the sample latency.
+
+    One per pain message, published after any command it caused, so that it
+    costs the reflex path nothing. ``stamp_ns`` is the moment the planner's
+    decision was made (its state machine had taken the message in); the
+    sample latency is ``stamp_ns - trace.stamp_ns`` and the gain -> planner
+    hop ``stamp_ns - pain_stamp_ns``.
+    """
+
+    seq: int
+    stamp_ns: int
+    name: str
+    trace: Trace  # the skin sample the pain message was computed from
+    pain_seq: int
+    pain_stamp_ns: int
+    # When the pain message reached the planner's callback (before its lock).
+    received_ns: int = 0
+    # The reflex this message started or updated (its first command was sent), 0 if none.
+    reflex_seq: int = 0
+    # False while another planner moves the arm (the decision was a shadow one).
+    active: bool = True
+
+
 class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unknown_fields=True):
     """A warning or error of a service, with a stable code and a readable message."""
 
@@ -250,7 +274,7 @@ class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unkn
 
 
 Message = (SkinPressure | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
-           | SwitchRequest)
+           | SwitchRequest | PlannerDecision)
 
 
 def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:

@@ -35,11 +35,11 @@ class Rate:
         now = time.monotonic_ns()
         delay = self._next - now
         if delay > 0:
-            if stop is not None:
-                if stop.wait(delay / 1e9):
-                    return False
-            else:
-                time.sleep(delay / 1e9)
+            # time.sleep, not stop.wait: Event.wait allocates a lock per call,
+            # and a delay is at most one period, so a stop is seen as soon.
+            time.sleep(delay / 1e9)
+            if stop is not None and stop.is_set():
+                return False
             self._next += self.period_ns
         else:
             self.overruns += 1

@@ -66,6 +66,7 @@ class Lockstep:
         self.backend = SimBackend(env, 1.0 / profile.bridge.rate_hz, q0)
         self.backend.connect()
         self.status_key = keys.planner_status(cfg.name)
+        self.decision_key = keys.planner_decision(cfg.name)
         self.state_every = max(1, round(profile.bridge.rate_hz / profile.bridge.state_rate_hz))
         self.status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
         self.state_seq = 0
@@ -95,6 +96,22 @@ class Lockstep:
         emit(self.status_key, self.planner.status(t), t)
         self.messages += 1
 
+    def deliver(self, sample: m.SkinPressure, t: int, emit: Emit) -> m.Command | None:
+        """One skin sample at simulated time ``t``, through the event path; the command it caused."""
+        self.bridge.on_skin(sample, t)
+        pain = self.gain.process(sample, t)
+        emit(keys.SKIN_PAIN, pain, t)
+        self.messages += 1
+        command = self.planner.on_pain(pain, t)
+        self._command(command, t, emit)
+        emit(self.decision_key, self.planner.decision(pain, t, t, command), t)
+        self.messages += 1
+        if command is not None:
+            self.planner.assess()
+        if self.planner.changed:
+            self._status(t, emit)
+        return command
+
     def run(self, samples: Iterable[m.SkinPressure], emit: Emit, *, settle_s: float = 2.0) -> LockstepReport:
         """Feed skin samples (in stamp order) through the chain; ``emit`` gets every message."""
         pending = sorted(samples, key=lambda s: s.stamp_ns)
@@ -110,18 +127,8 @@ class Lockstep:
         while t < end:
             t += self.period_ns
             while i < len(pending) and pending[i].stamp_ns <= t:
-                sample = pending[i]
+                self.deliver(pending[i], t, emit)
                 i += 1
-                self.bridge.on_skin(sample, t)
-                pain = self.gain.process(sample, t)
-                emit(keys.SKIN_PAIN, pain, t)
-                self.messages += 1
-                command = self.planner.on_pain(pain, t)
-                self._command(command, t, emit)
-                if command is not None:
-                    self.planner.assess()
-                if self.planner.changed:
-                    self._status(t, emit)
             self._command(self.planner.step(t), t, emit)
             self.backend.send_action(self.bridge.step(t))
             self.cycles += 1

@@ -38,6 +38,7 @@ EXAMPLES = {
     "robot/state": m.RobotState(seq=0, stamp_ns=1, q=[0.0] * 6, dq=[0.0] * 6, status="ok", owner="c", backend="sim"),
     "reflex/fuzz/status": m.PlannerStatus(seq=0, stamp_ns=1, name="c", strategy="cartesian", mode="TASK",
                                           task_time_s=0.0),
+    "reflex/fuzz/decision": m.PlannerDecision(seq=0, stamp_ns=1, name="c", trace=TR, pain_seq=0, pain_stamp_ns=1),
     "diag/fuzz": m.Diagnostic(seq=0, stamp_ns=1, service="s", level="info", code="c", message="m"),
     "control/active": m.SwitchRequest(seq=0, stamp_ns=1, name="location", requested_by="fuzz"),
 }

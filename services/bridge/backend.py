@@ -59,13 +59,15 @@ def guard(env: Envelope, previous: np.ndarray, setpoint: Setpoint, dt: float) ->
     step the speed limit allows since ``previous`` (over the setpoint's own
     step ``h``, at least ``dt``); velocity setpoints to the speed limits.
     """
-    if not (np.all(np.isfinite(setpoint.q)) and np.all(np.isfinite(setpoint.dq))):
+    if not (np.isfinite(setpoint.q).all() and np.isfinite(setpoint.dq).all()):
         raise SafetyError(f"non-finite setpoint q={setpoint.q.tolist()} dq={setpoint.dq.tolist()}: not sent")
-    q, dq = setpoint.q, np.clip(setpoint.dq, -env.v_max, env.v_max)
+    # minimum(maximum()) is np.clip without its dispatch overhead (every 2 ms cycle).
+    q, dq = setpoint.q, np.minimum(np.maximum(setpoint.dq, env.v_min), env.v_max)
     step = env.v_max * max(setpoint.h, dt) * 1.5 + 1e-9  # half a cycle of timing slack
     if setpoint.mode == "position":
-        q = np.clip(np.clip(setpoint.q, previous - step, previous + step), env.q_min, env.q_max)
-    if np.array_equal(q, setpoint.q) and np.array_equal(dq, setpoint.dq):
+        q = np.minimum(np.maximum(np.minimum(np.maximum(setpoint.q, previous - step), previous + step), env.q_min),
+                       env.q_max)
+    if (q == setpoint.q).all() and (dq == setpoint.dq).all():
         return setpoint, None
     i = int(np.argmax(np.abs(q - setpoint.q) + np.abs(dq - setpoint.dq)))
     why = (f"{setpoint.mode} setpoint of joint {env.joints[i]} (q {setpoint.q[i]:.5f} rad, dq {setpoint.dq[i]:.4f} "

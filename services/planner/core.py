@@ -97,6 +97,7 @@ class Planner:
         self.trace = m.Trace(-1, 0)
         self.seq = 0
         self.status_seq = 0
+        self.decision_seq = 0
         self.changed = True  # a transition not yet published on the status
         self.resyncs = 0
         self._advanced_early = False
@@ -469,6 +470,17 @@ class Planner:
             reflex_seq=self.reflex.seq if self.reflex is not None else 0, phase=self.mode,
         )
         self.seq += 1
+        return msg
+
+    def decision(self, pain: m.SkinPain, received_ns: int, decided_ns: int,
+                 command: m.Command | None) -> m.PlannerDecision:
+        """The note of when this planner acted on ``pain`` (``decided_ns``), for the sample latency."""
+        msg = m.PlannerDecision(
+            seq=self.decision_seq, stamp_ns=decided_ns, name=self.name, trace=pain.trace, pain_seq=pain.seq,
+            pain_stamp_ns=pain.stamp_ns, received_ns=received_ns,
+            reflex_seq=command.reflex_seq if command is not None else 0, active=self.active,
+        )
+        self.decision_seq += 1
         return msg
 
     # -- status ---------------------------------------------------------------

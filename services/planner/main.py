@@ -42,6 +42,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.install_signal_handlers()
         send = node.publisher(keys.ROBOT_COMMAND)
         send_status = node.publisher(keys.planner_status(cfg.name))
+        send_decision = node.publisher(keys.planner_decision(cfg.name))
 
         def on_state(state: m.RobotState) -> None:
             q = m.as_array(state.q)
@@ -56,14 +57,19 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
         def on_pain(pain: m.SkinPain) -> None:
             # The event path: a reflex starts the moment its pain message arrives.
+            received = node.clock.now_ns()
             with lock:
                 try:
                     command = planner.on_pain(pain, node.clock.now_ns())
                 except ValueError as exc:
                     node.diag("warning", "bad_pain", str(exc))
                     return
+                decided = node.clock.now_ns()
                 if command is not None:
                     send(command)
+                # After the command: noting the decision costs the reflex nothing.
+                send_decision(planner.decision(pain, received, decided, command))
+                if command is not None:
                     # Off the onset's critical path: the retreat check of the
                     # planned motion, published with the reflex on the status.
                     planner.assess()

@@ -7,9 +7,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from nwr.common.config import load_profile
+
 from nwr.services.recorder import main as recorder_main
 from nwr.services.recorder import salvage
+from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,7 @@ def register(subparsers: Any) -> None:
 
 
 def _record(args: argparse.Namespace) -> int:
-    return int(recorder_main.run(load_profile(args.profile), args) or 0)
+    return int(recorder_main.run(profile_for(args), args) or 0)
 
 
 def _info(args: argparse.Namespace) -> int:

@@ -181,8 +181,9 @@ class McapRecorder:
         """Write one message; returns how many messages of its publisher are missing before it."""
         if self.finished:
             raise RecordingError(f"the recording is finished: cannot write a message on {full_key} after finish()")
-        relative = keys.relative_key(self.robot, full_key)
-        stats = self._channel(full_key, relative)
+        stats = self.channels.get(full_key)
+        if stats is None:  # the key's first message: check it is under the prefix, register its channel
+            stats = self._channel(full_key, keys.relative_key(self.robot, full_key))
         seq = message.seq
         missing, restarted = self.gap_counter.observe(full_key, publisher_of(message), seq)
         stats.gaps += missing

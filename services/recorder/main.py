@@ -108,12 +108,18 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         log.info("recording %s/** to %s%s", keys.prefix(robot), base,
                  f" (split: {split.max_bytes / MB:g} MB, {split.max_duration_ns / 1e9:g} s)" if split.enabled else "")
         bad = 0
+        # The codec of each full key, looked up once: matching a key against
+        # the registry's patterns for every message cost more than decoding it.
+        codecs: dict[str, keys.Codec] = {}
 
         def record(item: tuple[str, bytes, int]) -> None:
             nonlocal bad
             full_key, payload, received = item
             try:
-                message = keys.codec(keys.relative_key(robot, full_key)).decode(payload)
+                codec = codecs.get(full_key)
+                if codec is None:
+                    codec = codecs[full_key] = keys.codec(keys.relative_key(robot, full_key))
+                message = codec.decode(payload)
             except (DecodeError, ValueError) as exc:
                 # ValueError too: Codec.decode lets UnicodeDecodeError (a string
                 # that is not UTF-8) escape, and no sample may stop the recorder.

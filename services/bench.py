@@ -1,0 +1,619 @@
+"""``nwr bench``: the reflex path of the real pipeline, measured.
+
+Every configuration starts every service as its own process, connected
+exactly as ``nwr up`` connects them (the embedded mesh of peers on loopback,
+or clients of a local ``nwr router``), with the simulated skin and bridge
+and the recorder running. A generated touch script touches every region in
+turn, with sub-threshold touches between the reflex-causing ones. From the
+recording (:mod:`nwr.services.bench_core`): reflex onset, sample latency and
+per-hop latencies; the lower bound (the same cores chained in this process
+on the same skin samples); cost (CPU time and peak RSS per service, from
+/proc, and messages lost per key from sequence gaps); the 500 Hz loops'
+timing (from the Rate summaries the services log at exit). Each
+configuration runs ``--reps`` times, interleaved, and the table reports the
+median of each statistic over the repetitions.
+
+A recorder soak test writes an hour of a session (default rates) through the
+recorder's own decode-and-write path in this process and samples its memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import os
+import platform
+import re
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, load_profile
+from nwr.common.errors import ConfigError, NwrError
+from nwr.common.robot import load_description
+from nwr.services.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
+from nwr.services.recorder.core import SessionRecorder, read_recording, session_metadata
+
+log = logging.getLogger(__name__)
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+# Ports used by one run: five core services and the router; runs rotate over
+# three such blocks so that a port in TIME_WAIT is never reused at once.
+PORTS_PER_RUN = 6
+PORT_BLOCKS = 3
+STARTUP_TIMEOUT_S = 60.0
+SETTLE_S = 1.0  # after the script: the last reflex's first commands, the recorder's last chunk
+LOOP_RE = re.compile(r"(planner|bridge): (\d+) ticks at (\d+) Hz, period p50 ([\d.]+) ms p99 ([\d.]+) ms "
+                     r"worst ([\d.]+) ms, (\d+) overruns")
+LIBRARIES = ("eclipse-zenoh", "msgspec", "numpy", "ruckig", "pin", "mcap")
+
+
+@dataclass(frozen=True)
+class Config:
+    """One configuration of the pipeline."""
+
+    name: str
+    strategy: str
+    rate_hz: float
+    topology: str  # "embedded" (peers on loopback) or "router" (clients of a local nwr router)
+    onsets: int  # reflex-causing touches of its script (0: nobody touches the arm)
+    duration_s: float = 0.0  # idle configurations: how long
+    state_rate_hz: float = 125.0
+
+
+def configurations(quick: bool, onsets: int) -> list[Config]:
+    if quick:
+        n = 2
+        return [
+            Config("cartesian 25 Hz embedded", "cartesian", 25.0, "embedded", n),
+            Config("cartesian 1 kHz embedded", "cartesian", 1000.0, "embedded", n, state_rate_hz=500.0),
+            Config("cartesian 25 Hz router", "cartesian", 25.0, "router", n),
+            Config("cartesian 1 kHz router", "cartesian", 1000.0, "router", n, state_rate_hz=500.0),
+        ]
+    return [
+        Config("uniform 25 Hz embedded", "uniform", 25.0, "embedded", onsets),
+        Config("location 25 Hz embedded", "location", 25.0, "embedded", onsets),
+        Config("cartesian 25 Hz embedded", "cartesian", 25.0, "embedded", onsets),
+        Config("cartesian-smooth 25 Hz embedded", "cartesian-smooth", 25.0, "embedded", onsets),
+        Config("cartesian 1 kHz embedded", "cartesian", 1000.0, "embedded", onsets, state_rate_hz=500.0),
+        Config("cartesian 25 Hz router", "cartesian", 25.0, "router", onsets),
+        Config("cartesian 1 kHz router", "cartesian", 1000.0, "router", onsets, state_rate_hz=500.0),
+        Config("idle 25 Hz embedded", "cartesian", 25.0, "embedded", 0, duration_s=20.0),
+    ]
+
+
+# ------------------------------------------------------------------------------ /proc
+
+
+def proc_cost(pid: int) -> tuple[float, float]:
+    """CPU time (s, user + system) and peak RSS (MB, VmHWM) of a live process."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    cpu = (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14, 15 of stat(5))
+    hwm = 0.0
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                hwm = int(line.split()[1]) / 1024
+    return cpu, hwm
+
+
+def parse_loops(text: str) -> dict[str, dict[str, float]]:
+    """The Rate summaries ("planner: N ticks at 500 Hz, period p50 ...") in a service's log."""
+    out = {}
+    for name, ticks, hz, p50, p99, worst, overruns in LOOP_RE.findall(text):
+        out[name] = {"ticks": int(ticks), "hz": int(hz), "p50": float(p50), "p99": float(p99),
+                     "worst": float(worst), "overruns": int(overruns)}
+    return out
+
+
+def machine() -> dict[str, Any]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    model = platform.processor() or "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    libs = {}
+    for lib in LIBRARIES:
+        try:
+            libs[lib] = version(lib)
+        except PackageNotFoundError:
+            libs[lib] = "-"
+    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
+            "system": f"{platform.system()} {platform.release()}", "libraries": libs,
+            "load_before": os.getloadavg()[0]}
+
+
+# ------------------------------------------------------------------------------ one run
+
+
+def _spawn(args: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+    with log_path.open("wb") as out:
+        return subprocess.Popen([sys.executable, "-m", "nwr.services.cli", *args], stdout=out, stderr=subprocess.STDOUT)
+
+
+def _wait_for_line(path: Path, needle: str, procs: dict[str, subprocess.Popen[bytes]], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if needle in path.read_text(errors="replace"):
+            return
+        dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+        if dead:
+            name = next(iter(dead))
+            tail = (path.parent / f"{name}.log").read_text(errors="replace").strip().splitlines()[-5:]
+            raise RuntimeError(f"service(s) exited during start-up: {dead}; the end of {name}'s log:\n  "
+                               + "\n  ".join(tail))
+        time.sleep(0.05)
+    raise RuntimeError(f"the pipeline did not start within {timeout_s:.0f} s (no {needle!r} in {path})")
+
+
+def _terminate(proc: subprocess.Popen[bytes], timeout_s: float = 10.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
+
+
+def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Profile) -> dict[str, Any]:
+    """One run of one configuration: start, touch, measure, stop, analyse."""
+    tag = f"{re.sub(r'[^a-z0-9]+', '-', config.name.lower()).strip('-')}-{rep}"
+    run_dir = work / tag
+    run_dir.mkdir(parents=True, exist_ok=True)
+    desc = load_description(profile.robot.description or None)
+    if config.onsets:
+        script, duration = touch_script(desc.pads, config.onsets, spacing_s=1.3)
+    else:
+        duration = config.duration_s
+        script = f"# nwr bench: nobody touches the arm\nduration_s = {duration}\n"
+    (run_dir / "script.toml").write_text(script)
+    router_port = base_port + 5
+    # The user's profile with the bench's ports, rates and output directory.
+    # A copy: the profile is loaded once, so an edit of the file during the bench changes nothing.
+    base = msgspec.convert(msgspec.to_builtins(profile), Profile)
+    base.zenoh.base_port = base_port
+    base.zenoh.router = [f"tcp/127.0.0.1:{router_port}"] if config.topology == "router" else []
+    base.gateway.rate_hz = config.rate_hz
+    base.bridge.state_rate_hz = config.state_rate_hz
+    base.recorder.directory = str(run_dir)
+    toml_path = run_dir / "profile.toml"
+    toml_path.write_text(_as_toml(msgspec.to_builtins(base)))
+    output = run_dir / "session.mcap"
+    common = ["--profile", str(toml_path), "--log-level", "INFO"]
+    strategy = config.strategy
+    units: list[tuple[str, list[str]]] = []
+    if config.topology == "router":
+        units.append(("router", ["router", "--listen", f"tcp/127.0.0.1:{router_port}"]))
+    # As `nwr up --reflex STRATEGY` starts them (services.cli.launch), in its order.
+    units += [
+        ("bridge", ["run", "bridge", "--active", strategy]),
+        ("planner", ["run", "planner", "--name", strategy, "--reflex", strategy]),
+        ("gain", ["run", "gain"]),
+        ("recorder", ["run", "recorder", "--session", tag, "--output", str(output), "--strategy", strategy]),
+        ("gateway", ["run", "gateway", "--wait-for", f"planner-{strategy},bridge,gain,recorder",
+                     "--script", str(run_dir / "script.toml"), "--rate", str(config.rate_hz)]),
+    ]
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    cpu0: dict[str, float] = {}
+    cpu1: dict[str, float] = {}
+    rss: dict[str, float] = {}
+    try:
+        for name, extra in units:
+            procs[name] = _spawn([*common, *extra], run_dir / f"{name}.log")
+            if name == "router":
+                time.sleep(0.3)  # clients connect at start-up
+        _wait_for_line(run_dir / "gateway.log", "publishing", procs, STARTUP_TIMEOUT_S)
+        t0 = time.monotonic()
+        for name, proc in procs.items():
+            cpu0[name] = proc_cost(proc.pid)[0]
+        time.sleep(duration + SETTLE_S)
+        wall = time.monotonic() - t0
+        for name, proc in procs.items():
+            if proc.poll() is not None:
+                raise RuntimeError(f"{name} exited during the run with code {proc.returncode} "
+                                   f"(log: {run_dir / (name + '.log')})")
+            cpu1[name], rss[name] = proc_cost(proc.pid)
+    finally:
+        # The gateway first (no new samples), then the planner and the gain
+        # estimator, the bridge, and the recorder last so that it keeps
+        # everything they sent; the router after them all.
+        codes = {}
+        for name in ("gateway", "planner", "gain", "bridge", "recorder", "router"):
+            if name in procs:
+                codes[name] = _terminate(procs[name])
+                if name == "gateway":
+                    time.sleep(0.3)
+    bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM)}
+    if bad:
+        raise RuntimeError(f"service(s) stopped with errors: {bad} (logs in {run_dir})")
+    loops: dict[str, dict[str, float]] = {}
+    for name in ("planner", "bridge"):
+        loops.update(parse_loops((run_dir / f"{name}.log").read_text(errors="replace")))
+
+    records, metadata = read_recording(output)
+    # Skin samples of the last 100 ms may still travel when the gateway stops.
+    traces = match_traces(records, strategy, tail_ns=100_000_000)
+    gaps = json.loads(metadata.get("recording", {}).get("gaps", "{}"))
+    counts = json.loads(metadata.get("recording", {}).get("messages", "{}"))
+    prefix = keys.prefix(base.robot.name) + "/"
+    skin = [r.message for r in records if r.key == "skin/pressure"]
+    lb_sample, lb_onset = lower_bound(base, strategy, skin)
+    cpu = {n: cpu1[n] - cpu0[n] for n in cpu1}
+    return {
+        "config": config.name, "rep": rep, "wall_s": wall,
+        "latency_ms": {
+            "onset": summarize(traces.onset),
+            "sample": summarize(traces.sample),
+            "gateway->gain": summarize(traces.gateway_gain),
+            "gain->planner": summarize(traces.gain_planner),
+            "planner->bridge": summarize(traces.planner_bridge),
+            "lower bound: sample": summarize(lb_sample),
+            "lower bound: onset": summarize(lb_onset),
+        },
+        "matching": {"skin_samples": traces.skin_samples, "unmatched_samples": traces.unmatched_samples,
+                     "orphan_decisions": traces.orphan_decisions, "reflexes": traces.reflexes,
+                     "onsets": len(traces.onset), "unmatched_onsets": traces.unmatched_onsets},
+        "lost": {k.removeprefix(prefix): v for k, v in gaps.items()},
+        "messages": {k.removeprefix(prefix): v for k, v in counts.items()},
+        "cpu_s": cpu,
+        "cpu_percent": {n: 100.0 * c / wall for n, c in cpu.items()},
+        "cpu_percent_total": 100.0 * sum(cpu.values()) / wall,
+        "peak_rss_mb": rss,
+        "loops": loops,
+        "raw_ms": {"onset": traces.onset, "lower_bound_onset": lb_onset},
+    }
+
+
+def _as_toml(data: dict[str, Any]) -> str:
+    """A profile (plain data) as TOML: tables of scalars and lists (enough for a Profile)."""
+    lines: list[str] = []
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    def table(name: str, d: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
+        if name:
+            lines.append(f"[{name}]")
+        lines.extend(f"{k} = {value(v)}" for k, v in scalars.items() if v is not None)
+        lines.append("")
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}" if name else k, v)
+
+    table("", data)
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ the recorder soak
+
+
+def recorder_soak(minutes: float, path: Path, profile: Profile | None = None, *, skin_hz: float = 25.0, state_hz: float = 125.0,
+                  command_hz: float = 500.0, status_hz: float = 20.0) -> dict[str, Any]:
+    """``minutes`` of a session written through the recorder's decode-and-write path, as fast as it goes.
+
+    The messages are encoded once per kind and decoded per message with the
+    key's codec, as the recorder process does, then written by a
+    :class:`SessionRecorder` with the default chunking; RSS is sampled every
+    simulated minute.
+    """
+    robot = keys.DEFAULT_ROBOT
+    n = 10
+    trace = m.Trace(0, 0)
+    kinds = [
+        (keys.SKIN_PRESSURE, skin_hz, m.SkinPressure(seq=0, stamp_ns=0, absolute_hpa=[1013.0] * n,
+                                                     baseline_hpa=[1013.0] * n, change_hpa=[0.01] * n,
+                                                     contact=[False] * n, valid=[True] * n)),
+        (keys.SKIN_PAIN, skin_hz, m.SkinPain(seq=0, stamp_ns=0, trace=trace, model="continuous", level=[1] * n,
+                                             gain=[0.0] * n)),
+        (keys.planner_decision("cartesian"), skin_hz, m.PlannerDecision(seq=0, stamp_ns=0, name="cartesian",
+                                                                         trace=trace, pain_seq=0, pain_stamp_ns=0)),
+        (keys.ROBOT_COMMAND, command_hz, m.PositionCommand(seq=0, stamp_ns=0, owner="cartesian",
+                                                            q=[0.1, -1.2, 1.3, -1.6, -1.57, 0.0], trace=trace)),
+        (keys.ROBOT_STATE, state_hz, m.RobotState(seq=0, stamp_ns=0, q=[0.1] * 6, dq=[0.0] * 6, status="ok",
+                                                  owner="cartesian", backend="sim", stop_distance=[0.0] * 6)),
+        (keys.planner_status("cartesian"), status_hz, m.PlannerStatus(seq=0, stamp_ns=0, name="cartesian",
+                                                                       strategy="cartesian", mode="TASK",
+                                                                       task_time_s=0.0)),
+    ]
+    codecs = {rel: keys.codec(rel) for rel, _, _ in kinds}
+    profile = profile if profile is not None else Profile()
+    streams: list[Any] = []
+
+    def open_part(part: int) -> Any:
+        stream = path.open("wb")
+        streams.append(stream)
+        return stream
+
+    session = SessionRecorder(open_part, lambda _p, s: s.close(), robot, session_metadata(
+        robot=robot, session="soak", profile_json="{}", strategy="cartesian", planner="cartesian",
+        start_time_iso="", start_monotonic_ns=0, labels={}),
+        compression=profile.recorder.compression, chunk_size=profile.recorder.chunk_size,
+        chunk_interval_ns=round(profile.recorder.chunk_interval_s * 1e9))
+    tick_ns = 1_000_000  # 1 ms of simulated time
+    periods = [round(1e9 / hz) for _, hz, _ in kinds]
+    seqs = [0] * len(kinds)
+    rss: list[float] = []
+    written = 0
+    start = time.perf_counter()
+    end_ns = round(minutes * 60e9)
+    next_sample = 0
+    t = 0
+    while t < end_ns:
+        for i, (rel, _hz, template) in enumerate(kinds):
+            if t % periods[i] < tick_ns:
+                payload = codecs[rel].encode(msgspec.structs.replace(template, seq=seqs[i], stamp_ns=t))
+                seqs[i] += 1
+                session.write(keys.key(robot, rel), codecs[rel].decode(payload), t)
+                written += 1
+        session.flush_if_due(t)
+        if t >= next_sample:
+            rss.append(_rss_mb())
+            next_sample += 60_000_000_000
+        t += tick_ns
+    report = session.finish()
+    wall = time.perf_counter() - start
+    rss.append(_rss_mb())
+    return {"simulated_min": minutes, "messages": written, "wall_s": wall, "speed": minutes * 60 / wall,
+            "rss_mb_per_minute": rss, "rss_growth_mb": rss[-1] - rss[min(1, len(rss) - 1)],
+            "lost": sum(report.gaps.values()), "file_mb": path.stat().st_size / 2**20}
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+# ------------------------------------------------------------------------------ the whole bench
+
+
+def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per configuration: the median over its repetitions of every statistic."""
+    out: dict[str, dict[str, Any]] = {}
+    for name in dict.fromkeys(r["config"] for r in runs):
+        mine = [r for r in runs if r["config"] == name]
+        latency = {metric: median_over([r["latency_ms"][metric] for r in mine]) for metric in mine[0]["latency_ms"]}
+        services = sorted({s for r in mine for s in r["cpu_percent"]})
+        loops = {loop: median_over([r["loops"][loop] for r in mine if loop in r["loops"]])
+                 for loop in sorted({k for r in mine for k in r["loops"]})}
+        out[name] = {
+            "reps": len(mine),
+            "latency_ms": latency,
+            "ratio_to_lower_bound": {
+                "sample p50": latency["sample"]["p50"] / latency["lower bound: sample"]["p50"],
+                "sample p99": latency["sample"]["p99"] / latency["lower bound: sample"]["p99"],
+                "onset p50": latency["onset"]["p50"] / latency["lower bound: onset"]["p50"],
+                "onset p99": latency["onset"]["p99"] / latency["lower bound: onset"]["p99"],
+            },
+            "lost": median_over([{k: float(v) for k, v in r["lost"].items()} for r in mine]),
+            "lost_total": statistics_median([sum(r["lost"].values()) for r in mine]),
+            "cpu_percent": {s: statistics_median([r["cpu_percent"].get(s, float("nan")) for r in mine])
+                            for s in services},
+            "cpu_percent_total": statistics_median([r["cpu_percent_total"] for r in mine]),
+            "peak_rss_mb": {s: statistics_median([r["peak_rss_mb"].get(s, float("nan")) for r in mine])
+                            for s in services},
+            "loops": loops,
+            "matching": {k: int(sum(r["matching"][k] for r in mine)) for k in mine[0]["matching"]},
+        }
+    return out
+
+
+def statistics_median(values: list[float]) -> float:
+    finite = [v for v in values if not np.isnan(v)]
+    return float(np.median(finite)) if finite else float("nan")
+
+
+def _f(x: float, fmt: str = ".2f") -> str:
+    return "-" if x is None or np.isnan(x) else format(x, fmt)
+
+
+def tables(summary: dict[str, dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
+    """The latency table and the cost/loop table."""
+    header = ["configuration", "latency (ms)", "n", "p50", "p90", "p99", "max", "lost", "CPU %"]
+    rows: list[list[str]] = []
+    for name, s in summary.items():
+        first = True
+        for metric, st in s["latency_ms"].items():
+            if st["n"] == 0 or np.isnan(st["n"]):
+                continue
+            rows.append([name if first else "", metric, str(int(st["n"])), _f(st["p50"], ".3f"), _f(st["p90"], ".3f"),
+                         _f(st["p99"], ".3f"), _f(st["max"], ".3f"),
+                         _f(s["lost_total"], ".0f") if first else "", _f(s["cpu_percent_total"], ".1f") if first else ""])
+            first = False
+    cost_header = ["configuration", "service", "CPU % of a core", "peak RSS (MB)", "loop p50 (ms)", "loop p99 (ms)",
+                   "loop worst (ms)", "overruns"]
+    cost: list[list[str]] = []
+    for name, s in summary.items():
+        for i, service in enumerate(s["cpu_percent"]):
+            loop = s["loops"].get(service, {})
+            cost.append([name if i == 0 else "", service, _f(s["cpu_percent"][service], ".1f"),
+                         _f(s["peak_rss_mb"][service], ".0f"), _f(loop.get("p50", float("nan")), ".3f"),
+                         _f(loop.get("p99", float("nan")), ".3f"), _f(loop.get("worst", float("nan")), ".2f"),
+                         _f(loop.get("overruns", float("nan")), ".0f")])
+    return header, rows, cost_header, cost
+
+
+def text_table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)]
+    out = ["  ".join(h.rjust(w) if i else h.ljust(w) for i, (h, w) in enumerate(zip(header, widths)))]
+    out.append("  ".join("-" * w for w in widths))
+    out += ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    return "\n".join(out)
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def report_markdown(result: dict[str, Any]) -> str:
+    mach = result["machine"]
+    header, rows, cost_header, cost = tables(result["summary"])
+    libs = ", ".join(f"{k} {v}" for k, v in mach["libraries"].items())
+    lines = [
+        f"# nwr bench, {result['started']}",
+        "",
+        f"Machine: {mach['cpu']}, {mach['cores']} cores, {mach['system']}; Python {mach['python']}; {libs}. "
+        f"Load average before the run: {mach['load_before']:.2f}.",
+        "",
+        f"{result['reps']} repetition(s) of each configuration, interleaved; every figure is the median over them. "
+        "Latencies in ms on the machine's monotonic clock; *lost*: messages missing from the recording (sequence "
+        "gaps, all keys); *CPU %*: all services together, % of one core, from the script's start to its end.",
+        "",
+        markdown_table(header, rows),
+        "",
+        "Cost per service (CPU % of one core over the run, peak RSS) and the 500 Hz loops' timing (Rate summary "
+        "over the last 4096 cycles):",
+        "",
+        markdown_table(cost_header, cost),
+        "",
+    ]
+    for failure in result.get("failures", []):
+        lines += [f"Failed: {failure['config']}, repetition {failure['rep'] + 1}: {failure['error']}", ""]
+    soak = result.get("recorder_soak")
+    if soak:
+        lines += [
+            f"Recorder soak: {soak['simulated_min']:g} simulated minutes ({soak['messages']} messages at the default "
+            f"rates) through the recorder's decode-and-write path in {soak['wall_s']:.0f} s; RSS "
+            f"{soak['rss_mb_per_minute'][1 if len(soak['rss_mb_per_minute']) > 1 else 0]:.1f} MB after the first "
+            f"minute, {soak['rss_mb_per_minute'][-1]:.1f} MB at the end (growth {soak['rss_growth_mb']:+.1f} MB); "
+            f"{soak['lost']} lost; file {soak['file_mb']:.1f} MB.",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def run_bench(args: argparse.Namespace) -> dict[str, Any]:
+    onsets = args.onsets
+    configs = configurations(args.quick, onsets)
+    if args.only:
+        wanted = [w.strip() for w in args.only.split(",") if w.strip()]
+        configs = [c for c in configs if any(w in c.name for w in wanted)]
+        if not configs:
+            raise ConfigError(f"--only {args.only!r} matches no configuration; they are "
+                              f"{[c.name for c in configurations(args.quick, onsets)]}")
+    reps = args.reps if args.reps else (1 if args.quick else 3)
+    profile = load_profile(args.profile)
+    started = dt.datetime.now()
+    out_dir = Path(args.output) if args.output else Path("bench") / started.strftime("%Y%m%d-%H%M%S")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix="nwr-bench-", dir=out_dir if args.keep else None))
+    result: dict[str, Any] = {"started": started.isoformat(timespec="seconds"), "quick": args.quick, "reps": reps,
+                              "machine": machine(), "runs": [], "failures": []}
+    total = reps * len(configs)
+    done = 0
+    t_start = time.monotonic()
+    try:
+        for rep in range(reps):
+            for config in configs:
+                port = args.base_port + (done % PORT_BLOCKS) * PORTS_PER_RUN
+                print(f"[{done + 1}/{total}] {config.name}, repetition {rep + 1} (ports {port}-{port + 5}) ...",
+                      end="", flush=True)
+                t = time.monotonic()
+                done += 1
+                try:
+                    run = run_once(config, rep, port, work, profile)
+                except (RuntimeError, OSError, NwrError) as exc:
+                    # One failed run (a port taken by someone else, say) must not lose the others.
+                    print(f" failed: {exc}", flush=True)
+                    result["failures"].append({"config": config.name, "rep": rep, "error": str(exc)})
+                    continue
+                result["runs"].append(run)
+                lat = run["latency_ms"]
+                print(f" {time.monotonic() - t:.0f} s: onset p99 {_f(lat['onset']['p99'])} ms "
+                      f"({lat['onset']['n']}), sample p99 {_f(lat['sample']['p99'])} ms ({lat['sample']['n']}), "
+                      f"CPU {run['cpu_percent_total']:.0f} %", flush=True)
+        if args.soak_minutes > 0:
+            print(f"recorder soak: {args.soak_minutes:g} simulated minutes ...", end="", flush=True)
+            result["recorder_soak"] = recorder_soak(args.soak_minutes, work / "soak.mcap", profile)
+            soak = result["recorder_soak"]
+            print(f" {soak['wall_s']:.0f} s, RSS growth {soak['rss_growth_mb']:+.1f} MB", flush=True)
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    result["summary"] = aggregate(result["runs"])
+    result["elapsed_s"] = time.monotonic() - t_start
+    (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=_jsonable))
+    md = report_markdown(result)
+    (out_dir / "bench.md").write_text(md)
+    header, rows, cost_header, cost = tables(result["summary"])
+    print()
+    print(text_table(header, rows))
+    print()
+    print(text_table(cost_header, cost))
+    print(f"\nraw numbers: {out_dir / 'bench.json'}; table: {out_dir / 'bench.md'} ({result['elapsed_s']:.0f} s)")
+    return result
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if hasattr(x, "__dataclass_fields__"):
+        return asdict(x)
+    return str(x)
+
+
+def _handler(args: argparse.Namespace) -> int:
+    result = run_bench(args)
+    unmatched = sum(s["matching"]["unmatched_samples"] for s in result["summary"].values())
+    if unmatched:
+        log.warning("%d skin samples had no decision of the active planner", unmatched)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench", help="measure the reflex path of the real pipeline (latency, lower bound, cost, loop timing)",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--quick", action="store_true", help="a smoke run of under a minute (one repetition, short scripts)")
+    p.add_argument("--reps", type=int, default=0, help="repetitions of each configuration (default 3; --quick 1)")
+    p.add_argument("--onsets", type=int, default=30, help="reflex-causing touches per run (default 30)")
+    p.add_argument("--only", metavar="NAMES", help="comma-separated substrings of the configurations to run")
+    p.add_argument("--soak-minutes", type=float, default=None,
+                   help="simulated minutes of the recorder soak (default 60; --quick 0.5; 0 = none)")
+    p.add_argument("--base-port", type=int, default=18050,
+                   help=f"first of the {PORTS_PER_RUN * PORT_BLOCKS} loopback ports the runs use (default 18050)")
+    p.add_argument("--output", "-o", help="directory for bench.json and bench.md (default: bench/<time>/)")
+    p.add_argument("--keep", action="store_true", help="keep every run's recording, logs and profile")
+    p.set_defaults(handler=_handler_with_defaults)
+
+
+def _handler_with_defaults(args: argparse.Namespace) -> int:
+    if args.soak_minutes is None:
+        args.soak_minutes = 0.5 if args.quick else 60.0
+    if args.reps < 0 or args.onsets < 1:
+        raise ConfigError(f"--reps ({args.reps}) must be >= 0 and --onsets ({args.onsets}) >= 1")
+    return _handler(args)

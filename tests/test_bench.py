@@ -1,0 +1,191 @@
+"""``nwr bench``: its statistics, trace matching, lower-bound chain and touch script; and a quick run."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import msgspec
+import pytest
+
+from nwr.common import messages as m
+from nwr.common.config import Profile, load_profile, load_script
+from nwr.common.pacing import Rate
+from nwr.common.robot import load_description
+from nwr.services import bench, bench_core
+from nwr.services.gain.core import GainEstimator
+from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.services.recorder.core import Recorded
+
+DESC = load_description()
+MS = 1_000_000
+
+
+def test_summarize_gives_percentiles_and_handles_empty_lists():
+    stats = bench_core.summarize([float(x) for x in range(1, 101)])
+    assert stats["n"] == 100
+    assert stats["p50"] == pytest.approx(50.5)
+    assert stats["p90"] == pytest.approx(90.1)
+    assert stats["p99"] == pytest.approx(99.01)
+    assert stats["max"] == 100.0
+    empty = bench_core.summarize([])
+    assert empty["n"] == 0 and math.isnan(empty["p99"])
+
+
+def test_median_over_repetitions_ignores_missing_figures():
+    runs = [{"p50": 1.0, "p99": 5.0}, {"p50": 3.0, "p99": float("nan")}, {"p50": 2.0, "p99": 7.0}]
+    assert bench_core.median_over(runs) == {"p50": 2.0, "p99": 6.0}
+
+
+def _records() -> list[Recorded]:
+    """Three skin samples through the pipeline; the second starts reflex 1, whose onset later states repeat."""
+    out: list[Recorded] = []
+    trace = [m.Trace(i, 1000 * MS + i * 40 * MS) for i in range(4)]
+    for i in range(4):
+        t = trace[i].stamp_ns
+        change = [0.0] * 10
+        out.append(Recorded("skin/pressure", t, m.SkinPressure(seq=i, stamp_ns=t, absolute_hpa=[1013.0] * 10,
+                                                               baseline_hpa=[1013.0] * 10, change_hpa=change,
+                                                               contact=[False] * 10)))
+        if i == 3:
+            continue  # the last sample: the pipeline was stopped while it travelled
+        out.append(Recorded("skin/pain", t + 1 * MS, m.SkinPain(seq=i, stamp_ns=t + 1 * MS, trace=trace[i],
+                                                                  model="continuous", level=[1] * 10,
+                                                                  gain=[0.0] * 10)))
+        out.append(Recorded("reflex/cartesian/decision", t + 3 * MS, m.PlannerDecision(
+            seq=i, stamp_ns=t + 3 * MS, name="cartesian", trace=trace[i], pain_seq=i, pain_stamp_ns=t + 1 * MS,
+            reflex_seq=1 if i == 1 else 0)))
+    # A shadow planner's decisions are not the active planner's.
+    out.append(Recorded("reflex/shadow/decision", 0, m.PlannerDecision(
+        seq=0, stamp_ns=2000 * MS, name="shadow", trace=trace[0], pain_seq=0, pain_stamp_ns=0, active=False)))
+    t1 = trace[1].stamp_ns
+    out.append(Recorded("robot/command", t1 + 3 * MS, m.VelocityCommand(
+        seq=7, stamp_ns=t1 + 3 * MS, owner="cartesian", dq=[0.0] * 6, trace=trace[1], reflex_seq=1)))
+    out.append(Recorded("robot/command", t1 + 5 * MS, m.VelocityCommand(
+        seq=8, stamp_ns=t1 + 5 * MS, owner="cartesian", dq=[0.0] * 6, trace=trace[1], reflex_seq=1)))
+    for seq, reflex_seq in ((0, 1), (1, 1), (2, 0)):  # the onset, then repeated (also after the return: reflex 0)
+        out.append(Recorded("robot/state", t1 + (5 + seq) * MS, m.RobotState(
+            seq=seq, stamp_ns=t1 + (5 + seq) * MS, q=[0.0] * 6, dq=[0.0] * 6, status="ok", owner="cartesian",
+            backend="sim", reflex_seq=reflex_seq, accepted=trace[1], accepted_ns=t1 + 4 * MS)))
+    return sorted(out, key=lambda r: r.log_time_ns)
+
+
+def test_match_traces_pairs_every_sample_with_its_decision_and_counts_each_onset_once():
+    traces = bench_core.match_traces(_records(), "cartesian", tail_ns=50 * MS)
+    assert traces.skin_samples == 4
+    assert traces.sample == [3.0, 3.0, 3.0]
+    assert traces.gateway_gain == [1.0, 1.0, 1.0]
+    assert traces.gain_planner == [2.0, 2.0, 2.0]
+    assert traces.onset == [4.0]
+    assert traces.planner_bridge == [1.0]  # from the reflex's first command
+    assert traces.reflexes == 1 and traces.unmatched_onsets == 0
+    assert traces.unmatched_samples == 0  # the last sample is within the tail
+    assert traces.orphan_decisions == 0
+
+
+def test_match_traces_reports_unmatched_samples_and_orphan_decisions():
+    records = [r for r in _records() if not (r.key == "skin/pressure" and r.message.seq == 0)]
+    traces = bench_core.match_traces(records, "cartesian")
+    assert traces.orphan_decisions == 1  # sample 0's decision, whose sample is not in the recording
+    assert traces.unmatched_samples == 1  # sample 3 (no tail allowed)
+
+
+def _skin(script: str, seconds: float) -> list[m.SkinPressure]:
+    profile = Profile()
+    sim = SimSkin(profile.gateway.sim, DESC.pads, load_script(script))
+    gateway = Gateway(profile.gateway, len(DESC.pads))
+    out = []
+    for i in range(int(seconds * 25)):
+        t = (i + 1) / 25
+        out.append(gateway.process(t, 10**9 + round(t * 1e9), sim.sample(t))[0])
+    return out
+
+
+def test_touch_script_touches_every_region_with_sub_threshold_touches_between(tmp_path):
+    text, duration = bench_core.touch_script(DESC.pads, 12, spacing_s=1.3)
+    path = tmp_path / "script.toml"
+    path.write_text(text)
+    script = load_script(str(path))
+    assert script.duration_s == pytest.approx(duration)
+    estimator = GainEstimator(Profile().gain, DESC.pads)
+    strong = [t for t in script.touch if estimator.gain(DESC.pad(t.pad).id, t.peak_hpa)[1] > 0]
+    weak = [t for t in script.touch if estimator.gain(DESC.pad(t.pad).id, t.peak_hpa)[1] == 0]
+    assert len(strong) == 12 and len(weak) == 12
+    assert {DESC.pad(t.pad).region for t in strong} == {p.region for p in DESC.pads}
+    assert all(a.pad != b.pad for a, b in zip(strong, strong[1:]))  # each one a new contact
+    assert all(0 < w.peak_hpa < 6.0 for w in weak)
+
+
+def test_lower_bound_chain_times_every_sample_and_each_onset(tmp_path):
+    text, duration = bench_core.touch_script(DESC.pads, 3, spacing_s=1.3)
+    path = tmp_path / "script.toml"
+    path.write_text(text)
+    samples = _skin(str(path), duration)
+    sample_ms, onset_ms = bench_core.lower_bound(Profile(), "cartesian", samples)
+    assert len(sample_ms) == len(samples)
+    assert len(onset_ms) >= 3
+    assert all(x > 0 for x in sample_ms + onset_ms)
+
+
+def test_rate_summaries_are_parsed_from_a_service_log():
+    rate = Rate(500, "planner")
+    for _ in range(3):
+        rate.sleep()
+    line = f"12:00:00  planner INFO    nwr.services.planner.main: {rate.summary()}\n"
+    loops = bench.parse_loops("noise\n" + line)
+    assert loops["planner"]["ticks"] == 3 and loops["planner"]["hz"] == 500
+    assert loops["planner"]["p50"] > 0 and loops["planner"]["overruns"] >= 0
+
+
+def test_proc_cost_reads_cpu_time_and_peak_rss_of_a_process():
+    cpu, hwm = bench.proc_cost(os.getpid())
+    assert cpu > 0 and hwm > 10
+
+
+def test_profile_written_as_toml_loads_back_unchanged(tmp_path):
+    profile = load_profile(None)
+    profile.zenoh.router = ["tcp/127.0.0.1:18099"]
+    profile.gateway.rate_hz = 1000.0
+    path = tmp_path / "profile.toml"
+    path.write_text(bench._as_toml(msgspec.to_builtins(profile)))
+    assert load_profile(str(path)) == profile
+
+
+def test_recorder_soak_writes_every_message(tmp_path):
+    soak = bench.recorder_soak(0.05, tmp_path / "soak.mcap")
+    assert soak["lost"] == 0
+    # 3 s at 25 Hz skin, pain and decisions, 500 Hz commands, 125 Hz states, 20 Hz status.
+    assert soak["messages"] == pytest.approx(3 * (3 * 25 + 500 + 125 + 20), rel=0.05)
+    assert soak["rss_mb_per_minute"]
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_quick_bench_measures_every_configuration(tmp_path):
+    out = tmp_path / "bench"
+    proc = subprocess.run(
+        [sys.executable, "-m", "nwr.services.cli", "bench", "--quick", "--soak-minutes", "0.1", "--base-port", "18080",
+         "--output", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    result = json.loads((out / "bench.json").read_text())
+    assert (out / "bench.md").read_text().startswith("# nwr bench")
+    assert result["machine"]["cores"] >= 1
+    summary = result["summary"]
+    assert len(summary) == 4
+    for name, s in summary.items():
+        latency = s["latency_ms"]
+        for metric in ("onset", "sample", "gateway->gain", "gain->planner", "planner->bridge",
+                       "lower bound: sample", "lower bound: onset"):
+            assert latency[metric]["n"] > 0, (name, metric)
+        assert s["matching"]["unmatched_samples"] == 0, name
+        assert s["matching"]["orphan_decisions"] == 0, name
+        assert latency["lower bound: sample"]["p50"] < latency["sample"]["p50"], name
+        assert latency["lower bound: onset"]["p50"] < latency["onset"]["p50"], name
+        assert set(s["cpu_percent"]) >= {"gateway", "gain", "planner", "bridge", "recorder"}
+        assert set(s["loops"]) == {"planner", "bridge"}
+    assert result["recorder_soak"]["lost"] == 0
