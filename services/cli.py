@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from importlib import import_module
 from pathlib import Path
 from typing import Any
 
-from nwr.common.config import STRATEGIES, load_profile, load_script
+from nwr.common.config import STRATEGIES, Profile, load_profile, load_script
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.node import setup_logging
 
@@ -33,6 +36,13 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.figures",
     "nwr.services.view.commands",
     "nwr.services.switch",
+    "nwr.services.status",
+    "nwr.services.router",
+    "nwr.services.replay",
+    "nwr.services.compare",
+    "nwr.services.study",
+    "nwr.services.bench",
+    "nwr.services.certs",
 ]
 # Started in this order; the gateway starts its clock once the others are alive.
 START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
@@ -130,7 +140,7 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     from nwr.services.planner.main import planner_service
     from nwr.services.recorder.main import session_name
 
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     session = args.session or session_name()
     output = Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
     strategy = args.reflex or profile.planner.strategy
@@ -202,13 +212,13 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     return 0, (output if "recorder" in procs else None)
 
 
-def print_summary(path: Path, script_name: str | None) -> int:
+def print_summary(path: Path, script_name: str | None, profile: Profile) -> int:
     from nwr.common.robot import load_description
     from nwr.services import analysis
     from nwr.services.recorder.core import read_recording
 
     records, metadata = read_recording(path)
-    desc = load_description(load_profile(None).robot.description or None)
+    desc = load_description(profile.robot.description or None)
     touches = analysis.summarize(records, desc)
     first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     print(f"\nRecording {path}: {len(records)} messages")
@@ -220,15 +230,14 @@ def print_summary(path: Path, script_name: str | None) -> int:
         print(f"\nreflex onset latency over {len(latencies)} reflexes: median {np.median(latencies):.2f} ms, "
               f"worst {max(latencies):.2f} ms")
     if script_name:
-        return _compare_with_script(touches, script_name, desc, first)
+        return _compare_with_script(touches, script_name, desc, first, profile)
     return 0
 
 
-def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns: int) -> int:
+def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns: int, profile: Profile) -> int:
     """Every scripted touch seen on its pad at its time, with a reflex exactly when G(peak) > 0."""
     from nwr.services.gain.core import GainEstimator
 
-    profile = load_profile(None)
     estimator = GainEstimator(profile.gain, desc.pads)
     script = load_script(script_name)
     mismatches = []
@@ -251,14 +260,74 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
     return 0
 
 
+# Environment variables that override the profile (the compose deployment
+# sets them per host): variable -> what it overrides.
+ENV_OVERRIDES = {
+    "NWR_ROUTER": "[zenoh] router: comma-separated router endpoints, e.g. tcp/10.0.0.2:7447",
+    "NWR_ROBOT": "[robot] name: the key prefix nwr/<name>/",
+    "NWR_TLS_CA": "[zenoh] ca_certificate: the lab CA's ca.crt; any NWR_TLS_* turns secure mode on",
+    "NWR_TLS_CERT": "[zenoh] certificate: this service's NAME.crt (nwr certs issue)",
+    "NWR_TLS_KEY": "[zenoh] private_key: this service's NAME.key",
+    "NWR_INSECURE": "1: secure mode off (no TLS, no access control), whatever the profile and NWR_TLS_* say",
+}
+# Spellings of NWR_INSECURE; anything else is an error rather than a guess.
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def env_overrides(environ: Mapping[str, str]) -> dict[str, str]:
+    """The profile overrides set in ``environ`` (empty values are unset)."""
+    return {name: environ[name].strip() for name in ENV_OVERRIDES if environ.get(name, "").strip()}
+
+
+def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profile:
+    """``profile`` with NWR_ROUTER, NWR_ROBOT, NWR_TLS_* and NWR_INSECURE applied; ConfigError naming a bad value."""
+    from nwr.services.router import parse_endpoints
+
+    if "NWR_ROUTER" in overrides:
+        profile.zenoh.router = parse_endpoints(overrides["NWR_ROUTER"], "NWR_ROUTER")
+    if "NWR_ROBOT" in overrides:
+        name = overrides["NWR_ROBOT"]
+        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", name):
+            raise ConfigError(f"NWR_ROBOT={name!r} is not a robot name: lower-case letters, digits, '_' and '-', "
+                              "starting with a letter, at most 32 characters (e.g. ur10e)")
+        profile.robot.name = name
+    for variable, field in (("NWR_TLS_CA", "ca_certificate"), ("NWR_TLS_CERT", "certificate"),
+                            ("NWR_TLS_KEY", "private_key")):
+        if variable in overrides:
+            setattr(profile.zenoh, field, overrides[variable])
+            profile.zenoh.secure = True
+    if insecure(overrides):
+        profile.zenoh.secure = False
+    return profile
+
+
+def insecure(overrides: Mapping[str, str]) -> bool:
+    """Whether NWR_INSECURE asks for secure mode off; ConfigError for a value that is neither yes nor no."""
+    value = overrides.get("NWR_INSECURE", "0").lower()
+    if value not in _TRUE + _FALSE:
+        raise ConfigError(f"NWR_INSECURE={value!r}: set it to 1 to run without TLS and access control, "
+                          "or unset it (0)")
+    return value in _TRUE
+
+
+def profile_for(args: argparse.Namespace) -> Profile:
+    """The profile of ``--profile`` with the environment's overrides that ``main`` read."""
+    return apply_env_overrides(load_profile(args.profile), getattr(args, "env_overrides", {}))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     service = args.service if args.command == "run" else args.command
     setup_logging(args.log_level, service)
     try:
+        # Read here, not at import: flags and environment override the profile in main.
+        args.env_overrides = env_overrides(os.environ)
+        if insecure(args.env_overrides):
+            log.warning("NWR_INSECURE=1: secure mode is OFF (no TLS, no access control): anyone who reaches the "
+                        "router can move the arm; for a first try on a trusted network only")
         if args.command == "run":
-            profile = load_profile(args.profile)
+            profile = profile_for(args)
             return int(_service_module(args.service).run(profile, args) or 0)
         if args.command == "up":
             load_profile(args.profile)  # fail here, not in five processes
@@ -269,9 +338,9 @@ def main(argv: list[str] | None = None) -> int:
             code, path = launch(args, until_script_end=True)
             if code or path is None:
                 return code or 1
-            return print_summary(path, args.script)
+            return print_summary(path, args.script, profile_for(args))
         if args.command == "summary":
-            return print_summary(Path(args.file), args.script)
+            return print_summary(Path(args.file), args.script, profile_for(args))
         if hasattr(args, "handler"):
             return int(args.handler(args) or 0)
     except NwrError as exc:
@@ -280,6 +349,11 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         log.error("%s", exc)
         return 2
+    finally:
+        # Free the trajectory generators (nanobind objects caught in reference
+        # cycles) before the interpreter tears their module down, which would
+        # otherwise report them as leaked on exit.
+        gc.collect()
     parser.error(f"unknown command {args.command}")
     return 2
 

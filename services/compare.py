@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from nwr.common.config import load_profile
+
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services import analysis
 from nwr.services.recorder.core import Recorded, read_recording
+from nwr.services.cli import profile_for
 
 
 @dataclass
@@ -140,7 +141,7 @@ def figure(sessions: list[Session], rows: list[list[analysis.TouchSummary | None
 
 
 def _run(args: argparse.Namespace) -> int:
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     desc = load_description(profile.robot.description or None)
     model = RobotModel(desc)
     sessions = [load_session(Path(p), desc, model) for p in args.files]

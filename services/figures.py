@@ -23,10 +23,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from nwr.common import messages as m  # noqa: E402
-from nwr.common.config import STRATEGIES, PlannerSection, load_profile  # noqa: E402
+from nwr.common.config import STRATEGIES, PlannerSection  # noqa: E402
 from nwr.common.robot import RobotDescription, RobotModel, load_description  # noqa: E402
 from nwr.services.gain.core import continuous_gain, discrete_gain  # noqa: E402
 from nwr.services.planner.core import Planner  # noqa: E402
+from nwr.services.cli import profile_for  # noqa: E402
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"
@@ -119,7 +120,7 @@ def reflexes_figure(path: Path, strategies: tuple[str, ...] = STRATEGIES, cfg: P
 
 
 def _run(args: argparse.Namespace) -> int:
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     default = {"gain": "figure-gain.png", "reflexes": "figure-reflexes.png"}[args.which]
     out = Path(args.output or default)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -33,10 +33,11 @@ from typing import Any
 import msgspec
 
 from nwr.common import keys
-from nwr.common.config import STRATEGIES, Profile, load_profile
+from nwr.common.config import STRATEGIES, Profile
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.services.recorder.core import McapRecorder, Recorded, read_recording, session_metadata
+from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,7 @@ def _run(args: argparse.Namespace) -> int:
     from nwr.services.cli import _spawn, _stop_all
     from nwr.services.planner.main import planner_service
 
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     source = Path(args.file)
     records, metadata = read_recording(source)
     topics = [t for t in (args.topics.split(",") if args.topics else REPLAYABLE) if t]

@@ -26,9 +26,10 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import load_profile
+
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ def _run(args: argparse.Namespace) -> int:
     from nwr.services.cli import _spawn, _stop_all
     from nwr.services.planner.main import planner_service
 
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     order = order_of(args.order)
     if not args.participant.replace("-", "").replace("_", "").isalnum():
         raise ConfigError(f"--participant {args.participant!r}: letters, digits, '-' and '_' only (it names a folder)")

@@ -16,14 +16,15 @@ import time
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import load_profile
+
 from nwr.common.node import Node
+from nwr.services.cli import profile_for
 
 CYCLE_S = 0.002
 
 
 def _run(args: argparse.Namespace) -> int:
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     done = threading.Event()
     seen: dict[str, m.RobotState] = {}
 

@@ -19,12 +19,13 @@ from typing import Any
 
 from foxglove.websocket import Capability, PlaybackCommand, PlaybackState, PlaybackStatus
 
-from nwr.common.config import load_profile
+
 from nwr.services.view import main as view_main
 from nwr.services.view.core import DEFAULT_RATE_HZ, Output
 from nwr.services.view.export import ExportError, export_foxglove, load_records, recording_timeline
 from nwr.services.view.playback import Player
 from nwr.services.view.server import ViewServer
+from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -63,14 +64,14 @@ def _export(args: argparse.Namespace) -> int:
     if not args.rate > 0:
         raise ExportError(f"--rate {args.rate}: expected a positive scene rate, e.g. 30")
     src, dst = (Path(p) for p in args.foxglove)
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     report = export_foxglove(src, dst, rate_hz=args.rate, description=profile.robot.description or None)
     print(f"{dst}: {report.format()}")
     return 0
 
 
 def _view(args: argparse.Namespace) -> int:
-    profile = load_profile(args.profile)
+    profile = profile_for(args)
     if args.file is None:
         return view_main.run(profile, args)
     view_main.check_arguments(args)
