@@ -468,7 +468,10 @@ def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Rec
             robot = metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
         f.seek(0)
         reader = make_reader(f)
+        head = keys.prefix(robot) + "/"
         for _schema, channel, msg in reader.iter_messages(log_time_order=True):
+            if not channel.topic.startswith(head):
+                continue  # not the pipeline's (the view's channels of an exported file, say)
             relative = keys.relative_key(robot, channel.topic)
             dec = decoders.get(relative)
             if dec is None:

@@ -19,14 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import msgspec
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from nwr.common import keys
-from nwr.common.errors import DecodeError, NwrError
+from nwr.common.errors import NwrError
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.recorder.core import SESSION_METADATA, Recorded, read_recording
+from nwr.services.recorder.core import Recorded, read_recording
 from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
 
 log = logging.getLogger(__name__)
@@ -39,36 +37,8 @@ class ExportError(NwrError):
 
 
 def load_records(path: Path) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
-    """The pipeline's messages of a recording (an exported one too), decoded strictly."""
-    if not path.exists():
-        raise FileNotFoundError(f"recording {path} does not exist")
-    with path.open("rb") as f:
-        reader = make_reader(f)
-        metadata = {rec.name: dict(rec.metadata) for rec in reader.iter_metadata()}
-        f.seek(0)
-        summary = make_reader(f).get_summary()
-    robot = metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
-    head = keys.prefix(robot) + "/"
-    topics = {c.topic for c in summary.channels.values()} if summary is not None else None
-    if topics is not None and all(t.startswith(head) for t in topics):
-        return read_recording(path, robot)
-    # An exported file (or one without a summary): only the robot's own channels
-    # are the pipeline's; everything else (the view's channels) is skipped.
-    decoders: dict[str, msgspec.json.Decoder] = {}
-    out: list[Recorded] = []
-    with path.open("rb") as f:
-        for _schema, channel, msg in make_reader(f).iter_messages(log_time_order=True):
-            if not channel.topic.startswith(head):
-                continue
-            relative = keys.relative_key(robot, channel.topic)
-            dec = decoders.get(relative)
-            if dec is None:
-                dec = decoders[relative] = msgspec.json.Decoder(keys.topic_for(relative).type)
-            try:
-                out.append(Recorded(relative, msg.log_time, dec.decode(msg.data)))
-            except msgspec.ValidationError as exc:
-                raise DecodeError(f"{path}: message on {channel.topic} at {msg.log_time}: {exc}") from exc
-    return out, metadata
+    """The pipeline's messages of a recording (an exported one too: the view's channels are skipped)."""
+    return read_recording(path)
 
 
 def make_core(description: str | None = None) -> ViewCore:
