@@ -212,12 +212,13 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     return 0, (output if "recorder" in procs else None)
 
 
-def print_summary(path: Path, script_name: str | None, profile: Profile) -> int:
+def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:
     from nwr.common.robot import load_description
     from nwr.services import analysis
     from nwr.services.recorder.core import read_recording
 
     records, metadata = read_recording(path)
+    profile = profile or load_profile(None)
     desc = load_description(profile.robot.description or None)
     touches = analysis.summarize(records, desc)
     first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)

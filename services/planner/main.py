@@ -55,6 +55,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
+        assess_pending = threading.Event()
+
         def on_pain(pain: m.SkinPain) -> None:
             # The event path: a reflex starts the moment its pain message arrives.
             received = node.clock.now_ns()
@@ -70,9 +72,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 # After the command: noting the decision costs the reflex nothing.
                 send_decision(planner.decision(pain, received, decided, command))
                 if command is not None:
-                    # Off the onset's critical path: the retreat check of the
-                    # planned motion, published with the reflex on the status.
-                    planner.assess()
+                    # The retreat check of the planned motion (a few ms) runs in
+                    # the control loop, not here: the next pain message must not
+                    # wait for it. Updates in between coalesce into one check.
+                    assess_pending.set()
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
@@ -93,6 +96,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     command = planner.step(now)
                     if command is not None:
                         send(command)
+                    if assess_pending.is_set():
+                        assess_pending.clear()
+                        planner.assess()  # published with the reflex on the status below
                     if planner.changed or rate.ticks % status_every == 0:
                         send_status(planner.status(now))
         finally:
