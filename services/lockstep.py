@@ -102,6 +102,7 @@ class Lockstep:
         pain = self.gain.process(sample, t)
         emit(keys.SKIN_PAIN, pain, t)
         self.messages += 1
+        self.bridge.on_pain(pain, t)
         command = self.planner.on_pain(pain, t)
         self._command(command, t, emit)
         emit(self.decision_key, self.planner.decision(pain, t, t, command), t)

@@ -457,3 +457,24 @@ def test_a_continuous_stream_the_arm_lags_is_not_a_jump():
     assert_within(c.env, qs, dqs)
     assert c.rejected == 0 and 1.5 * DT * 299 - qs[-1, 0] > 0.1
     assert "command_clipped" in [e.code for e in c.drain_events()]
+
+
+def test_stale_pain_holds_the_task_like_stale_skin():
+    """A dead gain estimator: skin/pressure still flows, skin/pain does not; the task must not go on blind."""
+    c = core()
+    pain = m.SkinPain(seq=0, stamp_ns=0, trace=TR, model="continuous", level=[1] * 3, gain=[0.0] * 3)
+    c.on_pain(pain, 0)
+    c.on_command(pos([0.0, 0.0], seq=1, stamp=1 * MS), 1 * MS)
+    assert c.status == "ok"
+    t = 1 * MS
+    for i in range(100):  # 200 ms: skin keeps coming, pain stopped at t = 0
+        t += 2 * MS
+        c.on_skin(skin(i), t)
+        c.on_command(pos([0.0, 0.0], seq=2 + i, stamp=t), t)
+        c.step(t)
+    assert c.status == "stale_skin" and "gain estimator" in c.detail
+    c.on_pain(pain, t + MS)
+    assert c.status == "ok"
+    bad = m.SkinPain(seq=1, stamp_ns=0, trace=TR, model="continuous", level=[1], gain=[0.0])
+    c.on_pain(bad, t + 2 * MS)
+    assert any(e.code == "pain_invalid" for e in c.drain_events())

@@ -4,7 +4,9 @@ One session (the five services as separate processes) runs two phases:
 
 1. a hostile publisher on the same Zenoh network sends garbage of every kind
    and floods robot/command at ten times the planner's rate;
-2. the planner is killed with SIGKILL mid-motion, then restarted.
+2. the planner is killed with SIGKILL mid-motion, then restarted;
+3. the gateway, then the gain estimator, likewise (the skin data the planner
+   acts on goes stale: the task stops until it is back).
 
 The tests then read the recording: the arm never left its envelope, the
 bridge brought it to rest within the command timeout plus the stopping time
@@ -54,6 +56,7 @@ class Session:
     hostile_start_ns: int = 0
     hostile_end_ns: int = 0
     sent: dict[str, int] = field(default_factory=dict)
+    kills: dict[str, tuple[int, int]] = field(default_factory=dict)  # victim -> (kill, restart) ns
     alive_after_hostile: dict[str, bool] = field(default_factory=dict)
     exit_codes: dict[str, int] = field(default_factory=dict)
     logs: dict[str, str] = field(default_factory=dict)
@@ -206,6 +209,17 @@ def session(tmp_path_factory) -> Session:
             procs["planner"] = spawn(profile, "planner", [], tmp)
             watch.wait_moving(20.0)
             time.sleep(1.0)
+
+            for victim in ("gateway", "gain"):
+                assert watch.wait_moving(10.0), f"the arm is not moving before killing the {victim}"
+                killed = time.monotonic_ns()
+                procs[victim].send_signal(signal.SIGKILL)
+                procs[victim].wait(5)
+                time.sleep(1.5)
+                result.kills[victim] = (killed, time.monotonic_ns())
+                procs[victim] = spawn(profile, victim, [], tmp)
+                assert watch.wait_moving(20.0), f"the task did not resume after restarting the {victim}"
+                time.sleep(1.0)
         finally:
             for name in reversed(SERVICES):
                 if procs.get(name) is not None and procs[name].poll() is None:
@@ -291,6 +305,28 @@ def test_killed_planner_brings_the_arm_to_rest_within_limits(session, records, c
         print(f"\nplanner killed: statuses {statuses}; at rest {to_rest * 1e3:.1f} ms after the kill "
               f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms + stop {stop_time * 1e3:.1f} ms); stopping distance "
               f"{distance:.4f} rad; worst joint speed {speed:.3f} rad/s, acceleration {acc:.2f} rad/s^2")
+
+
+@pytest.mark.parametrize("victim", ["gateway", "gain"])
+def test_killed_skin_path_stops_the_task_within_limits(session, records, capsys, victim):
+    cfg = Profile().bridge
+    kill_ns, restart_ns = session.kills[victim]
+    during = states_between(records, kill_ns - 200_000_000, restart_ns)
+    after = [s for s in during if s.stamp_ns >= kill_ns]
+    assert any(s.status == "stale_skin" for s in after), {s.status for s in after}
+    rest = next(i for i, s in enumerate(after) if s.status == "stale_skin" and not s.stopping
+                and max(abs(v) for v in s.dq) < 1e-6)
+    assert all(max(abs(v) for v in s.dq) < 1e-6 for s in after[rest:])
+    stop_time = max((s.stop_time_s for s in after if s.stop_time_s > 0), default=0.0)
+    to_rest = (after[rest].stamp_ns - kill_ns) / 1e9
+    assert to_rest <= cfg.skin_timeout_s + stop_time + SLACK_S
+    speed, acc = motion(during)
+    resumed = states_between(records, restart_ns, 2**63)
+    assert any(s.status == "ok" and max(abs(v) for v in s.dq) > 0.02 for s in resumed)
+    with capsys.disabled():
+        print(f"\n{victim} killed: {after[rest].detail}; at rest {to_rest * 1e3:.1f} ms after the kill "
+              f"(skin timeout {cfg.skin_timeout_s * 1e3:.0f} ms + stop {stop_time * 1e3:.1f} ms); worst joint speed "
+              f"{speed:.3f} rad/s, acceleration {acc:.2f} rad/s^2")
 
 
 def test_no_bridge_setpoint_was_ever_guarded(session):

@@ -368,6 +368,9 @@ class BridgeCore:
         self.planner_alive = False
         self.planner_seen = False
         self.last_skin_ns: int | None = None
+        # The planner acts on skin/pain, not on skin/pressure: once pain
+        # messages flow, their staleness (a dead gain estimator) stops the task too.
+        self.last_pain_ns: int | None = None
         self.fault: m.RobotStatus | None = None
         self.fault_detail = ""
         # Output state.
@@ -496,6 +499,18 @@ class BridgeCore:
         self.last_skin_ns = now_ns
         self._evaluate(now_ns)
 
+    def on_pain(self, pain: m.SkinPain, now_ns: int) -> None:
+        """A pain message: the skin data the planners act on is fresh."""
+        if len(pain.gain) != self.n_pads:
+            self.events.append(Event(
+                "warning", "pain_invalid",
+                f"pain message {pain.seq} has {len(pain.gain)} pads, the robot has {self.n_pads}: "
+                "it does not count as fresh skin data",
+            ))
+            return
+        self.last_pain_ns = now_ns
+        self._evaluate(now_ns)
+
     def on_planner_alive(self, alive: bool, now_ns: int) -> None:
         """The active planner's liveliness token appeared (True) or vanished (False)."""
         if alive == self.planner_alive:
@@ -615,7 +630,8 @@ class BridgeCore:
 
     def _evaluate(self, now_ns: int) -> None:
         """Set the status from the inputs; start a controlled stop on entering a stopping one."""
-        skin_stale = self.last_skin_ns is None or now_ns - self.last_skin_ns > self.skin_timeout_ns
+        pain_stale = self.last_pain_ns is not None and now_ns - self.last_pain_ns > self.skin_timeout_ns
+        skin_stale = self.last_skin_ns is None or now_ns - self.last_skin_ns > self.skin_timeout_ns or pain_stale
         status: m.RobotStatus
         if self.fault is not None:
             status, detail = self.fault, self.fault_detail
@@ -631,8 +647,12 @@ class BridgeCore:
             detail = f"no command for more than {self.command_timeout_ns / 1e6:.0f} ms"
         elif skin_stale and self.phase != "REFLEX":
             status = "stale_skin"
-            age = "no skin data yet" if self.last_skin_ns is None else \
-                f"skin data {(now_ns - self.last_skin_ns) / 1e6:.0f} ms old"
+            if self.last_skin_ns is None:
+                age = "no skin data yet"
+            elif pain_stale and now_ns - self.last_skin_ns <= self.skin_timeout_ns:
+                age = f"pain data {(now_ns - self.last_pain_ns) / 1e6:.0f} ms old (is the gain estimator running?)"
+            else:
+                age = f"skin data {(now_ns - self.last_skin_ns) / 1e6:.0f} ms old"
             detail = f"{age} (limit {self.skin_timeout_ns / 1e6:.0f} ms): {self.phase} motion held"
         else:
             status, detail = "ok", ""

@@ -118,6 +118,12 @@ class Bridge:
             events = self.core.drain_events()
         self._report(events)
 
+    def on_pain(self, pain: m.SkinPain) -> None:
+        with self.lock:
+            self.core.on_pain(pain, self.node.clock.now_ns())
+            events = self.core.drain_events()
+        self._report(events)
+
     def on_liveliness(self, sample: zenoh.Sample) -> None:
         """Any planner's token (alive/planner-<name>) appearing or vanishing."""
         service = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -193,6 +199,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             bridge = Bridge(profile, node, backend, env, q0, n_pads)
             node.subscribe(keys.ROBOT_COMMAND, bridge.on_command)
             node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin)
+            node.subscribe(keys.SKIN_PAIN, bridge.on_pain)
             node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch)
             tokens = keys.key(profile.robot.name, keys.alive(PLANNER_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, bridge.on_liveliness, history=True)
