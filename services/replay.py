@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import logging
 import shlex
+import signal
 import subprocess
 import threading
 import time
@@ -149,7 +150,7 @@ def _run(args: argparse.Namespace) -> int:
 
     robot = args.robot or metadata.get("session", {}).get("robot") or profile.robot.name
     procs: dict[str, subprocess.Popen[bytes]] = {}
-    stop = threading.Event()
+    codes: dict[str, int] = {}
     try:
         waits: list[str] = []
         if args.reflex or args.planner_cmd:
@@ -175,11 +176,13 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         if procs:
             codes = _stop_all(procs)
-            failed = {n: c for n, c in codes.items() if c not in (0, -15, -2)}
-            if failed:
-                log.error("services stopped with errors: %s", failed)
-                return 1
-            print(f"replay against {args.reflex or args.planner_cmd!r} recorded to {output}")
+    # Checked after the finally so that an error of the replay itself is never swallowed.
+    failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM, -signal.SIGINT)}
+    if failed:
+        log.error("services stopped with errors: %s", failed)
+        return 1
+    if procs:
+        print(f"replay against {args.reflex or args.planner_cmd!r} recorded to {output}")
     return 0
 
 
