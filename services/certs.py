@@ -156,11 +156,12 @@ def _san(entry: str) -> x509.GeneralName:
 
 
 def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sans: list[str] | None = None,
-          force: bool = False) -> Path:
+          force: bool = False, out: Path | None = None) -> Path:
     """Write ``NAME.crt`` and ``NAME.key`` signed by the CA in ``directory``; returns the certificate's path.
 
-    The router's certificate also carries subject alternative names (the host
-    names and addresses clients dial), since clients verify them.
+    They go to ``out`` if given (a service's own directory), else next to the
+    CA. The router's certificate also carries subject alternative names (the
+    host names and addresses clients dial), since clients verify them.
     """
     if role not in ROLES:
         raise ConfigError(f"role {role!r} is not one of {list(ROLES)}")
@@ -171,7 +172,8 @@ def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sa
         raise ConfigError("certificate name 'ca' is the CA's own: choose another name")
     if not 1 <= days <= CA_DAYS:
         raise ConfigError(f"--days {days}: give 1 to {CA_DAYS} days")
-    cert_path, key_path = directory / f"{name}.crt", directory / f"{name}.key"
+    out = directory if out is None else out
+    cert_path, key_path = out / f"{name}.crt", out / f"{name}.key"
     if cert_path.exists() and not force:
         raise ConfigError(f"{cert_path} exists: use --force to re-issue it (rotation), then copy it to its host")
     ca_cert, ca_key = _load_ca(directory)
@@ -207,6 +209,95 @@ def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sa
     _write_public(cert_path, cert.public_bytes(serialization.Encoding.PEM))
     log.info("issued %s for %s (valid until %s)", cert_path, common_name(role, name), not_after.date())
     return cert_path
+
+
+@dataclass(frozen=True)
+class Grant:
+    """One service's certificate in a deployment: its own directory, role and name."""
+
+    directory: str  # the subdirectory its container mounts as /certs
+    role: str
+    name: str
+
+    @property
+    def common_name(self) -> str:
+        return common_name(self.role, self.name)
+
+
+def parse_grant(text: str) -> Grant:
+    """``DIR=ROLE:NAME`` (e.g. ``planner=planner:cartesian``); ConfigError saying what a grant looks like."""
+    directory, sep, cn = text.partition("=")
+    if not sep or not NAME.match(directory) or directory == "ca":
+        raise ConfigError(f"grant {text!r}: write DIR=ROLE:NAME, e.g. bridge=bridge:bridge or "
+                          "planner=planner:cartesian (DIR a plain directory name other than 'ca')")
+    role, name = parse_common_name(cn)
+    return Grant(directory, role, name)
+
+
+def provision(root: Path, grants: list[Grant], *, sans: list[str] | None = None,
+              owner: tuple[int, int] | None = None, days: int = DEFAULT_DAYS) -> list[str]:
+    """Give every service its own directory ``root/DIR`` with ``ca.crt``, ``NAME.crt`` and ``NAME.key``.
+
+    What a single-host deployment runs before its services (the compose
+    ``certs`` service): on an empty ``root`` it creates the lab CA in
+    ``root/ca`` (which no service mounts) and issues every certificate; later
+    runs issue only what is missing and never replace a certificate (rotation
+    is ``nwr certs issue --force`` on purpose). A host that received its
+    services' directories from the admin machine has no CA key: nothing is
+    created there, and a missing certificate is reported (its service then
+    refuses to start, naming the file). Returns one line per action.
+    """
+    ca_dir = root / "ca"
+    lines: list[str] = []
+
+    def has(g: Grant) -> bool:
+        d = root / g.directory
+        return (d / f"{g.name}.crt").exists() and (d / f"{g.name}.key").exists()
+
+    present = [g for g in grants if has(g)]
+    anything_here = bool(present) or any((root / g.directory / CA_CERT).exists() for g in grants)
+    if not (ca_dir / CA_KEY).exists() and not anything_here:
+        init_ca(ca_dir, days=CA_DAYS)
+        lines.append(f"created the lab CA {ca_dir / CA_CERT}; its key stays in {ca_dir}, which no service mounts")
+    have_ca = (ca_dir / CA_KEY).exists()
+    for g in grants:
+        d = root / g.directory
+        if has(g):
+            cert = read_certificate(d / f"{g.name}.crt")
+            cn = certificate_common_name(cert)
+            left = (cert.not_valid_after_utc - _now()).total_seconds() / 86400
+            note = "" if cn == g.common_name else f"; WRONG common name {cn!r}, expected {g.common_name!r}"
+            if left <= 0:
+                note += "; EXPIRED: re-issue it with --force"
+            elif left <= EXPIRY_WARNING_DAYS:
+                note += f"; expires in {left:.0f} days: re-issue it with --force"
+            lines.append(f"kept {d / g.name}.crt ({cn}){note}")
+        elif have_ca:
+            d.mkdir(parents=True, exist_ok=True)
+            issue(ca_dir, g.name, g.role, days=days, sans=sans if g.role == "router" else None, out=d)
+            lines.append(f"issued {d / g.name}.crt ({g.common_name})")
+        else:
+            lines.append(f"MISSING {d / g.name}.crt: this host has no CA key ({ca_dir / CA_KEY}); issue it on the "
+                         f"admin machine (nwr certs issue {g.name} --role {g.role}) and copy NAME.crt, NAME.key "
+                         f"and ca.crt into {d}")
+        if have_ca and d.is_dir():
+            ca_pem = (ca_dir / CA_CERT).read_bytes()
+            if not (d / CA_CERT).exists() or (d / CA_CERT).read_bytes() != ca_pem:
+                _write_public(d / CA_CERT, ca_pem)
+    if owner is not None:
+        # The services' user must own what it reads (keys are 0600); the CA stays root-only.
+        for g in grants:
+            d = root / g.directory
+            if not d.is_dir():
+                continue
+            os.chown(d, *owner)
+            os.chmod(d, 0o700)
+            for f in d.iterdir():
+                if f.is_file():
+                    os.chown(f, *owner)
+        if ca_dir.is_dir():
+            os.chmod(ca_dir, 0o700)
+    return lines
 
 
 @dataclass(frozen=True)
@@ -294,6 +385,22 @@ def _handler(args: argparse.Namespace) -> int:
         print(f"{path} and {path.with_suffix('.key')} (0600), common name {common_name(args.role, args.name)}: "
               f"copy them and {directory / CA_CERT} to the service's host")
         return 0
+    if args.certs_command == "provision":
+        owner = None
+        if args.owner:
+            try:
+                uid, gid = (int(x) for x in args.owner.split(":"))
+            except ValueError:
+                raise ConfigError(f"--owner {args.owner!r}: write UID:GID, e.g. 10001:10001") from None
+            owner = (uid, gid)
+        grants = [parse_grant(g) for g in args.grants]
+        if len({(g.directory, g.name) for g in grants}) != len(grants):
+            raise ConfigError(f"the same certificate is granted twice: {args.grants}")
+        # "--san a,b" as well as "--san a --san b": compose passes one variable.
+        sans = [h.strip() for entry in args.san or [] for h in entry.split(",") if h.strip()]
+        lines = provision(Path(args.root), grants, sans=sans, owner=owner, days=args.days)
+        print("\n".join(lines))
+        return 0
     if not directory.is_dir():
         raise ConfigError(f"no certificate directory {directory}: give --dir, set NWR_CERTS, or create it with "
                           "`nwr certs init DIR`")
@@ -320,6 +427,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                               f"{', '.join(ROUTER_DEFAULT_SANS)} are always included)")
     issue_p.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity in days (default {DEFAULT_DAYS})")
     issue_p.add_argument("--force", action="store_true", help="replace an existing certificate (rotation)")
+    prov = certs_sub.add_parser(
+        "provision", help="a deployment's certificates, one directory per service (the compose 'certs' step)",
+        description="Give every service its own directory ROOT/DIR with ca.crt, NAME.crt and NAME.key. On an "
+                    "empty ROOT it creates the lab CA in ROOT/ca (mounted by no service) and issues everything; "
+                    "later runs issue only what is missing and never replace a certificate. Without the CA key "
+                    "(a host that received copied directories) it creates nothing and reports what is missing.")
+    prov.add_argument("root", metavar="ROOT", help="the deployment's certificate root (compose: $NWR_CERTS)")
+    prov.add_argument("grants", metavar="DIR=ROLE:NAME", nargs="+",
+                      help="a service's directory and certificate, e.g. bridge=bridge:bridge, "
+                           "planner=planner:cartesian")
+    prov.add_argument("--san", action="append", metavar="HOST",
+                      help="host names or addresses clients dial the router by (repeatable or comma-separated)")
+    prov.add_argument("--owner", metavar="UID:GID",
+                      help="give the service directories to this user (the services' user; keys stay 0600)")
+    prov.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity in days (default {DEFAULT_DAYS})")
     listing = certs_sub.add_parser("list", help="every certificate in the directory: name, role, expiry")
     for q in (issue_p, listing):
         q.add_argument("--dir", help="certificate directory (default: $NWR_CERTS or ./certs)")

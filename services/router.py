@@ -76,13 +76,27 @@ def router_config(listen: list[str], connect: list[str], *, tls: ZenohSection | 
     return conf
 
 
-def load_acl(path: Path) -> str:
-    """The access-control section in ``path`` (JSON5), checked to be on and to deny by default."""
+# The rules are written for every robot (nwr/*/...); a router scopes them to its own.
+ANY_ROBOT = "nwr/*/"
+
+
+def load_acl(path: Path, robot: str | None = None) -> str:
+    """The access-control section in ``path`` (JSON5), checked to be on and to deny by default.
+
+    With ``robot``, every ``nwr/*/`` key expression becomes ``nwr/<robot>/``:
+    the router then allows nothing on another arm's keys, so a certificate
+    issued for one arm's pipeline cannot command a second arm that shares
+    the LAN (or, with ``--all-robots``, the same router).
+    """
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"cannot read the access control rules {path}: {exc}; the project ships "
                           "deploy/acl.json5") from exc
+    if robot is not None:
+        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", robot):
+            raise ConfigError(f"robot name {robot!r} cannot scope the access control rules")
+        text = text.replace(ANY_ROBOT, f"nwr/{robot}/")
     probe = zenoh.Config()
     try:
         probe.insert_json5("access_control", text)
@@ -108,6 +122,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acl", metavar="FILE",
                         help="secure mode: the access control rules, JSON5 (default: $NWR_ROUTER_ACL or "
                              f"{DEFAULT_ACL}, from the working directory)")
+    parser.add_argument("--all-robots", action="store_true",
+                        help="secure mode: apply the rules to every robot's keys (nwr/*/), for one router shared "
+                             "by several arms; by default they hold for this router's robot only (NWR_ROBOT)")
 
 
 def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) -> int:
@@ -124,8 +141,10 @@ def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) 
         listen = tls_endpoints(listen, "--listen")
         connect = tls_endpoints(connect, "--connect")
         acl_path = Path(getattr(args, "acl", None) or os.environ.get("NWR_ROUTER_ACL") or DEFAULT_ACL)
-        acl = load_acl(acl_path)
-        log.info("secure mode: mutual TLS only, as %s; access control from %s, deny by default", cn, acl_path)
+        scope = None if getattr(args, "all_robots", False) else robot
+        acl = load_acl(acl_path, scope)
+        log.info("secure mode: mutual TLS only, as %s; access control from %s, deny by default, for %s", cn,
+                 acl_path, f"nwr/{scope}/ only" if scope else "every robot (nwr/*/)")
     else:
         log.warning("router without TLS or access control: anyone who reaches %s can publish on every key "
                     "(robot/command included); use secure mode on a lab LAN (docs/security.md)", ", ".join(listen))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import stat
 from pathlib import Path
 
@@ -169,3 +170,91 @@ def test_shipped_rules_deny_by_default(tmp_path: Path) -> None:
         load_acl(loose)
     with pytest.raises(ConfigError, match="cannot read"):
         load_acl(tmp_path / "none.json5")
+
+
+def test_rules_scoped_to_one_robot() -> None:
+    scoped = load_acl(ROOT / "deploy" / "acl.json5", "ur10e")
+    assert "nwr/*/" not in scoped and '"nwr/ur10e/robot/command"' in scoped
+    assert "nwr/*/robot/command" in load_acl(ROOT / "deploy" / "acl.json5")
+    with pytest.raises(ConfigError, match="robot name"):
+        load_acl(ROOT / "deploy" / "acl.json5", "a/b")
+
+
+GRANTS = ["router=router:router", "bridge=bridge:bridge", "planner=planner:cartesian",
+          "planner-spare=planner:uniform"]
+
+
+def test_provision_makes_a_ca_and_one_directory_per_service(tmp_path: Path) -> None:
+    root = tmp_path / "certs"
+    lines = certs.provision(root, [certs.parse_grant(g) for g in GRANTS], sans=["10.0.0.2"])
+    assert lines[0].startswith("created the lab CA") and sum(x.startswith("issued") for x in lines) == 4
+    ca = _cert(root / "ca" / "ca.crt")
+    for directory, name, cn in (("router", "router", "router:router"), ("planner", "cartesian", "planner:cartesian"),
+                                ("planner-spare", "uniform", "planner:uniform")):
+        d = root / directory
+        assert sorted(p.name for p in d.iterdir()) == sorted(["ca.crt", f"{name}.crt", f"{name}.key"])
+        assert (d / "ca.crt").read_bytes() == (root / "ca" / "ca.crt").read_bytes()
+        cert = _cert(d / f"{name}.crt")
+        cert.verify_directly_issued_by(ca)
+        assert certs.certificate_common_name(cert) == cn
+        assert stat.S_IMODE((d / f"{name}.key").stat().st_mode) == 0o600
+        assert check_tls_files(ZenohSection(router=["tls/router:7447"], secure=True, ca_certificate=str(d / "ca.crt"),
+                                            certificate=str(d / f"{name}.crt"),
+                                            private_key=str(d / f"{name}.key"))) == cn
+    sans = _cert(root / "router" / "router.crt").extensions.get_extension_for_class(x509.SubjectAlternativeName)
+    assert "10.0.0.2" in [str(ip) for ip in sans.value.get_values_for_type(x509.IPAddress)]
+    assert not any(p.name == "ca.key" for p in root.rglob("*") if p.parent.name != "ca")
+
+
+def test_provision_again_keeps_everything_and_adds_what_is_missing(tmp_path: Path) -> None:
+    root = tmp_path / "certs"
+    certs.provision(root, [certs.parse_grant(g) for g in GRANTS])
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    lines = certs.provision(root, [certs.parse_grant(g) for g in [*GRANTS, "planner=planner:location"]])
+    assert sum(x.startswith("kept") for x in lines) == 4 and sum(x.startswith("issued") for x in lines) == 1
+    assert all(p.read_bytes() == data for p, data in before.items())
+    assert (root / "planner" / "location.crt").exists() and (root / "planner" / "cartesian.crt").exists()
+
+
+def test_provision_without_the_ca_key_creates_nothing(tmp_path: Path) -> None:
+    """A host that received its services' directories: no second CA, and what is missing is named."""
+    admin = tmp_path / "admin"
+    certs.provision(admin, [certs.parse_grant(g) for g in GRANTS])
+    host = tmp_path / "robot-pc"
+    host.mkdir()
+    (host / "bridge").mkdir()
+    for f in (admin / "bridge").iterdir():
+        (host / "bridge" / f.name).write_bytes(f.read_bytes())
+    lines = certs.provision(host, [certs.parse_grant(g) for g in GRANTS])
+    assert not (host / "ca").exists()
+    assert any(x.startswith("kept") and "bridge:bridge" in x for x in lines)
+    missing = [x for x in lines if x.startswith("MISSING")]
+    assert len(missing) == 3 and "nwr certs issue cartesian --role planner" in " ".join(missing)
+
+
+def test_provision_hands_the_directories_to_the_services_user(tmp_path: Path) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("chown needs root")
+    root = tmp_path / "certs"
+    certs.provision(root, [certs.parse_grant("bridge=bridge:bridge")], owner=(10001, 10001))
+    d = root / "bridge"
+    assert {(p.stat().st_uid, p.stat().st_gid) for p in [d, *d.iterdir()]} == {(10001, 10001)}
+    assert stat.S_IMODE(d.stat().st_mode) == 0o700
+    assert (root / "ca" / "ca.key").stat().st_uid == 0 and stat.S_IMODE((root / "ca").stat().st_mode) == 0o700
+
+
+@pytest.mark.parametrize("grant", ["bridge", "bridge=bridge", "ca=bridge:bridge", "x=pilot:bridge",
+                                   "x=bridge:Bad", "../x=bridge:bridge"])
+def test_provision_rejects_bad_grants(grant: str) -> None:
+    with pytest.raises(ConfigError):
+        certs.parse_grant(grant)
+
+
+def test_cli_provision(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["certs", "provision", str(tmp_path / "c"), "--san", "10.0.0.2,router-host", *GRANTS]) == 0
+    out = capsys.readouterr().out
+    assert "created the lab CA" in out and out.count("issued") == 4
+    sans = _cert(tmp_path / "c" / "router" / "router.crt").extensions.get_extension_for_class(
+        x509.SubjectAlternativeName).value
+    assert "router-host" in sans.get_values_for_type(x509.DNSName)
+    assert main(["certs", "provision", str(tmp_path / "c"), "bridge=bridge:bridge", "bridge=bridge:bridge"]) != 0

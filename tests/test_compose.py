@@ -2,10 +2,13 @@
 
 Builds the base image (debootstrap), the wheelhouse and the project image
 with deploy/offline/build.sh (the first two are cached per machine), brings
-deploy/compose.yaml + compose.offline.yaml up on a bridge network (every
-service in its own container, a client of the router container), plays a
-touch script, stops and restarts the active planner, and checks all of it
-from the recording the recorder wrote to its volume.
+deploy/compose.yaml up on a bridge network as it ships, secure by default
+(the certs step makes the lab CA and a certificate per service; the router
+takes mutual TLS only and enforces the access control; every service in its
+own container, a client of the router container), tries intruders without a
+certificate and with another CA's, plays a touch script, stops and restarts
+the active planner, and checks all of it from the recording the recorder
+wrote to its volume.
 
 Skipped when no Docker daemon (or no compose) is available, unless
 NWR_REQUIRE_DOCKER=1 (set by .ci/run), where that is a failure.
@@ -96,6 +99,7 @@ class Stages:
 class Deployment:
     def __init__(self, compose: list[str], project: str, files: list[Path], env: dict[str, str]) -> None:
         self.cmd = [*compose, "-p", project, *[a for f in files for a in ("-f", str(f))]]
+        self.project = project
         self.env = env
 
     def __call__(self, *args: str, timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -167,12 +171,12 @@ services:
     command: run recorder --session compose-test --output recordings/{RECORDING}
 """)
     env = {**os.environ, "NWR_PLANNER": PLANNER, "NWR_ROUTER_PUBLISH": "127.0.0.1",
-           "NWR_ROUTER_PORT": str(_free_port()), "NWR_IMAGE": os.environ.get("NWR_IMAGE", "nwr:latest")}
-    env.pop("NWR_ROUTER", None)
-    env.pop("NWR_RECORDINGS", None)
+           "NWR_ROUTER_PORT": str(_free_port()), "NWR_IMAGE": os.environ.get("NWR_IMAGE", "nwr:latest"),
+           "NWR_CERTS": str(tmp_path / "certs")}
+    for name in ("NWR_ROUTER", "NWR_RECORDINGS", "NWR_INSECURE", "NWR_ROUTER_SANS"):
+        env.pop(name, None)
     project = f"nwrtest{os.getpid()}"
-    dep = Deployment(compose, project, [ROOT / "deploy" / "compose.yaml", ROOT / "deploy" / "compose.offline.yaml",
-                                        override], env)
+    dep = Deployment(compose, project, [ROOT / "deploy" / "compose.yaml", override], env)
     try:
         yield dep, stages
     finally:
@@ -193,6 +197,8 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
                           dep.container(s)]).stdout.strip() for s in SERVICES}
     assert len(set(addresses.values())) == len(SERVICES), addresses
     stages.done("healthy (liveliness checks)", ", ".join(f"{s} {a}" for s, a in addresses.items()))
+    _check_secure(dep, tmp_path)
+    stages.done("secure: certificates, intruders, operator")
 
     dep.wait_log("gateway", "touch script", timeout_s=60)
     time.sleep(script.duration_s + 2.0)
@@ -231,6 +237,41 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
     _check_planner_lost(records, t_stop, t_start)
     _check_resumed(records, t_start, t_end)
     assert metadata["session"]["robot"] == "ur10e"
+
+
+def _check_secure(dep: Deployment, tmp_path: Path) -> None:
+    """The deployment as shipped is secure: its certificates, two intruders refused, the operator's tools work."""
+    root = Path(dep.env["NWR_CERTS"])
+    assert (root / "ca" / "ca.key").exists()
+    assert [p for p in root.rglob("ca.key")] == [root / "ca" / "ca.key"], "the CA key left its directory"
+    for service in SERVICES:
+        cert = "cartesian" if service == "planner" else service
+        assert (root / service / f"{cert}.key").stat().st_mode & 0o077 == 0
+        if service != "router":
+            proc = _run(["docker", "logs", dep.container(service)], check=False)
+            assert f"secure mode: mutual TLS to tls/router:7447 as {'planner' if service == 'planner' else service}:{cert}" \
+                in proc.stdout + proc.stderr, service
+    image = dep.env["NWR_IMAGE"]
+    network = f"{dep.project}_nwr"
+    probe = ["status", "--check", "bridge", "--timeout", "3"]
+    # No certificate at all (plain TCP to the TLS port).
+    plain = _run(["docker", "run", "--rm", "--network", network, "-e", "NWR_ROUTER=tcp/router:7447",
+                  "-e", "NWR_INSECURE=1", image, *probe], check=False, timeout=120)
+    assert plain.returncode != 0 and "cannot open a Zenoh session" in plain.stderr, plain
+    # A certificate from another CA, while trusting the lab's CA (so the router is the one refusing).
+    other = tmp_path / "other-ca"
+    _run(["docker", "run", "--rm", "--network", "none", "--user", "0:0", "-v", f"{other}:/certs", image,
+          "certs", "provision", "/certs", "--owner", "10001:10001", "operator=operator:operator"], timeout=120)
+    shutil.copy(root / "operator" / "ca.crt", other / "operator" / "lab-ca.crt")
+    foreign = _run(["docker", "run", "--rm", "--network", network, "-v", f"{other / 'operator'}:/certs:ro",
+                    "-e", "NWR_ROUTER=tcp/router:7447", "-e", "NWR_TLS_CA=/certs/lab-ca.crt",
+                    "-e", "NWR_TLS_CERT=/certs/operator.crt", "-e", "NWR_TLS_KEY=/certs/operator.key",
+                    image, *probe], check=False, timeout=120)
+    assert foreign.returncode != 0 and "cannot open a Zenoh session" in foreign.stderr, foreign
+    # The operator's tools, with the lab's operator certificate.
+    status = dep("run", "--rm", "operator", "status", "--check", "bridge", "--timeout", "5", timeout=120, check=False)
+    assert status.returncode == 0, status
+    print(f"intruders refused: plain TCP ({plain.returncode}), another CA ({foreign.returncode}); operator ok")
 
 
 def _check_session(records: list, script) -> None:  # type: ignore[no-untyped-def]

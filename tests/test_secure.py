@@ -7,7 +7,8 @@ process with its own certificate (NWR_TLS_*), all on 127.0.0.1, ports
 CA's, and, with a recorder's, a view's and an unlisted planner's
 certificate, to put on every key that moves or feeds the arm; a standby
 planner's certificate sends commands the bridge must reject. The session
-must run as if none of it happened. A last test compares the reflex onset
+must run as if none of it happened. A planner's certificate cannot command
+another arm through a router scoped to its own. A last test compares the reflex onset
 latency through the router with and without TLS.
 """
 
@@ -36,7 +37,7 @@ from nwr.common.config import GainSection, ZenohSection, load_script
 from nwr.common.errors import DecodeError
 from nwr.common.node import zenoh_config
 from nwr.common.robot import load_description
-from nwr.services import analysis, certs
+from nwr.services import analysis, certs, router
 from nwr.services.gain.core import GainEstimator
 from nwr.services.recorder.core import read_recording
 
@@ -455,3 +456,41 @@ def test_tls_latency_cost(lab: Lab, tmp_path: Path, pipeline_factory: list[Pipel
         for mode, lat in results.items():
             print(f"  {mode}: median {np.median(lat):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms, "
                   f"max {max(lat):.2f} ms over {len(lat)} reflexes")
+
+
+@pytest.mark.parametrize("all_robots", [False, True])
+def test_router_scoped_to_its_robot(lab: Lab, all_robots: bool) -> None:
+    """A planner's certificate puts on its arm's and another arm's robot/command; the router passes only its arm's.
+
+    The router runs in this process, so its own session subscribes to
+    everything behind the access control, which filters what a client
+    sends (ingress). ``--all-robots`` (one router shared by several arms) is
+    the control: there both arrive.
+    """
+    port = 18190 + int(all_robots)
+    acl = router.load_acl(ACL, None if all_robots else ROBOT)
+    conf = router.router_config([f"tcp/127.0.0.1:{port}"], [], tls=lab.zenoh(port, "router"), acl=acl)
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    seen: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        robot = str(sample.key_expr).split("/")[1]
+        with lock:
+            seen[robot] = seen.get(robot, 0) + 1
+
+    with zenoh.open(conf) as server:
+        server.declare_subscriber("nwr/**", on_sample)
+        with zenoh.open(zenoh_config(lab.zenoh(port, ACTIVE))) as planner:
+            codec = keys.codec(keys.ROBOT_COMMAND)
+            for robot in (ROBOT, "ur5e"):
+                payload = codec.encode(m.VelocityCommand(seq=SENTINEL, stamp_ns=time.monotonic_ns(), owner=ACTIVE,
+                                                         dq=[0.0] * 6, trace=m.Trace(0, 0)))
+                for _ in range(20):
+                    planner.put(keys.key(robot, keys.ROBOT_COMMAND), payload)
+            deadline = time.monotonic() + 5.0
+            want = {ROBOT: 20, "ur5e": 20} if all_robots else {ROBOT: 20}
+            while time.monotonic() < deadline and seen != want:
+                time.sleep(0.05)
+            time.sleep(0.5)  # anything late for the other arm would arrive now
+    assert seen == want, seen
