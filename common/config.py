@@ -77,6 +77,17 @@ class SimSkinSection(_Section):
     drift_period_s: Positive = 60.0
     # Touch script (TOML, [[touch]] tables); empty = no touches.
     script: str = ""
+    # Contact model: the finger stays where it met the pad; once the pad has
+    # withdrawn w metres from it along the pad's normal, the touch presses
+    # with (1 - w / contact_depth_m) of its scripted pressure (none beyond
+    # the depth; never more than scripted when the pad moves toward it). The
+    # finger's indentation of the pad's air cushion at the scripted pressure, m.
+    contact_depth_m: Annotated[float, msgspec.Meta(gt=0, le=0.2)] = 0.02
+    # true: the live simulated skin applies that model (closed loop: a pad
+    # that withdraws feels its pressure fall); false: touches press as
+    # scripted whatever the arm does (open loop, the default). Re-simulation
+    # (`nwr replay --fast --resimulate`) always applies it.
+    closed_loop: bool = False
 
 
 class GatewaySection(_Section):

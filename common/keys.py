@@ -6,6 +6,7 @@ Everything lives under ``nwr/<robot>/`` so that two arms can share one LAN.
 key (under nwr/<robot>/)     message                                priority    express    on congestion
 ===========================  =====================================  ==========  =========  =======
 skin/pressure                SkinPressure                           real-time   yes        block
+skin/touch                   SkinTouch                              data        no         block
 skin/pain                    SkinPain                               real-time   yes        block
 robot/command                PositionCommand | VelocityCommand      real-time   yes        block
 robot/state                  RobotState                             interactive no         drop
@@ -22,7 +23,9 @@ under congestion rather than slow the reflex path down. A planner's
 decisions (one per pain message, published after any command it caused)
 are batched (not express) at data priority but never dropped: they are the
 measurement of the sample latency (``nwr bench``), and a dropped one would
-bias it.
+bias it. The simulated skin's touch ground truth (``skin/touch``, one
+message per touch) is not on the reflex path and is batched the same way,
+never dropped: a re-simulation of the session needs every touch.
 """
 
 from __future__ import annotations
@@ -56,6 +59,8 @@ class Topic:
 TOPICS: tuple[Topic, ...] = (
     Topic("skin/pressure", m.SkinPressure, zenoh.Priority.REAL_TIME, True, False,
           "per-pad absolute pressure, change from baseline, contact flags"),
+    Topic("skin/touch", m.SkinTouch, zenoh.Priority.DATA, False, False,
+          "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts"),
     Topic("skin/pain", m.SkinPain, zenoh.Priority.REAL_TIME, True, False,
           "per-pad gain and pain level, strongest contact"),
     Topic("robot/command", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
@@ -73,6 +78,7 @@ TOPICS: tuple[Topic, ...] = (
 )
 
 SKIN_PRESSURE = "skin/pressure"
+SKIN_TOUCH = "skin/touch"
 SKIN_PAIN = "skin/pain"
 ROBOT_COMMAND = "robot/command"
 ROBOT_STATE = "robot/state"

@@ -74,6 +74,43 @@ class SkinPressure(msgspec.Struct, tag="skin_pressure", tag_field="kind", forbid
     # False where a pad's reading was not a finite number (its change is 0).
     valid: list[bool] = []
     source: str = "sim"
+    # Simulated skin only: the part of absolute_hpa that its touches added, per
+    # pad (the ground truth a re-simulation replaces); empty for a real skin.
+    touch_hpa: list[Finite] = []
+
+
+class SkinTouch(msgspec.Struct, tag="skin_touch", tag_field="kind", forbid_unknown_fields=True):
+    """Simulated skin only: the ground truth of one touch, published when it starts.
+
+    The touch's pressure profile is the touch script's (``start_s``,
+    ``duration_s``, ``peak_hpa``, ``shape``, ``ramp_s``) on the gateway's
+    script clock, whose zero is ``origin_ns``: a skin sample stamped ``s``
+    is at script time ``(s - origin_ns) / 1e9``. The finger is a point that
+    stays where it met the pad: ``contact_point`` and the pad's outward
+    ``normal`` there, in the robot's base frame, from the arm pose ``q`` the
+    gateway knew (from ``robot/state``) when the touch started; all three
+    are None if it knew none.
+    """
+
+    seq: int
+    stamp_ns: int
+    pad: int
+    name: str
+    origin_ns: int
+    start_s: Finite
+    duration_s: Finite
+    peak_hpa: Finite
+    shape: Literal["step", "ramp"]
+    ramp_s: Finite
+    contact_point: list[Finite] | None = None
+    normal: list[Finite] | None = None
+    q: list[Finite] | None = None
+    # The robot state the pose came from (its stamp), 0 if none.
+    pose_stamp_ns: int = 0
+    # Whether this gateway's pressure fell as the pad withdrew from the finger
+    # (gateway.sim.closed_loop), and the indentation depth it used, m.
+    closed_loop: bool = False
+    depth_m: Finite = 0.0
 
 
 class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -273,7 +310,7 @@ class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unkn
     count: int = 1
 
 
-Message = (SkinPressure | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
+Message = (SkinPressure | SkinTouch | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
            | SwitchRequest | PlannerDecision)
 
 

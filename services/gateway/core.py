@@ -15,10 +15,23 @@ untouched and must neither follow nor drift away during a press:
 A non-finite reading leaves the baseline untouched; the pad is published as
 invalid (``valid`` false, change 0, so it can never trigger a reflex) and
 the caller is told so it can warn.
+
+The simulated skin adds scripted touches to noise and drift. Its contact
+model (:func:`contact_pressure`): the finger is a point that stays where it
+met the pad; the scripted profile is what the touch presses while the pad
+stays put; once the pad has withdrawn ``w`` metres from the finger along the
+pad's normal at the contact, the touch presses ``(1 - w / depth)`` of it,
+nothing beyond ``depth``, and never more than scripted when the pad moves
+toward the finger (the hand yields: a pad cannot be pressed harder than the
+person presses). Motion along the pad's surface is ignored. The live
+simulated skin applies it only with ``gateway.sim.closed_loop``; a
+re-simulation (:class:`Resimulator`) always does.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +56,15 @@ class BaselineFilter:
         self.contact = np.zeros(n_pads, dtype=bool)
         self.contact_since = np.zeros(n_pads)
         self.last_t: float | None = None
+
+    def resume(self, last_t: float | None, baseline: np.ndarray, contact: np.ndarray) -> None:
+        """Continue from a state seen elsewhere (a recording): the baseline and contact flags
+        before the next sample, and that sample's predecessor's time (None: there was none).
+        A contact's start is unknown: it counts from ``last_t``."""
+        self.baseline = np.array(baseline, dtype=float)
+        self.contact = np.array(contact, dtype=bool)
+        self.contact_since = np.full(self.n, 0.0 if last_t is None else last_t)
+        self.last_t = last_t
 
     def update(self, t: float, absolute: np.ndarray) -> tuple[np.ndarray, FilterEvents]:
         """Feed one sample at time ``t`` (s); returns the change from baseline."""
@@ -75,6 +97,92 @@ class BaselineFilter:
         return change, events
 
 
+def withdrawal_m(contact_point: np.ndarray, normal: np.ndarray, pad_point: np.ndarray) -> float:
+    """How far the pad has moved away from the finger at ``contact_point`` along the contact's
+    outward ``normal``, m (negative: toward the finger)."""
+    return float(np.dot(np.asarray(contact_point) - np.asarray(pad_point), normal))
+
+
+def contact_pressure(scripted_hpa: float, withdrawal: float, depth_m: float) -> float:
+    """The touch's pressure change when the pad has withdrawn ``withdrawal`` m from the finger, hPa.
+
+    ``scripted_hpa`` (the pressure of the touch on a pad that stays put)
+    times ``1 - withdrawal / depth_m``, clamped to [0, 1]: no pressure once
+    the pad has withdrawn ``depth_m`` or more, and never more than scripted
+    when it moves toward the finger.
+    """
+    if not (math.isfinite(scripted_hpa) and math.isfinite(withdrawal)):
+        raise ValueError(f"contact model: scripted pressure {scripted_hpa} hPa and withdrawal {withdrawal} m "
+                         "must be finite numbers")
+    if not (math.isfinite(depth_m) and depth_m > 0):
+        raise ValueError(f"contact model: the indentation depth must be a positive number of metres, got {depth_m}")
+    return scripted_hpa * min(1.0, max(0.0, 1.0 - withdrawal / depth_m))
+
+
+@dataclass
+class ActiveTouch:
+    """A scripted touch on pad ``pad``; once started, where the finger met the pad (base frame)."""
+
+    pad: int
+    touch: Touch
+    started: bool = False
+    point: np.ndarray | None = None  # None: the arm's pose was not known when it started
+    normal: np.ndarray | None = None
+
+
+class TouchSet:
+    """The touches of a simulated skin and the pressure they make, open or closed loop.
+
+    Every sample, :meth:`start` first (the touches that begin now meet their
+    pad where it is), then :meth:`pressure`. Pad points and normals are in
+    the base frame, one row per pad, or None when the arm's pose is unknown:
+    a touch that started then has no contact point and presses as scripted.
+    """
+
+    def __init__(self, n_pads: int, depth_m: float, closed_loop: bool) -> None:
+        self.n = n_pads
+        self.depth_m = depth_m
+        self.closed_loop = closed_loop
+        self.touches: list[ActiveTouch] = []
+
+    def __len__(self) -> int:
+        return len(self.touches)
+
+    def add(self, pad: int, touch: Touch) -> ActiveTouch:
+        if not 0 <= pad < self.n:
+            raise ConfigError(f"touch on pad {pad}: the skin has pads 0..{self.n - 1}")
+        active = ActiveTouch(pad, touch)
+        self.touches.append(active)
+        return active
+
+    def forget_before(self, t: float) -> None:
+        """Drop the touches over by ``t`` (a long session must not keep them all)."""
+        self.touches = [a for a in self.touches
+                        if not a.started or a.touch.start_s + a.touch.duration_s + 2 * a.touch.ramp_s >= t]
+
+    def start(self, t: float, points: np.ndarray | None, normals: np.ndarray | None) -> list[ActiveTouch]:
+        """The touches that begin at or before ``t`` and had not yet: each meets its pad where it is now."""
+        out = []
+        for a in self.touches:
+            if not a.started and a.touch.start_s <= t:
+                a.started = True
+                if points is not None and normals is not None:
+                    a.point = np.array(points[a.pad], dtype=float)
+                    a.normal = np.array(normals[a.pad], dtype=float)
+                out.append(a)
+        return out
+
+    def pressure(self, t: float, points: np.ndarray | None = None) -> np.ndarray:
+        """Every pad's pressure change from the touches at time ``t``, hPa."""
+        out = np.zeros(self.n)
+        for a in self.touches:
+            p = touch_profile(a.touch, t)
+            if p and self.closed_loop and a.point is not None and a.normal is not None and points is not None:
+                p = contact_pressure(p, withdrawal_m(a.point, a.normal, points[a.pad]), self.depth_m)
+            out[a.pad] += p
+        return out
+
+
 class SimSkin:
     """Simulated AIRSKIN pads: absolute pressure with noise, drift and scripted touches."""
 
@@ -87,7 +195,9 @@ class SimSkin:
         self.phase = self.rng.uniform(0, 2 * np.pi, n)
         self.walk = np.zeros(n)
         self.last_t = 0.0
-        self.touches: list[tuple[int, Touch]] = []
+        self.touches = TouchSet(n, cfg.contact_depth_m, cfg.closed_loop)
+        # The touches' part of the last sample, per pad (SkinPressure.touch_hpa).
+        self.touch_hpa = np.zeros(n)
         if script is not None:
             by_name = {p.name: p.id for p in pads}
             for touch in script.touch:
@@ -96,29 +206,32 @@ class SimSkin:
                     pad = int(touch.pad)
                 if pad is None:
                     raise ConfigError(f"touch script names pad {touch.pad!r}; the skin has {sorted(by_name)}")
-                self.touches.append((pad, touch))
+                self.touches.add(pad, touch)
 
     def add_touch(self, pad: int, touch: Touch) -> None:
         """A touch decided while running (the study's target pad, say)."""
-        self.touches.append((pad, touch))
         # Finished touches no longer matter; keep the list short over long sessions.
-        self.touches = [(p, x) for p, x in self.touches if x.start_s + x.duration_s + 2 * x.ramp_s >= touch.start_s]
+        self.touches.forget_before(touch.start_s)
+        self.touches.add(pad, touch)
 
-    def touch_pressure(self, t: float) -> np.ndarray:
-        """The scripted pressure change of every pad at time t, hPa."""
-        out = np.zeros(len(self.pads))
-        for pad, touch in self.touches:
-            out[pad] += touch_profile(touch, t)
-        return out
+    def start(self, t: float, points: np.ndarray | None = None,
+              normals: np.ndarray | None = None) -> list[ActiveTouch]:
+        """The touches that begin now; they meet their pads at ``points`` (None: the arm's pose is unknown)."""
+        return self.touches.start(t, points, normals)
 
-    def sample(self, t: float) -> np.ndarray:
+    def touch_pressure(self, t: float, points: np.ndarray | None = None) -> np.ndarray:
+        """The touches' pressure change of every pad at time t, hPa (scripted, or closed loop at ``points``)."""
+        return self.touches.pressure(t, points)
+
+    def sample(self, t: float, points: np.ndarray | None = None) -> np.ndarray:
         cfg = self.cfg
         dt = max(0.0, t - self.last_t)
         self.last_t = t
         self.walk += self.rng.normal(0.0, cfg.drift_walk_hpa * np.sqrt(dt), len(self.pads))
         drift = self.walk + cfg.drift_sine_hpa * np.sin(2 * np.pi * t / cfg.drift_period_s + self.phase)
         noise = self.rng.normal(0.0, cfg.noise_hpa, len(self.pads))
-        return self.base + drift + noise + self.touch_pressure(t)
+        self.touch_hpa = self.touch_pressure(t, points)
+        return self.base + drift + noise + self.touch_hpa
 
 
 def touch_profile(touch: Touch, t: float) -> float:
@@ -136,6 +249,23 @@ def touch_profile(touch: Touch, t: float) -> float:
     return touch.peak_hpa * (1.0 - (s - r - touch.duration_s) / r) if r > 0 else 0.0
 
 
+def touch_message(seq: int, stamp_ns: int, origin_ns: int, active: ActiveTouch, pad_name: str, touches: TouchSet,
+                  q: Sequence[float] | None = None, pose_stamp_ns: int = 0) -> m.SkinTouch:
+    """The ground truth of a touch that just started (``skin/touch``)."""
+    touch = active.touch
+    known = active.point is not None and active.normal is not None
+    return m.SkinTouch(
+        seq=seq, stamp_ns=stamp_ns, pad=active.pad, name=pad_name, origin_ns=origin_ns,
+        start_s=touch.start_s, duration_s=touch.duration_s, peak_hpa=touch.peak_hpa, shape=touch.shape,
+        ramp_s=touch.ramp_s,
+        contact_point=active.point.tolist() if known and active.point is not None else None,
+        normal=active.normal.tolist() if known and active.normal is not None else None,
+        q=[float(x) for x in q] if known and q is not None else None,
+        pose_stamp_ns=pose_stamp_ns if known else 0,
+        closed_loop=touches.closed_loop, depth_m=touches.depth_m,
+    )
+
+
 class Gateway:
     """Turns absolute pad pressures into SkinPressure messages."""
 
@@ -144,7 +274,9 @@ class Gateway:
         self.source = source
         self.seq = 0
 
-    def process(self, t: float, stamp_ns: int, absolute: np.ndarray) -> tuple[m.SkinPressure, FilterEvents]:
+    def process(self, t: float, stamp_ns: int, absolute: np.ndarray,
+                touch_hpa: np.ndarray | None = None) -> tuple[m.SkinPressure, FilterEvents]:
+        """One sample; ``touch_hpa``: a simulated skin's touches' part of ``absolute`` (ground truth)."""
         change, events = self.filter.update(t, absolute)
         valid = np.isfinite(change)
         baseline = self.filter.baseline
@@ -156,6 +288,7 @@ class Gateway:
             contact=(self.filter.contact & valid).tolist(),
             valid=valid.tolist(),
             source=self.source,
+            touch_hpa=[] if touch_hpa is None else touch_hpa.tolist(),
         )
         self.seq += 1
         return msg, events
@@ -184,3 +317,74 @@ class TargetFollower:
         self.count += 1
         return target_pad, Touch(pad=str(target_pad), start_s=t, duration_s=0.3, peak_hpa=peak, shape="ramp",
                                  ramp_s=float(self.rng.uniform(0.05, 0.2)))
+
+
+NO_GROUND_TRUTH = ("this recording has no touch ground truth: it was not recorded from the simulated skin; only "
+                   "open-loop replay applies (it has no skin/touch channel, or skin samples without touch_hpa)")
+
+
+class Resimulator:
+    """The recorded skin stream with its touches re-simulated against another arm motion.
+
+    Each sample becomes: the recorded absolute pressure, minus what the
+    simulated skin's touches added to it (``touch_hpa``, recorded with the
+    sample), plus what the recorded touches (``skin/touch``) press by the
+    contact model at the pad poses given now. The noise and drift are kept
+    as recorded, bit for bit (a pad whose touch part is unchanged keeps its
+    absolute pressure exactly), and the change from baseline is computed
+    anew by the gateway's baseline filter, on the gateway's script clock, so
+    that a stream re-simulated against the very motion it was recorded with
+    comes out identical. Each touch meets its pad where the new arm has it
+    when the touch starts (the person touches the pad, wherever it is); the
+    recorded contact point is that of the original motion.
+    """
+
+    def __init__(self, cfg: GatewaySection, touches: Sequence[m.SkinTouch], n_pads: int,
+                 previous_stamp_ns: int | None = None) -> None:
+        if not touches:
+            raise ConfigError(NO_GROUND_TRUTH)
+        origins = sorted({t.origin_ns for t in touches})
+        if len(origins) > 1:
+            raise ConfigError(f"the recorded touches come from {len(origins)} runs of the simulated skin (its "
+                              "gateway restarted): re-simulate each run's part on its own with --start/--end")
+        self.origin_ns = origins[0]
+        self.touches = TouchSet(n_pads, cfg.sim.contact_depth_m, closed_loop=True)
+        for t in sorted(touches, key=lambda t: (t.start_s, t.seq)):
+            self.touches.add(t.pad, Touch(pad=t.name, start_s=t.start_s, duration_s=t.duration_s,
+                                          peak_hpa=t.peak_hpa, shape=t.shape, ramp_s=t.ramp_s))
+        self.gateway = Gateway(cfg, n_pads)
+        self.previous_stamp_ns = previous_stamp_ns
+        self.first = True
+
+    def script_time(self, stamp_ns: int) -> float:
+        """The gateway's script time of a sample stamp, s (as the gateway computed it)."""
+        return (stamp_ns - self.origin_ns) / 1e9
+
+    def apply(self, sample: m.SkinPressure, points: np.ndarray,
+              normals: np.ndarray) -> tuple[m.SkinPressure, list[ActiveTouch]]:
+        """The sample re-simulated with the pads at ``points`` / ``normals`` (base frame, one row per pad),
+        and the touches that started with it."""
+        n = self.touches.n
+        if len(sample.touch_hpa) != n or len(sample.absolute_hpa) != n:
+            raise ConfigError(f"skin sample {sample.seq} has {len(sample.absolute_hpa)} pads and "
+                              f"{len(sample.touch_hpa)} touch values, expected {n}: {NO_GROUND_TRUTH}")
+        t = self.script_time(sample.stamp_ns)
+        started = self.touches.start(t, points, normals)
+        touch = self.touches.pressure(t, points)
+        valid = np.asarray(sample.valid, dtype=bool) if sample.valid else np.ones(n, dtype=bool)
+        recorded = m.as_array(sample.absolute_hpa)
+        # Where the touch part is unchanged the difference is exactly 0.0 and
+        # the recorded pressure passes through bit for bit.
+        absolute = np.where(valid, recorded + (touch - m.as_array(sample.touch_hpa)), np.nan)
+        if self.first:
+            self.first = False
+            # The filter's state just before this sample: the baseline the
+            # change was taken from (exact: absolute and baseline are within a
+            # factor of two, so their difference was exact) and the flags.
+            before = np.where(valid, recorded - m.as_array(sample.change_hpa), m.as_array(sample.baseline_hpa))
+            last_t = None if self.previous_stamp_ns is None else self.script_time(self.previous_stamp_ns)
+            self.gateway.filter.resume(last_t, before, np.asarray(sample.contact, dtype=bool))
+        self.gateway.seq = sample.seq
+        self.gateway.source = sample.source
+        out, _ = self.gateway.process(t, sample.stamp_ns, absolute, touch)
+        return out, started

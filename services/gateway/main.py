@@ -1,4 +1,10 @@
-"""Skin gateway process: simulated AIRSKIN pads -> skin/pressure."""
+"""Skin gateway process: simulated AIRSKIN pads -> skin/pressure, and skin/touch per touch.
+
+It follows the arm's pose (``robot/state``) to tell where each touch meets
+its pad (the ground truth published on ``skin/touch``) and, with
+``gateway.sim.closed_loop`` (``--closed-loop``), to let a touch's pressure
+fall as its pad withdraws from the finger.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +15,9 @@ from nwr.common import keys
 from nwr.common.config import Profile, load_script
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
-from nwr.common.robot import load_description
+from nwr.common.robot import RobotModel, load_description
 from nwr.common import messages as m
-from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower
+from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
 
 log = logging.getLogger(__name__)
 
@@ -28,12 +34,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--follow-target", type=float, metavar="SECONDS",
         help="simulated participant: press the planner's current target pad every SECONDS (the study's game)",
     )
+    parser.add_argument(
+        "--closed-loop", action="store_true",
+        help="a touch's pressure falls as its pad withdraws from the finger (gateway.sim.closed_loop)",
+    )
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.gateway
     if args.rate:
         cfg.rate_hz = args.rate
+    if getattr(args, "closed_loop", False):
+        cfg.sim.closed_loop = True
     script_name = args.script or cfg.sim.script
     script = load_script(script_name) if script_name else None
     desc = load_description(profile.robot.description or None)
@@ -42,6 +54,15 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     with Node("gateway", profile.robot.name, profile.zenoh, listen_slot="gateway") as node:
         node.install_signal_handlers()
         publish = node.publisher(keys.SKIN_PRESSURE)
+        publish_touch = node.publisher(keys.SKIN_TOUCH)
+        model = RobotModel(desc)
+        pose: list[m.RobotState | None] = [None]  # the newest robot state (a Zenoh thread writes it)
+
+        def on_state(state: m.RobotState) -> None:
+            pose[0] = state
+
+        node.subscribe(keys.ROBOT_STATE, on_state)
+        touch_seq = 0
         follower = TargetFollower(args.follow_target, cfg.sim.seed) if args.follow_target else None
         target = [-1]
         if follower is not None:
@@ -60,6 +81,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             "publishing %d pads at %.0f Hz%s", len(desc.pads), cfg.rate_hz,
             f", touch script {script_name} ({len(sim.touches)} touches, {script.duration_s} s)" if script else "",
         )
+        if cfg.sim.closed_loop:
+            log.info("closed loop: a touch's pressure falls as its pad withdraws (depth %.3f m)",
+                     cfg.sim.contact_depth_m)
         rate = Rate(cfg.rate_hz, "gateway")
         t0 = node.clock.now_ns()
         try:
@@ -70,7 +94,16 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     touch = follower.poll(t, target[0])
                     if touch is not None:
                         sim.add_touch(*touch)
-                msg, events = gateway.process(t, now, sim.sample(t))
+                state = pose[0]
+                points = normals = None
+                if state is not None and len(sim.touches):
+                    points, normals = model.pad_points(state.q), model.pad_normals(state.q)
+                for started in sim.start(t, points, normals):
+                    publish_touch(touch_message(touch_seq, now, t0, started, desc.pads[started.pad].name, sim.touches,
+                                                state.q if state is not None else None,
+                                                state.stamp_ns if state is not None else 0))
+                    touch_seq += 1
+                msg, events = gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
                 publish(msg)
                 for pad in events.reacquired:
                     node.diag("warning", "baseline_reacquired",
