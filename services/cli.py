@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Run the whole pipeline on a touch script, record it to "
                                       "recordings/<session>.mcap and print one row per touch.")
     _launch_arguments(demo)
+    demo.add_argument("--fast", action="store_true",
+                      help="no processes: the simulated skin, the cores and the simulated arm chained in this process "
+                           "on simulated time (lockstep), as fast as they go; deterministic")
     demo.set_defaults(script="demo")
 
     summary = sub.add_parser("summary", help="print the per-touch table of a recording")
@@ -105,6 +108,9 @@ def _launch_arguments(p: argparse.ArgumentParser) -> None:
                         "them with `nwr switch NAME`); the first (or --reflex) is active")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the study's target pad every SECONDS")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
+                        "(gateway.sim.closed_loop; default: as scripted, open loop)")
     p.add_argument("--reflex", choices=STRATEGIES,
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
@@ -174,6 +180,8 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
                 extra.append("--exit-at-end")
             if args.follow_target:
                 extra += ["--follow-target", str(args.follow_target)]
+            if args.closed_loop:
+                extra.append("--closed-loop")
             if getattr(args, "view", None):
                 units.append(("view", "view", ["--port", str(args.view)]))  # read-only: nobody waits for it
             units.append(("gateway", "gateway", extra))
@@ -210,6 +218,27 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
         log.error("service(s) stopped with errors: %s", bad)
         return 1, None
     return 0, (output if "recorder" in procs else None)
+
+
+def run_demo_fast(args: argparse.Namespace) -> int:
+    """``nwr demo --fast``: the demo session in lockstep, recorded, then its per-touch table."""
+    from nwr.services.recorder.main import session_name
+    from nwr.services.replay import simulate
+
+    unsupported = [flag for flag, value in (("--planners", args.planners), ("--follow-target", args.follow_target),
+                                            ("--view", args.view), ("--no-record", args.no_record)) if value]
+    if unsupported:
+        raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")
+    profile = profile_for(args)
+    if args.closed_loop:
+        profile.gateway.sim.closed_loop = True
+    session = args.session or session_name()
+    output = Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
+    strategy = args.reflex or profile.planner.strategy
+    path, simulated, wall = simulate(profile, args.script, strategy, output)
+    print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
+          f"{wall:.2f} s{' (closed loop)' if profile.gateway.sim.closed_loop else ''}: {path}")
+    return print_summary(path, args.script, profile)
 
 
 def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:
@@ -333,6 +362,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "up":
             load_profile(args.profile)  # fail here, not in five processes
             return launch(args, until_script_end=False)[0]
+        if args.command == "demo" and args.fast:
+            return run_demo_fast(args)
         if args.command == "demo":
             load_profile(args.profile)
             load_script(args.script)

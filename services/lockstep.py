@@ -11,6 +11,19 @@ direct calls, each control cycle of 2 ms one step of simulated time:
 - the robot state goes back to the planner at ``state_rate_hz``, the planner
   status is published on every transition and at ``status_rate_hz``.
 
+Where the skin samples come from (a :class:`SkinSource`):
+
+- :class:`RecordedSkin`: a recording's samples, as recorded (open loop);
+- :class:`ResimulatedSkin`: a simulated session's samples with their touches
+  re-simulated against this run's arm (``nwr replay --fast --resimulate``,
+  :class:`nwr.services.gateway.core.Resimulator`);
+- :class:`SimulatedSkin`: the simulated skin itself on a touch script, open
+  or closed loop against this run's arm (``nwr demo --fast``).
+
+A source that makes samples sees the arm's pose at the control cycle the
+sample is delivered in (at most one cycle after its stamp) and emits what it
+makes (``skin/pressure``, ``skin/touch``) at its own stamp.
+
 Nothing here reads a clock, so a run is deterministic: the same skin samples
 give the same messages, bit for bit. It is what ``nwr replay --fast`` runs
 (as fast as the cores go) and the lower bound of ``nwr bench``.
@@ -27,15 +40,113 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import Profile, TouchScript
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.bridge.backend import SimBackend
 from nwr.services.bridge.core import BridgeCore
 from nwr.services.bridge.main import envelope_for
 from nwr.services.gain.core import GainEstimator
+from nwr.services.gateway.core import Gateway, Resimulator, SimSkin, touch_message
 from nwr.services.planner.core import Planner
 
 Emit = Callable[[str, Any, int], None]  # (relative key, message, simulated time ns)
+
+
+class SkinSource:
+    """The skin samples of a lockstep run, in stamp order."""
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def stamp(self, i: int) -> int:
+        """Stamp of the ``i``-th sample, ns."""
+        raise NotImplementedError
+
+    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+        """The ``i``-th sample, made with the arm at ``q``; emits what it makes."""
+        raise NotImplementedError
+
+
+class RecordedSkin(SkinSource):
+    """Recorded samples, delivered as they are (open loop); the caller has them already, nothing is emitted."""
+
+    def __init__(self, samples: Iterable[m.SkinPressure]) -> None:
+        self.samples = sorted(samples, key=lambda s: s.stamp_ns)
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def stamp(self, i: int) -> int:
+        return self.samples[i].stamp_ns
+
+    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+        return self.samples[i]
+
+
+class ResimulatedSkin(RecordedSkin):
+    """Recorded samples of the simulated skin, their touches re-simulated against the run's arm."""
+
+    def __init__(self, samples: Iterable[m.SkinPressure], resimulator: Resimulator, model: RobotModel) -> None:
+        super().__init__(samples)
+        self.resimulator = resimulator
+        self.model = model
+        self.touch_seq = 0
+
+    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+        res = self.resimulator
+        sample, started = res.apply(self.samples[i], self.model.pad_points(q), self.model.pad_normals(q))
+        for touch in started:  # the ground truth of this run: the touches met the pads where this arm had them
+            emit(keys.SKIN_TOUCH, touch_message(self.touch_seq, sample.stamp_ns, res.origin_ns, touch,
+                                                self.model.desc.pads[touch.pad].name, res.touches, q,
+                                                sample.stamp_ns), sample.stamp_ns)
+            self.touch_seq += 1
+        emit(keys.SKIN_PRESSURE, sample, sample.stamp_ns)
+        return sample
+
+
+class SimulatedSkin(SkinSource):
+    """The simulated skin on a touch script at ``gateway.rate_hz``, as the gateway process runs it.
+
+    Its script clock starts at ``origin_ns``; the samples are stamped every
+    sample period from one period after it until the script's end (the
+    sample at or after ``duration_s`` is the last, as ``--exit-at-end``).
+    """
+
+    def __init__(self, profile: Profile, script: TouchScript, model: RobotModel, origin_ns: int = 10**9) -> None:
+        cfg = profile.gateway
+        self.pads = model.desc.pads
+        self.sim = SimSkin(cfg.sim, self.pads, script)
+        self.gateway = Gateway(cfg, len(self.pads), source="sim")
+        self.model = model
+        self.origin_ns = origin_ns
+        period = 1e9 / cfg.rate_hz
+        self.stamps: list[int] = []
+        k = 1
+        while True:
+            self.stamps.append(origin_ns + round(k * period))
+            if (self.stamps[-1] - origin_ns) / 1e9 >= script.duration_s:
+                break
+            k += 1
+        self.touch_seq = 0
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def stamp(self, i: int) -> int:
+        return self.stamps[i]
+
+    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+        now = self.stamps[i]
+        t = (now - self.origin_ns) / 1e9
+        points, normals = self.model.pad_points(q), self.model.pad_normals(q)
+        for started in self.sim.start(t, points, normals):
+            touch = touch_message(self.touch_seq, now, self.origin_ns, started, self.pads[started.pad].name,
+                                  self.sim.touches, q, now)
+            self.touch_seq += 1
+            emit(keys.SKIN_TOUCH, touch, now)
+        sample, _ = self.gateway.process(t, now, self.sim.sample(t, points), self.sim.touch_hpa)
+        emit(keys.SKIN_PRESSURE, sample, now)
+        return sample
 
 
 @dataclass
@@ -113,13 +224,22 @@ class Lockstep:
             self._status(t, emit)
         return command
 
-    def run(self, samples: Iterable[m.SkinPressure], emit: Emit, *, settle_s: float = 2.0) -> LockstepReport:
-        """Feed skin samples (in stamp order) through the chain; ``emit`` gets every message."""
-        pending = sorted(samples, key=lambda s: s.stamp_ns)
-        if not pending:
+    def run(self, samples: Iterable[m.SkinPressure] | SkinSource, emit: Emit, *,
+            settle_s: float = 2.0, start_ns: int | None = None) -> LockstepReport:
+        """Feed skin samples (in stamp order) through the chain; ``emit`` gets every message
+        the chain makes (and those a source makes, but not recorded samples given as they are).
+
+        The chain's first control cycle (the planner's first command, the
+        start of its task) is at ``start_ns``, by default at the first
+        sample's stamp; a replay gives the original pipeline's, so that the
+        task is at the same phase when each touch comes.
+        """
+        source = samples if isinstance(samples, SkinSource) else RecordedSkin(samples)
+        n = len(source)
+        if not n:
             return LockstepReport(0, 0, 0, 0.0)
-        t0 = pending[0].stamp_ns - self.period_ns
-        end = pending[-1].stamp_ns + round(settle_s * 1e9)
+        t0 = (source.stamp(0) if start_ns is None else min(start_ns, source.stamp(0))) - self.period_ns
+        end = source.stamp(n - 1) + round(settle_s * 1e9)
         self.bridge.on_planner_token(self.planner.name, True, t0)
         self.bridge.last_step_ns = t0
         i = 0
@@ -127,8 +247,8 @@ class Lockstep:
         self._state(t, emit)
         while t < end:
             t += self.period_ns
-            while i < len(pending) and pending[i].stamp_ns <= t:
-                self.deliver(pending[i], t, emit)
+            while i < n and source.stamp(i) <= t:
+                self.deliver(source.take(i, self.backend.get_observation().q, emit), t, emit)
                 i += 1
             self._command(self.planner.step(t), t, emit)
             self.backend.send_action(self.bridge.step(t))

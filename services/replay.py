@@ -14,14 +14,23 @@ Three ways, all from the recorded skin stream (``skin/pressure``):
   (:mod:`nwr.services.lockstep`), as fast as they go, deterministic: the same
   file and strategy give the same messages every run.
 
-Replay is open loop: a recorded press is replayed as it was recorded, even
-if the new reflex moves the pad away sooner (the simulated skin's ground
-truth is not re-simulated against the new motion).
+Replay is open loop by default: a recorded press is replayed as recorded,
+even if the new reflex moves the pad away sooner. ``--fast --resimulate``
+closes the loop for sessions recorded from the simulated skin, whose
+recordings keep each touch's ground truth (``skin/touch``: pad, pressure
+profile, contact point) and each sample's touch part (``touch_hpa``): every
+sample's touch part is replaced by what the touch presses against the
+replay's own arm (the finger stays where it met the pad; the pressure falls
+as the pad withdraws from it, over gateway.sim.contact_depth_m), noise and
+drift kept as recorded. Sessions of a real skin have no ground truth: only
+open-loop replay applies to them. A live replay never re-simulates (use
+--fast).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import logging
 import shlex
 import signal
@@ -29,16 +38,22 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
 from nwr.common import keys
-from nwr.common.config import STRATEGIES, Profile
+from nwr.common import messages as m
+from nwr.common.config import STRATEGIES, Profile, load_script
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
 from nwr.services.recorder.core import McapRecorder, Recorded, read_recording, session_metadata
 from nwr.services.cli import profile_for
+
+if TYPE_CHECKING:
+    from nwr.services.lockstep import ResimulatedSkin, SkinSource
 
 log = logging.getLogger(__name__)
 
@@ -77,31 +92,108 @@ def play(node: Node, robot_records: list[Recorded], speed: float, loop: bool, st
             return sent
 
 
-def run_fast(profile: Profile, records: list[Recorded], strategy: str, output: Path,
-             source: Path, metadata: dict[str, dict[str, str]]) -> tuple[Path, float, float]:
-    """Lockstep replay into ``output``; returns it, the simulated and the wall-clock duration."""
-    from nwr.services.lockstep import Lockstep
+def resimulated(profile: Profile, records: list[Recorded], chosen: list[Recorded]) -> ResimulatedSkin:
+    """The chosen skin samples with the recording's touches re-simulated (ConfigError without ground truth)."""
+    from nwr.services.lockstep import ResimulatedSkin
 
-    skin = [r.message for r in records if r.key == "skin/pressure"]
+    touches = [r.message for r in records if r.key == keys.SKIN_TOUCH]
+    skin = [r.message for r in chosen if r.key == keys.SKIN_PRESSURE]
+    if not touches or not skin or any(len(s.touch_hpa) != len(s.absolute_hpa) for s in skin):
+        raise ConfigError(NO_GROUND_TRUTH)
+    # The sample just before the replayed window, if any: the baseline filter
+    # continues from it on the gateway's own clock.
+    first = skin[0].stamp_ns
+    previous = max((r.message.stamp_ns for r in records
+                    if r.key == keys.SKIN_PRESSURE and r.message.stamp_ns < first), default=None)
+    desc = load_description(profile.robot.description or None)
+    resimulator = Resimulator(profile.gateway, touches, len(desc.pads), previous)
+    return ResimulatedSkin(skin, resimulator, RobotModel(desc))
+
+
+def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, strategy: str, output: Path, *,
+                    labels: dict[str, str], touches: list[m.SkinTouch] | None = None,
+                    start_time_iso: str = "", start_ns: int | None = None) -> tuple[Path, float, float]:
+    """A lockstep run into the recording ``output``; returns it, the simulated and the wall-clock duration.
+
+    Recorded samples given as a list are written as they are, on their own
+    timeline, with the recorded ``touches`` that go with them; a source
+    writes what it makes.
+    """
+    from nwr.services.lockstep import Lockstep, SkinSource
+
     lockstep = Lockstep(profile, strategy=strategy)
     output.parent.mkdir(parents=True, exist_ok=True)
     robot = profile.robot.name
     with output.open("wb") as stream:
         recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
                                 chunk_size=profile.recorder.chunk_size)
+        first = (skin.stamp(0) if len(skin) else 0) if isinstance(skin, SkinSource) else \
+            (skin[0].stamp_ns if skin else 0)
         recorder.metadata("session", session_metadata(
             robot=robot, session=output.stem, profile_json=msgspec.json.encode(profile).decode(), strategy=strategy,
-            planner=strategy, start_time_iso=metadata.get("session", {}).get("start_time", ""),
-            start_monotonic_ns=skin[0].stamp_ns if skin else 0,
-            labels={"replay_of": str(source), "replay_mode": "fast"},
+            planner=strategy, start_time_iso=start_time_iso, start_monotonic_ns=first, labels=labels,
         ))
-        for sample in skin:  # the recorded input, on its own timeline
-            recorder.write(keys.key(robot, "skin/pressure"), sample, sample.stamp_ns)
+        if not isinstance(skin, SkinSource):
+            for touch in touches or []:
+                recorder.write(keys.key(robot, keys.SKIN_TOUCH), touch, touch.stamp_ns)
+            for sample in skin:  # the recorded input, on its own timeline
+                recorder.write(keys.key(robot, keys.SKIN_PRESSURE), sample, sample.stamp_ns)
         t = time.perf_counter()
-        report = lockstep.run(skin, lambda key, msg, ts: recorder.write(keys.key(robot, key), msg, ts))
+        report = lockstep.run(skin, lambda key, msg, ts: recorder.write(keys.key(robot, key), msg, ts),
+                              start_ns=start_ns)
         wall = time.perf_counter() - t
         recorder.finish()
     return output, report.simulated_s, wall
+
+
+def run_fast(profile: Profile, records: list[Recorded], strategy: str, output: Path,
+             source: Path, metadata: dict[str, dict[str, str]], *,
+             chosen: list[Recorded] | None = None, resimulate: bool = False) -> tuple[Path, float, float]:
+    """Lockstep replay of the ``chosen`` records (default: all) into ``output``; returns it, the simulated and
+    the wall-clock duration. ``resimulate``: the simulated skin's touches against the replay's arm."""
+    chosen = records if chosen is None else chosen
+    labels = {"replay_of": str(source), "replay_mode": "fast"}
+    skin: list[m.SkinPressure] | SkinSource
+    touches: list[m.SkinTouch] = []
+    if resimulate:
+        skin = resimulated(profile, records, chosen)
+        labels["resimulated"] = "true"
+    else:
+        skin = [r.message for r in chosen if r.key == keys.SKIN_PRESSURE]
+        # The recorded ground truth goes along with the samples it belongs to,
+        # so that the replay can itself be re-simulated.
+        touches = [r.message for r in records if r.key == keys.SKIN_TOUCH]
+    return record_lockstep(profile, skin, strategy, output, labels=labels, touches=touches,
+                           start_time_iso=metadata.get("session", {}).get("start_time", ""),
+                           start_ns=task_start_ns(records, chosen))
+
+
+def task_start_ns(records: list[Recorded], chosen: list[Recorded]) -> int | None:
+    """When the recorded pipeline's planner sent its first command (its task started), if that was before
+    the first skin sample and the replay starts there; None otherwise (the task's phase is unknown then)."""
+    first = next((r for r in records if r.key == keys.SKIN_PRESSURE), None)
+    window = next((r for r in chosen if r.key == keys.SKIN_PRESSURE), None)
+    if first is None or window is not first:
+        return None
+    command = min((r.message.stamp_ns for r in records if r.key == keys.ROBOT_COMMAND), default=None)
+    if command is None or command >= first.message.stamp_ns:
+        return None
+    return command
+
+
+def simulate(profile: Profile, script_name: str, strategy: str, output: Path) -> tuple[Path, float, float]:
+    """A simulated session in lockstep: the simulated skin on a touch script, the cores and the simulated arm
+    (``nwr demo --fast``), open or closed loop as ``gateway.sim.closed_loop`` says."""
+    from nwr.services.lockstep import SimulatedSkin
+
+    desc = load_description(profile.robot.description or None)
+    source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))
+    labels = {"simulated": "lockstep", "script": script_name,
+              "closed_loop": str(profile.gateway.sim.closed_loop).lower()}
+    # The monotonic stamps are simulated (from SimulatedSkin's origin); the
+    # wall-clock start is when the simulation ran.
+    return record_lockstep(profile, source, strategy, output, labels=labels,
+                           start_time_iso=dt.datetime.now(dt.timezone.utc).isoformat())
 
 
 def _services_for(args: argparse.Namespace, output: Path) -> tuple[list[tuple[str, list[str]]], str]:
@@ -136,6 +228,9 @@ def _run(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else default_out
     span = (chosen[-1].log_time_ns - chosen[0].log_time_ns) / 1e9
 
+    if args.resimulate and not args.fast:
+        raise ConfigError("--resimulate needs --fast: a live replay publishes the recorded samples as they were "
+                          "and cannot re-simulate them against the new arm's motion")
     if args.fast:
         if args.planner_cmd:
             raise ConfigError("--fast runs the project's own cores in this process; "
@@ -143,8 +238,10 @@ def _run(args: argparse.Namespace) -> int:
         if strategy not in STRATEGIES:
             raise ConfigError(f"strategy {strategy!r} of the recording is not one of {list(STRATEGIES)}: "
                               "choose one with --reflex")
-        path, simulated, wall = run_fast(profile, chosen, strategy, output, source, metadata)
-        print(f"replayed {len(chosen)} skin samples ({simulated:.1f} s) against {strategy!r} in lockstep in "
+        path, simulated, wall = run_fast(profile, records, strategy, output, source, metadata, chosen=chosen,
+                                         resimulate=args.resimulate)
+        how = ", touches re-simulated," if args.resimulate else ""
+        print(f"replayed {len(chosen)} skin samples ({simulated:.1f} s){how} against {strategy!r} in lockstep in "
               f"{wall:.2f} s ({simulated / wall:.0f}x real time): {path}")
         return 0
 
@@ -207,5 +304,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--name", help="name of the planner to replay against (default: the strategy)")
     p.add_argument("--fast", action="store_true",
                    help="lockstep in this process on simulated time, as fast as the cores go; deterministic")
+    p.add_argument("--resimulate", action="store_true",
+                   help="with --fast, for sessions of the simulated skin: re-simulate each touch's pressure against "
+                        "the replay's arm (it falls as the pad withdraws from the finger); sessions of a real skin "
+                        "replay open loop only")
     p.add_argument("--output", "-o", help="recording to write (default: recordings/<FILE>-replay-<reflex>.mcap)")
     p.set_defaults(handler=_run)
