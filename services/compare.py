@@ -6,8 +6,13 @@ replay of one session against several reflex services lines up. Per touch
 and file: pad, gain, onset latency, the touched pad's withdrawal along its
 normal, how far it came toward the contact, the largest approach of any
 other pad to the contact point, the peak joint speed during the reflex and
-its return, and the time until the task resumed. A PNG overlays, per touch,
-the joint trajectories and the touched pad's distance from the contact.
+its return, the time until the task resumed, and how far the reflex motion
+strayed from the first file's (the largest difference of the joints'
+displacements from their onset poses, from the reflex onset until the earlier
+of the two resumptions, the two aligned at their onsets). Below the table, each file's command stream against the
+first's: identical decoded messages (a deterministic replay of the first
+file), or where they part. A PNG overlays, per touch, the joint
+trajectories and the touched pad's distance from the contact.
 """
 
 from __future__ import annotations
@@ -74,9 +79,63 @@ def peak_joint_speed(session: Session, touch: analysis.TouchSummary) -> float | 
     return float(max(speeds)) if speeds else None
 
 
+def onset_ns(session: Session, touch: analysis.TouchSummary) -> int | None:
+    """When the bridge accepted the first command of the touch's reflex, ns (None: no reflex)."""
+    if touch.reflex_seq == 0:
+        return None
+    return next((r.message.accepted_ns for r in session.records
+                 if r.key == "robot/state" and r.message.reflex_seq == touch.reflex_seq and r.message.accepted), None)
+
+
+def trajectory(session: Session, start_ns: int, end_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """The arm's joint positions between two times: times (s from ``start_ns``) and q (rad), one row each."""
+    states = [r.message for r in session.records
+              if r.key == "robot/state" and start_ns <= r.message.stamp_ns <= end_ns]
+    t = np.array([(s.stamp_ns - start_ns) / 1e9 for s in states])
+    return t, np.array([s.q for s in states]).reshape(len(states), -1)
+
+
+def trajectory_error(a: Session, ta: analysis.TouchSummary, b: Session, tb: analysis.TouchSummary,
+                     default_s: float = 3.0) -> float | None:
+    """Largest difference (rad) of ``b``'s reflex motion from ``a``'s: of the joints' displacements from
+    their poses at the reflex onset, over the reflex and its return.
+
+    Both are aligned at their reflex onsets (in time and in pose: a task met
+    at another phase starts the reflex from another pose) and compared from
+    there until the earlier of the two resumptions of the task (after it one
+    arm runs the task again while the other may still return; ``default_s``
+    if neither resumed), ``b``'s joint positions interpolated at ``a``'s
+    state times. None unless both touches caused a reflex.
+    """
+    oa, ob = onset_ns(a, ta), onset_ns(b, tb)
+    if oa is None or ob is None:
+        return None
+    span = min(ta.resumed_after_s or default_s, tb.resumed_after_s or default_s)
+    t_a, q_a = trajectory(a, oa, oa + round(span * 1e9))
+    t_b, q_b = trajectory(b, ob, ob + round(span * 1e9))
+    if len(t_a) < 2 or len(t_b) < 2:
+        return None
+    inside = t_a <= t_b[-1]
+    interpolated = np.column_stack([np.interp(t_a[inside], t_b, q_b[:, j]) for j in range(q_b.shape[1])])
+    return float(np.abs((q_a[inside] - q_a[0]) - (interpolated - q_b[0])).max())
+
+
+def command_streams(a: Session, b: Session) -> str:
+    """Whether ``b``'s decoded commands are ``a``'s, message for message, or where they part."""
+    ca = [r.message for r in a.records if r.key == "robot/command"]
+    cb = [r.message for r in b.records if r.key == "robot/command"]
+    first = next((i for i, (x, y) in enumerate(zip(ca, cb)) if x != y), None)
+    if first is None and len(ca) == len(cb):
+        return f"{b.label}: {len(cb)} commands, identical to {a.label}'s"
+    if first is None:
+        return f"{b.label}: {len(cb)} commands, {a.label} {len(ca)}: the same up to the shorter one's end"
+    return (f"{b.label}: {len(cb)} commands, {a.label} {len(ca)}: they part at command {first} "
+            f"(t = {(ca[first].stamp_ns - a.t0_ns) / 1e9:.3f} s in {a.label})")
+
+
 def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]) -> str:
     header = ["touch", "t (s)", "pad", "file", "gain", "onset (ms)", "withdrawal (mm)", "toward (mm)",
-              "other pad closer (mm)", "peak speed (rad/s)", "resumed (s)"]
+              "other pad closer (mm)", "peak speed (rad/s)", "resumed (s)", "dq vs first (mrad)"]
 
     def f(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
@@ -85,13 +144,16 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
     for i, row in enumerate(rows, start=1):
         for session, touch in zip(sessions, row):
             if touch is None:
-                out.append([str(i), "-", "-", session.label, "missing", "-", "-", "-", "-", "-", "-"])
+                out.append([str(i), "-", "-", session.label, "missing", "-", "-", "-", "-", "-", "-", "-"])
                 continue
+            error = None
+            if session is not sessions[0] and row[0] is not None:
+                error = trajectory_error(sessions[0], row[0], session, touch)
             out.append([
                 str(i), f"{(touch.start_ns - session.t0_ns) / 1e9:.2f}", touch.name, session.label, f"{touch.gain:.3f}",
                 f(touch.onset_latency_ms, ".2f"), f(touch.withdrawal_mm, ".1f"), f(touch.toward_mm, ".1f"),
                 f(touch.other_approach_mm, ".1f"), f(peak_joint_speed(session, touch), ".2f"),
-                f(touch.resumed_after_s, ".2f"),
+                f(touch.resumed_after_s, ".2f"), f(None if error is None else 1e3 * error, ".3f"),
             ])
     return analysis.format_table(header, out)
 
@@ -147,6 +209,10 @@ def _run(args: argparse.Namespace) -> int:
     sessions = [load_session(Path(p), desc, model) for p in args.files]
     rows = line_up(sessions, args.window)
     print(table(sessions, rows))
+    if len(sessions) > 1:
+        print("\ncommand streams (robot/command, decoded) against the first file's:")
+        for session in sessions[1:]:
+            print("  " + command_streams(sessions[0], session))
     if args.figure != "none":
         out = Path(args.figure or f"{Path(args.files[0]).stem}-compare.png")
         figure(sessions, rows, model, out)
