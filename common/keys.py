@@ -8,7 +8,7 @@ key (under nwr/<robot>/)     message                                priority    
 skin/pressure                SkinPressure                           real-time   yes        block
 skin/touch                   SkinTouch                              data        no         block
 skin/pain                    SkinPain                               real-time   yes        block
-robot/command                PositionCommand | VelocityCommand      real-time   yes        block
+robot/command/<name>         PositionCommand | VelocityCommand      real-time   yes        block
 robot/state                  RobotState                             interactive no         drop
 reflex/<name>/status         PlannerStatus                          data        no         drop
 reflex/<name>/decision       PlannerDecision                        data        no         block
@@ -16,6 +16,12 @@ control/active               SwitchRequest                          interactive 
 diag/<service>               Diagnostic                             data-low    no         drop
 alive/<service>              (liveliness token, no payload)
 ===========================  =====================================  ==========  =========  =======
+
+Each planner commands on its own key, ``robot/command/<name>``: the
+router's access control lets only the certificate ``planner:<name>`` put
+there, and the bridge obeys a command only if its owner field is the name in
+the key and the active planner's. A stolen standby planner's key therefore
+cannot pose as the active planner.
 
 The reflex path (skin -> pain -> command) travels at Zenoh's real-time
 priority with ``express`` (no batching) and never drops; telemetry may drop
@@ -63,8 +69,8 @@ TOPICS: tuple[Topic, ...] = (
           "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts"),
     Topic("skin/pain", m.SkinPain, zenoh.Priority.REAL_TIME, True, False,
           "per-pad gain and pain level, strongest contact"),
-    Topic("robot/command", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
-          "joint position or velocity target of the active planner"),
+    Topic("robot/command/*", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
+          "a planner's joint position or velocity target, on its own key"),
     Topic("robot/state", m.RobotState, zenoh.Priority.INTERACTIVE_HIGH, False, True,
           "joint positions and velocities, status, command owner, reflex onsets"),
     Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
@@ -80,7 +86,7 @@ TOPICS: tuple[Topic, ...] = (
 SKIN_PRESSURE = "skin/pressure"
 SKIN_TOUCH = "skin/touch"
 SKIN_PAIN = "skin/pain"
-ROBOT_COMMAND = "robot/command"
+ROBOT_COMMANDS = "robot/command/*"  # every planner's commands (what the bridge and the recorder take)
 ROBOT_STATE = "robot/state"
 CONTROL_ACTIVE = "control/active"
 
@@ -92,6 +98,21 @@ def prefix(robot: str) -> str:
 def key(robot: str, relative: str) -> str:
     """Full key expression of a relative key, e.g. ``key("ur10e", "skin/pain")``."""
     return f"{prefix(robot)}/{relative}"
+
+
+def robot_command(name: str) -> str:
+    """The key a planner commands on: ``robot/command/<name>``."""
+    return f"robot/command/{name}"
+
+
+def command_publisher(relative: str) -> str | None:
+    """The planner a command key belongs to (``robot/command/cartesian`` -> ``cartesian``), else None."""
+    head, sep, name = relative.rpartition("/")
+    return name if sep and head == "robot/command" and name else None
+
+
+def is_command(relative: str) -> bool:
+    return command_publisher(relative) is not None
 
 
 def planner_status(name: str) -> str:

@@ -236,10 +236,11 @@ class Node:
         return publish
 
     # -- subscribing ------------------------------------------------------
-    def subscribe(self, relative: str, handler: Callable[[Any], None]) -> None:
-        """Call ``handler(message)`` for every valid message on a registry key.
+    def subscribe(self, relative: str, handler: Callable[..., None], *, keyed: bool = False) -> None:
+        """Call ``handler(message)`` for every valid message on a registry key (a pattern, too).
 
-        Runs in Zenoh's callback thread. A sample that does not decode is
+        With ``keyed``, ``handler(relative_key, message)``: which key of a
+        pattern the message came on. Runs in Zenoh's callback thread. A sample that does not decode is
         counted, reported on ``diag/<service>`` and dropped; an exception in
         the handler is logged and reported, and the subscription goes on.
         """
@@ -254,7 +255,10 @@ class Node:
                 self.diag("warning", "decode_error", f"dropped a malformed sample on {sample.key_expr}: {exc}")
                 return
             try:
-                handler(message)
+                if keyed:
+                    handler(keys.relative_key(self.robot, str(sample.key_expr)), message)
+                else:
+                    handler(message)
             except Exception as exc:  # a bad message must never kill the subscription
                 log.exception("handler for %s failed", full)
                 self.diag("error", "handler_error", f"handling a message on {full} failed: {exc!r}")

@@ -5,7 +5,7 @@ follows it like any planner once it is the active one:
 
 - announces itself with the liveliness token ``nwr/<robot>/alive/planner-<name>``;
 - reads ``skin/pain`` (per-pad gain, strongest contact) and ``robot/state``;
-- writes ``robot/command`` (joint position targets signed with its name, the
+- writes ``robot/command/<name>`` (joint position targets signed with its name, the
   trace of the skin sample it acted on, a reflex number and the phase) and
   ``reflex/<name>/status``.
 
@@ -92,7 +92,7 @@ def main() -> int:
         token = session.liveliness().declare_token(f"{prefix}/alive/planner-{args.name}")
         session.declare_subscriber(f"{prefix}/skin/pain", on_pain)
         session.declare_subscriber(f"{prefix}/robot/state", on_state)
-        commands = session.declare_publisher(f"{prefix}/robot/command", priority=zenoh.Priority.REAL_TIME,
+        commands = session.declare_publisher(f"{prefix}/robot/command/{args.name}", priority=zenoh.Priority.REAL_TIME,
                                              express=True)
         status = session.declare_publisher(f"{prefix}/reflex/{args.name}/status")
         seq = 0

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.robot import Pad
@@ -95,7 +96,7 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
             pains.append(msg)
         elif r.key.endswith("/decision") and msg.name == planner and msg.active:
             decisions.append(msg)
-        elif r.key == "robot/command" and msg.owner == planner and msg.phase == "REFLEX":
+        elif r.key == keys.robot_command(planner) and msg.owner == planner and msg.phase == "REFLEX":
             commands.setdefault(msg.reflex_seq, msg.stamp_ns)
         elif r.key == "robot/state" and msg.accepted is not None and msg.owner == planner \
                 and msg.accepted_ns not in accepted_at:

@@ -25,8 +25,8 @@ log = logging.getLogger("nwr")
 SERVICES = {
     "gateway": "skin gateway: simulated AIRSKIN pads -> skin/pressure",
     "gain": "gain estimator: skin/pressure -> skin/pain (pain level and gain per pad)",
-    "planner": "reflex planner: task, state machine and reflex -> robot/command",
-    "bridge": "robot bridge: robot/command -> the (simulated) arm -> robot/state",
+    "planner": "reflex planner: task, state machine and reflex -> robot/command/<name>",
+    "bridge": "robot bridge: the active planner's robot/command/<name> -> the (simulated) arm -> robot/state",
     "recorder": "recorder: everything under nwr/<robot>/ -> MCAP",
     "view": "view (read-only): the live 3D scene and signals for Foxglove over WebSocket",
 }

@@ -187,7 +187,7 @@ class Lockstep:
     def _command(self, cmd: m.Command | None, t: int, emit: Emit) -> None:
         if cmd is None:
             return
-        emit(keys.ROBOT_COMMAND, cmd, t)
+        emit(keys.robot_command(cmd.owner), cmd, t)
         self.messages += 1
         verdict = self.bridge.on_command(cmd, t)
         if verdict.onset:  # as the bridge process: the onset goes to the arm at once

@@ -62,9 +62,9 @@ def _records() -> list[Recorded]:
     out.append(Recorded("reflex/shadow/decision", 0, m.PlannerDecision(
         seq=0, stamp_ns=2000 * MS, name="shadow", trace=trace[0], pain_seq=0, pain_stamp_ns=0, active=False)))
     t1 = trace[1].stamp_ns
-    out.append(Recorded("robot/command", t1 + 3 * MS, m.VelocityCommand(
+    out.append(Recorded("robot/command/cartesian", t1 + 3 * MS, m.VelocityCommand(
         seq=7, stamp_ns=t1 + 3 * MS, owner="cartesian", dq=[0.0] * 6, trace=trace[1], reflex_seq=1)))
-    out.append(Recorded("robot/command", t1 + 5 * MS, m.VelocityCommand(
+    out.append(Recorded("robot/command/cartesian", t1 + 5 * MS, m.VelocityCommand(
         seq=8, stamp_ns=t1 + 5 * MS, owner="cartesian", dq=[0.0] * 6, trace=trace[1], reflex_seq=1)))
     for seq, reflex_seq in ((0, 1), (1, 1), (2, 0)):  # the onset, then repeated (also after the return: reflex 0)
         out.append(Recorded("robot/state", t1 + (5 + seq) * MS, m.RobotState(

@@ -478,3 +478,15 @@ def test_stale_pain_holds_the_task_like_stale_skin():
     bad = m.SkinPain(seq=1, stamp_ns=0, trace=TR, model="continuous", level=[1], gain=[0.0])
     c.on_pain(bad, t + 2 * MS)
     assert any(e.code == "pain_invalid" for e in c.drain_events())
+
+
+def test_a_command_on_another_planners_key_is_refused_whatever_owner_it_claims():
+    """Each planner commands on robot/command/<name>, which only its certificate may put on: the key names the sender."""
+    c = core()
+    verdict = c.on_command(vel([0.5, 0.0], seq=1, stamp=MS), MS, publisher="standby")  # claims owner "p"
+    assert not verdict.accepted and c.rejected == 1
+    event = c.drain_events()[-1]
+    assert event.code == "command_spoofed" and event.level == "error"
+    assert "robot/command/standby" in event.message and "claims owner 'p'" in event.message
+    assert c.on_command(vel([0.5, 0.0], seq=2, stamp=2 * MS), 2 * MS, publisher="p").accepted
+    assert c.rejected == 1

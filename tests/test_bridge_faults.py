@@ -3,7 +3,7 @@
 One session (the five services as separate processes) runs two phases:
 
 1. a hostile publisher on the same Zenoh network sends garbage of every kind
-   and floods robot/command at ten times the planner's rate;
+   and floods robot/command/intruder at ten times the planner's rate;
 2. the planner is killed with SIGKILL mid-motion, then restarted;
 3. the gateway, then the gain estimator, likewise (the skin data the planner
    acts on goes stale: the task stops until it is back).
@@ -40,6 +40,9 @@ pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 BASE_PORT = 17550  # unique to this file: test_e2e uses 17450
 ROBOT = "ur10e"
+# The active planner's command key (anyone may put there without the secure router) and an intruder's.
+COMMAND = keys.robot_command("cartesian")
+INTRUDER_COMMAND = keys.robot_command("intruder")
 SERVICES = ["bridge", "planner", "gain", "recorder", "gateway"]
 STOPPING = {"stale_command", "planner_lost", "stale_skin"}
 # Scheduling slack on this shared machine on top of the physics (timeout +
@@ -77,7 +80,7 @@ class Watch:
         self.state: m.RobotState | None = None
         self.command: m.Command | None = None
         self.lock = threading.Lock()
-        state_codec, command_codec = keys.codec(keys.ROBOT_STATE), keys.codec(keys.ROBOT_COMMAND)
+        state_codec, command_codec = keys.codec(keys.ROBOT_STATE), keys.codec(COMMAND)
 
         def on_state(sample: zenoh.Sample) -> None:
             with self.lock:
@@ -93,7 +96,7 @@ class Watch:
                     self.command = cmd
 
         self.subs = [session.declare_subscriber(keys.key(ROBOT, keys.ROBOT_STATE), on_state),
-                     session.declare_subscriber(keys.key(ROBOT, keys.ROBOT_COMMAND), on_command)]
+                     session.declare_subscriber(keys.key(ROBOT, COMMAND), on_command)]
 
     def wait_moving(self, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -108,7 +111,7 @@ class Watch:
 
 def hostile(session: zenoh.Session, watch: Watch, sent: dict[str, int]) -> None:
     """Every kind of hostile input the issue lists, on the keys the services read."""
-    put = {k: session.declare_publisher(keys.key(ROBOT, k)) for k in (keys.ROBOT_COMMAND, keys.SKIN_PRESSURE,
+    put = {k: session.declare_publisher(keys.key(ROBOT, k)) for k in (COMMAND, INTRUDER_COMMAND, keys.SKIN_PRESSURE,
                                                                       keys.SKIN_PAIN)}
     enc = msgspec.msgpack.encode
     tr = m.Trace(0, 0)
@@ -131,15 +134,15 @@ def hostile(session: zenoh.Session, watch: Watch, sent: dict[str, int]) -> None:
             send("malformed", key, b"\xc1\xc1\xc1")
             send("malformed", key, b"\x81\xa2\x00\x80")  # a map whose key is not UTF-8
             send("truncated", key, enc(valid_skin)[:17])
-        send("wrong_type", keys.ROBOT_COMMAND, enc({"kind": "position", "seq": "one", "stamp_ns": 0, "owner": 7,
+        send("wrong_type", COMMAND, enc({"kind": "position", "seq": "one", "stamp_ns": 0, "owner": 7,
                                                     "q": "abc", "trace": [0, 0]}))
         send("wrong_type", keys.SKIN_PRESSURE, enc({"kind": "skin_pressure", "seq": 0, "stamp_ns": 0,
                                                     "absolute_hpa": ["x"] * pads}))
         cmd = real()
-        send("nan", keys.ROBOT_COMMAND, enc(m.PositionCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
+        send("nan", COMMAND, enc(m.PositionCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
                                                               q=[math.nan] * 6, trace=tr)))
         send("nan", keys.SKIN_PRESSURE, enc(msgspec.structs.replace(valid_skin, change_hpa=[math.inf] * pads)))
-        send("huge", keys.ROBOT_COMMAND, enc(m.VelocityCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
+        send("huge", COMMAND, enc(m.VelocityCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
                                                                dq=[0.0] * 100_000, trace=tr)))
         send("huge", keys.SKIN_PRESSURE, enc(m.SkinPressure(
             seq=1, stamp_ns=0, absolute_hpa=[0.0] * 100_000, baseline_hpa=[0.0] * 100_000,
@@ -148,26 +151,29 @@ def hostile(session: zenoh.Session, watch: Watch, sent: dict[str, int]) -> None:
             valid_skin, seq=2 + round_, change_hpa=[-1e9] * 5 + [1e11] * 5, absolute_hpa=[1e11] * pads)))
         # Replays of the real planner's newest command: duplicated and out-of-order seq.
         cmd = real()
-        send("duplicate", keys.ROBOT_COMMAND, enc(cmd))
-        send("out_of_order", keys.ROBOT_COMMAND, enc(msgspec.structs.replace(cmd, seq=cmd.seq - 3)))
-        send("non_owner", keys.ROBOT_COMMAND, enc(m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder",
-                                                                    dq=[3.0] * 6, trace=tr)))
+        send("duplicate", COMMAND, enc(cmd))
+        send("out_of_order", COMMAND, enc(msgspec.structs.replace(cmd, seq=cmd.seq - 3)))
+        send("non_owner", COMMAND, enc(m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder",
+                                                         dq=[3.0] * 6, trace=tr)))
+        # On another planner's key, claiming to be the active one: the key decides.
+        send("wrong_key", INTRUDER_COMMAND, enc(m.VelocityCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
+                                                                  dq=[3.0] * 6, trace=tr)))
         # Spoofing the active planner, beyond the limits: clipped or rejected. The
         # seq is far ahead so that the check reaches the values (a nearer seq
         # may already be taken by the real planner: out of order).
         cmd = real()
         q = list(getattr(cmd, "q", None) or watch.state.q)  # type: ignore[union-attr]
         ahead = cmd.seq + 5000 * (round_ + 1)
-        send("beyond_limits", keys.ROBOT_COMMAND, enc(m.PositionCommand(
+        send("beyond_limits", COMMAND, enc(m.PositionCommand(
             seq=ahead, stamp_ns=cmd.stamp_ns, owner="cartesian", q=[v + 3.0 for v in q], trace=tr)))
-        send("beyond_limits", keys.ROBOT_COMMAND, enc(m.VelocityCommand(
+        send("beyond_limits", COMMAND, enc(m.VelocityCommand(
             seq=ahead + 1, stamp_ns=cmd.stamp_ns, owner="cartesian", dq=[50.0] * 6, trace=tr, phase="REFLEX")))
         time.sleep(0.3)
     # A flood at ten times the planner's 500 Hz for one second.
     flood = enc(m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder", dq=[1.0] * 6, trace=tr))
     start = time.monotonic()
     for i in range(5000):
-        put[keys.ROBOT_COMMAND].put(flood)
+        put[INTRUDER_COMMAND].put(flood)
         if i % 50 == 0:
             delay = start + (i + 50) / 5000 - time.monotonic()
             if delay > 0:
@@ -334,6 +340,6 @@ def test_no_bridge_setpoint_was_ever_guarded(session):
 
 
 def test_recording_keeps_the_planners_commands(session, records):
-    commands = [r.message for r in records if r.key == keys.ROBOT_COMMAND and r.message.owner == "cartesian"
+    commands = [r.message for r in records if r.key == COMMAND and r.message.owner == "cartesian"
                 and r.message.stamp_ns > 0]
     assert len(commands) > 1000

@@ -174,8 +174,8 @@ def test_shipped_rules_deny_by_default(tmp_path: Path) -> None:
 
 def test_rules_scoped_to_one_robot() -> None:
     scoped = load_acl(ROOT / "deploy" / "acl.json5", "ur10e")
-    assert "nwr/*/" not in scoped and '"nwr/ur10e/robot/command"' in scoped
-    assert "nwr/*/robot/command" in load_acl(ROOT / "deploy" / "acl.json5")
+    assert "nwr/*/" not in scoped and '"nwr/ur10e/robot/command/cartesian"' in scoped
+    assert "nwr/*/robot/command/cartesian" in load_acl(ROOT / "deploy" / "acl.json5")
     with pytest.raises(ConfigError, match="robot name"):
         load_acl(ROOT / "deploy" / "acl.json5", "a/b")
 

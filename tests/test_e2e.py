@@ -40,14 +40,16 @@ def intruder(stop: threading.Event, counts: dict[str, int], port: int, owner: st
     cfg = ZenohSection(base_port=port)
     with zenoh.open(zenoh_config(cfg)) as session:
         pressure = session.declare_publisher(keys.key("ur10e", keys.SKIN_PRESSURE))
-        command = session.declare_publisher(keys.key("ur10e", keys.ROBOT_COMMAND))
+        command = session.declare_publisher(keys.key("ur10e", keys.robot_command("intruder")))
+        # The active planner's own key: without the secure router anyone may put there.
+        spoofed = session.declare_publisher(keys.key("ur10e", keys.robot_command(owner)))
         foreign = m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder", dq=[3.0] * 6, trace=m.Trace(0, 0))
         nan = m.PositionCommand(seq=0, stamp_ns=0, owner=owner, q=[float("nan")] * 6, trace=m.Trace(0, 0))
         time.sleep(3.0)
         while not stop.wait(0.5):
             pressure.put(b"\x92\x01garbage")
             command.put(msgspec.msgpack.encode(foreign))
-            command.put(msgspec.msgpack.encode(nan))
+            spoofed.put(msgspec.msgpack.encode(nan))
             counts["sent"] += 1
 
 
@@ -102,7 +104,7 @@ def test_scripted_session_end_to_end(tmp_path, reflex, port):
 
     # Every command that moved the arm carries the trace of a real skin sample.
     skin_seqs = {r.message.seq for r in records if r.key == "skin/pressure"}
-    commands = [r.message for r in records if r.key == "robot/command" and r.message.owner == reflex]
+    commands = [r.message for r in records if r.key == keys.robot_command(reflex) and r.message.owner == reflex]
     assert {type(c) for c in commands if c.phase == "REFLEX"} == {
         m.VelocityCommand if reflex == "cartesian" else m.PositionCommand}
     traced = {c.trace.seq for c in commands if c.trace.seq >= 0}

@@ -37,7 +37,7 @@ EXAMPLES = {
                               peak_hpa=9.0, shape="step", ramp_s=0.3, contact_point=[0.1, 0.2, 0.3],
                               normal=[0.0, 0.0, 1.0], q=[0.0] * 6),
     "skin/pain": m.SkinPain(seq=0, stamp_ns=1, trace=TR, model="continuous", level=[1], gain=[0.0], strongest=CONTACT),
-    "robot/command": m.PositionCommand(seq=0, stamp_ns=1, owner="cartesian", q=[0.0] * 6, trace=TR),
+    "robot/command/fuzz": m.PositionCommand(seq=0, stamp_ns=1, owner="cartesian", q=[0.0] * 6, trace=TR),
     "robot/state": m.RobotState(seq=0, stamp_ns=1, q=[0.0] * 6, dq=[0.0] * 6, status="ok", owner="c", backend="sim"),
     "reflex/fuzz/status": m.PlannerStatus(seq=0, stamp_ns=1, name="c", strategy="cartesian", mode="TASK",
                                           task_time_s=0.0),
@@ -123,9 +123,9 @@ def test_valid_examples_decode(relative):
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, 1e300])
 def test_non_finite_numbers_are_decode_errors(bad):
-    payload = msgspec.msgpack.encode({**msgspec.to_builtins(EXAMPLES["robot/command"]), "q": [bad] * 6})
+    payload = msgspec.msgpack.encode({**msgspec.to_builtins(EXAMPLES["robot/command/fuzz"]), "q": [bad] * 6})
     with pytest.raises(DecodeError, match="NaN, infinite"):
-        keys.codec("robot/command").decode(payload)
+        keys.codec("robot/command/fuzz").decode(payload)
 
 
 def test_invalid_utf8_is_a_decode_error():

@@ -33,6 +33,7 @@ ROBOT = "ur10e"
 MS = 1_000_000
 TRACE = m.Trace(seq=3, stamp_ns=1_000)
 CONTACT = m.Contact(pad=4, name="forearm_top", region="forearm", change_hpa=9.0, level=3, gain=0.185)
+COMMAND = keys.robot_command("cartesian")
 
 
 def full(relative: str) -> str:
@@ -47,9 +48,9 @@ def one_of_each(seq: int = 0, stamp_ns: int = 1_000_000) -> list[tuple[str, obje
                                             contact=[False, True], valid=[True, True])),
         (keys.SKIN_PAIN, m.SkinPain(seq=seq, stamp_ns=stamp_ns, trace=TRACE, model="continuous", level=[1, 3],
                                     gain=[0.0, 0.185], strongest=CONTACT)),
-        (keys.ROBOT_COMMAND, m.PositionCommand(seq=seq, stamp_ns=stamp_ns, owner="cartesian", q=[0.1] * 6,
+        (COMMAND, m.PositionCommand(seq=seq, stamp_ns=stamp_ns, owner="cartesian", q=[0.1] * 6,
                                                trace=TRACE)),
-        (keys.ROBOT_COMMAND, m.VelocityCommand(seq=seq + 1, stamp_ns=stamp_ns, owner="cartesian", dq=[-0.2] * 6,
+        (COMMAND, m.VelocityCommand(seq=seq + 1, stamp_ns=stamp_ns, owner="cartesian", dq=[-0.2] * 6,
                                                trace=TRACE, reflex_seq=1)),
         (keys.ROBOT_STATE, m.RobotState(seq=seq, stamp_ns=stamp_ns, q=[0.0] * 6, dq=[0.0] * 6, status="ok",
                                         owner="cartesian", backend="sim", accepted=TRACE, accepted_ns=2_000)),
@@ -78,7 +79,7 @@ def stream_of_commands(recorder: McapRecorder | SessionRecorder, n: int, period_
                        flush: bool = True) -> None:
     for i in range(n):
         t = i * period_ns
-        recorder.write(full(keys.ROBOT_COMMAND), command(i, stamp_ns=t), t)
+        recorder.write(full(COMMAND), command(i, stamp_ns=t), t)
         if flush:
             recorder.flush_if_due(t)
 
@@ -111,7 +112,7 @@ def test_every_message_type_round_trips(tmp_path: Path, compression: str) -> Non
     records, metadata = read_recording(path)
     assert [(r.key, r.message) for r in records] == written
     assert [r.log_time_ns for r in records] == [5_000_000 + i for i in range(len(written))]
-    assert json.loads(metadata["recording"]["messages"])[full(keys.ROBOT_COMMAND)] == 2
+    assert json.loads(metadata["recording"]["messages"])[full(COMMAND)] == 2
 
     with path.open("rb") as f:
         reader = make_reader(f)
@@ -135,7 +136,7 @@ def test_every_message_type_round_trips(tmp_path: Path, compression: str) -> Non
 def test_gaps_are_counted_per_publisher_and_restarts_are_not_gaps() -> None:
     buf = io.BytesIO()
     recorder = McapRecorder(buf, ROBOT)
-    cmd, st = full(keys.ROBOT_COMMAND), full(keys.ROBOT_STATE)
+    cmd, st = full(COMMAND), full(keys.ROBOT_STATE)
     # Two planners on one key, interleaved, each with its own counter: no gap.
     for i in range(5):
         assert recorder.write(cmd, command(i, "cartesian"), i) == 0
@@ -219,7 +220,7 @@ def _split_session(split: SplitPolicy, n: int = 350) -> tuple[list[io.BytesIO], 
                               split=split)
     for i in range(n):  # 3.5 s at 100 Hz, a state every 4th sample
         t = i * 10 * MS
-        session.write(full(keys.ROBOT_COMMAND), command(i, stamp_ns=t), t)
+        session.write(full(COMMAND), command(i, stamp_ns=t), t)
         if i % 4 == 0:
             session.write(full(keys.ROBOT_STATE), state(i // 4, stamp_ns=t), t)
         session.flush_if_due(t)
@@ -246,14 +247,14 @@ def test_split_by_duration_gives_valid_files_with_the_session_metadata() -> None
         messages, metadata, topics = _read_part(buf)
         assert metadata["session"]["part"] == str(n)
         assert metadata["session"]["session"] == "s1" and metadata["session"]["label.participant"] == "P07"
-        assert topics == [full(keys.ROBOT_COMMAND), full(keys.ROBOT_STATE)]  # re-registered in every part
+        assert topics == [full(COMMAND), full(keys.ROBOT_STATE)]  # re-registered in every part
         times = [msg.log_time for msg in messages]
         assert max(times) - min(times) < 1_000 * MS
         assert min(times) == n * 1_000 * MS
         seen += [(msg.channel_id, msg.sequence) for msg in messages]
     assert len(seen) == 350 + 88
-    assert report.gaps == {full(keys.ROBOT_COMMAND): 0, full(keys.ROBOT_STATE): 0}  # a part boundary is no gap
-    assert report.restarts == {full(keys.ROBOT_COMMAND): 0, full(keys.ROBOT_STATE): 0}
+    assert report.gaps == {full(COMMAND): 0, full(keys.ROBOT_STATE): 0}  # a part boundary is no gap
+    assert report.restarts == {full(COMMAND): 0, full(keys.ROBOT_STATE): 0}
     assert [p.messages for p in report.parts] == [125, 125, 125, 63]
 
 
@@ -290,7 +291,7 @@ def _session_bytes(finish: bool) -> bytes:
     for i in range(300):
         t = i * 10 * MS
         for relative, message in one_of_each(i, t):
-            if relative != keys.ROBOT_COMMAND or message.seq == i:  # one command per step
+            if relative != COMMAND or message.seq == i:  # one command per step
                 recorder.write(full(relative), message, t)
         recorder.flush_if_due(t)
     if finish:
@@ -418,7 +419,7 @@ def test_info_of_a_finished_session(tmp_path: Path, capsys: pytest.CaptureFixtur
         for i in range(201):  # 2 s: commands at 100 Hz (one lost), states at 25 Hz
             t = i * 10 * MS
             if i != 50:
-                session.write(full(keys.ROBOT_COMMAND), command(i, stamp_ns=t), t)
+                session.write(full(COMMAND), command(i, stamp_ns=t), t)
             if i % 4 == 0:
                 session.write(full(keys.ROBOT_STATE), state(i // 4, stamp_ns=t), t)
             session.flush_if_due(t)
@@ -432,7 +433,7 @@ def test_info_of_a_finished_session(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "labels    participant=P07  condition=CR" in out
     assert "duration  2.000 s of log time, 252 messages on 3 channels" in out
     lines = {line.split()[0]: line.split() for line in out.splitlines() if line.startswith("nwr/")}
-    assert lines[full(keys.ROBOT_COMMAND)][1:] == ["nwr.Command", "200", "99.50", "1", "0"]
+    assert lines[full(COMMAND)][1:] == ["nwr.Command", "200", "99.50", "1", "0"]
     assert lines[full(keys.ROBOT_STATE)][1:] == ["nwr.RobotState", "51", "25.00", "0", "0"]
     assert "sequence gaps: 1 (counted by the recorder)" in out
     assert "planners  cartesian (cartesian), as their status messages say" in out

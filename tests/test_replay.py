@@ -53,7 +53,7 @@ def test_lockstep_is_deterministic():
     samples = skin_samples()
     first, second = run_lockstep("location", samples), run_lockstep("location", samples)
     assert first == second
-    assert any(k == "robot/command" for k, _, _ in first)
+    assert any(keys.is_command(k) for k, _, _ in first)
 
 
 @pytest.mark.parametrize("strategy", ["uniform", "cartesian"])
@@ -122,7 +122,7 @@ def test_replay_fast_cli_and_live_against_the_outside_planner(tmp_path):
     records, _ = read_recording(tmp_path / "live.mcap")
     states = [r.message for r in records if r.key == "robot/state"]
     assert {s.owner for s in states} == {"mini"}
-    commands = [r.message for r in records if r.key == "robot/command"]
+    commands = [r.message for r in records if keys.is_command(r.key)]
     assert commands and {c.owner for c in commands} == {"mini"}
     onsets = {s.reflex_seq for s in states if s.accepted is not None}
     assert len(onsets) >= 2  # the two supra-threshold touches of the replayed window moved the arm

@@ -7,8 +7,9 @@ process with its own certificate (NWR_TLS_*), all on 127.0.0.1, ports
 CA's, and, with a recorder's, a view's and an unlisted planner's
 certificate, to put on every key that moves or feeds the arm; a standby
 planner's certificate sends commands the bridge must reject. The session
-must run as if none of it happened. A planner's certificate cannot command
-another arm through a router scoped to its own. A last test compares the reflex onset
+must run as if none of it happened. A standby planner's certificate
+cannot pose as the active planner, and a planner's certificate cannot
+command another arm through a router scoped to its own. A last test compares the reflex onset
 latency through the router with and without TLS.
 """
 
@@ -52,6 +53,8 @@ SECURE_PORT = 18150
 LATENCY_PORTS = {"tcp": 18160, "tls": 18161}
 # Every intruder message carries this seq, so it can be told apart anywhere.
 SENTINEL = 987_654_321
+# The standby planner's commands posing as the active planner: SPOOF + n.
+SPOOF = 123_000_000
 # (certificate name, role): the pipeline's, plus those intruders hold.
 ISSUED = [("router", "router"), ("gateway", "gateway"), ("gain", "gain"), ("cartesian", "planner"),
           ("uniform", "planner"), ("bridge", "bridge"), ("recorder", "recorder"), ("view", "view"),
@@ -249,7 +252,7 @@ def insider(lab: Lab, port: int, cert: str, stop: threading.Event, report: Intru
             msgspec.structs.replace(message, seq=SENTINEL)))  # type: ignore[type-var]
             for relative, message in templates.items()]
         # Posing as the active planner, driving wrist 3 at 3 rad/s.
-        forged.append((keys.key(ROBOT, keys.ROBOT_COMMAND), keys.codec(keys.ROBOT_COMMAND).encode(
+        forged.append((keys.key(ROBOT, keys.robot_command(ACTIVE)), keys.codec(keys.robot_command(ACTIVE)).encode(
             m.VelocityCommand(seq=SENTINEL, stamp_ns=time.monotonic_ns(), owner=ACTIVE, dq=[0.0] * 5 + [3.0],
                               trace=m.Trace(0, 0), phase="REFLEX"))))
         forged.append((keys.key(ROBOT, keys.CONTROL_ACTIVE), keys.codec(keys.CONTROL_ACTIVE).encode(
@@ -265,15 +268,27 @@ def insider(lab: Lab, port: int, cert: str, stop: threading.Event, report: Intru
 
 
 def standby_planner(lab: Lab, port: int, stop: threading.Event, report: Intrusion) -> None:
-    """The standby planner's own certificate, sending commands under its own name: the bridge must refuse them."""
+    """The standby planner's own certificate: commands under its own name, and posing as the active planner.
+
+    Under its own name on its own key: they arrive, and the bridge refuses
+    them (not the active planner). Claiming the active planner's name on its
+    own key: the bridge refuses them (the key names the publisher). On the
+    active planner's key: the router drops them.
+    """
     with zenoh.open(zenoh_config(lab.zenoh(port, "uniform"))) as session:
-        pub = session.declare_publisher(keys.key(ROBOT, keys.ROBOT_COMMAND))
-        codec = keys.codec(keys.ROBOT_COMMAND)
+        own = session.declare_publisher(keys.key(ROBOT, keys.robot_command("uniform")))
+        active = session.declare_publisher(keys.key(ROBOT, keys.robot_command(ACTIVE)))
+        codec = keys.codec(keys.robot_command("uniform"))
         time.sleep(3.0)
         seq = 0
         while not stop.wait(0.05):
-            pub.put(codec.encode(m.VelocityCommand(seq=seq, stamp_ns=time.monotonic_ns(), owner="uniform",
+            now = time.monotonic_ns()
+            own.put(codec.encode(m.VelocityCommand(seq=seq, stamp_ns=now, owner="uniform",
                                                    dq=[0.0] * 5 + [3.0], trace=m.Trace(0, 0))))
+            spoof = m.VelocityCommand(seq=SPOOF + seq, stamp_ns=now, owner=ACTIVE, dq=[0.0] * 5 + [3.0],
+                                      trace=m.Trace(0, 0), phase="REFLEX")
+            own.put(codec.encode(spoof))
+            active.put(codec.encode(spoof))
             seq += 1
         report.standby_sent = seq
 
@@ -386,10 +401,16 @@ def test_intruders_against_the_secure_pipeline(lab: Lab, tmp_path: Path, pipelin
     assert {s.owner for s in states} == {ACTIVE}  # no switch went through
     assert max(abs(s.dq[5]) for s in states) < 0.5  # nobody's 3 rad/s on wrist 3 reached the arm
     # The standby planner's commands arrived (its certificate may command) and were refused.
-    standby = [r for r in records if r.key == "robot/command" and r.message.owner == "uniform"]
+    standby = [r for r in records if r.key == keys.robot_command("uniform") and r.message.owner == "uniform"]
     assert standby
     rejected = [r.message for r in records if r.key == "diag/bridge" and r.message.code == "command_rejected"]
     assert rejected and any("uniform" in d.message for d in rejected), rejected[:3]
+    # Posing as the active planner: on its own key, recorded and refused by the bridge (the key names
+    # the publisher); on the active planner's key, dropped by the router.
+    spoofs = [r for r in records if keys.is_command(r.key) and r.message.seq >= SPOOF]
+    assert spoofs and {r.key for r in spoofs} == {keys.robot_command("uniform")}, {r.key for r in spoofs}
+    spoofed = [r.message for r in records if r.key == "diag/bridge" and r.message.code == "command_spoofed"]
+    assert spoofed and all(f"claims owner '{ACTIVE}'" in d.message for d in spoofed), spoofed[:3]
     assert max(s.rejected for s in states) > 20
 
     # The session ran as if none of it happened.
@@ -482,12 +503,12 @@ def test_router_scoped_to_its_robot(lab: Lab, all_robots: bool) -> None:
     with zenoh.open(conf) as server:
         server.declare_subscriber("nwr/**", on_sample)
         with zenoh.open(zenoh_config(lab.zenoh(port, ACTIVE))) as planner:
-            codec = keys.codec(keys.ROBOT_COMMAND)
+            codec = keys.codec(keys.robot_command(ACTIVE))
             for robot in (ROBOT, "ur5e"):
                 payload = codec.encode(m.VelocityCommand(seq=SENTINEL, stamp_ns=time.monotonic_ns(), owner=ACTIVE,
                                                          dq=[0.0] * 6, trace=m.Trace(0, 0)))
                 for _ in range(20):
-                    planner.put(keys.key(robot, keys.ROBOT_COMMAND), payload)
+                    planner.put(keys.key(robot, keys.robot_command(ACTIVE)), payload)
             deadline = time.monotonic() + 5.0
             want = {ROBOT: 20, "ur5e": 20} if all_robots else {ROBOT: 20}
             while time.monotonic() < deadline and seen != want:

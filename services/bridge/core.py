@@ -404,8 +404,21 @@ class BridgeCore:
         self._otg_in.target_acceleration = [0.0] * n
 
     # -- inputs -----------------------------------------------------------------
-    def on_command(self, cmd: m.Command, now_ns: int) -> Verdict:
-        """A command from robot/command: checked, and followed if accepted."""
+    def on_command(self, cmd: m.Command, now_ns: int, *, publisher: str | None = None) -> Verdict:
+        """A command from robot/command/<publisher>: checked, and followed if accepted.
+
+        ``publisher`` is the planner whose key the command came on (only that
+        planner's certificate may put there); a command whose owner field
+        names another planner is refused, whoever it names. None: an
+        in-process caller (lockstep, tests), where the owner field is all
+        there is.
+        """
+        if publisher is not None and cmd.owner != publisher:
+            self.rejected += 1
+            self.events.append(Event("error", "command_spoofed",
+                                     f"{_name(cmd)} rejected: it came on robot/command/{publisher} but claims owner "
+                                     f"{cmd.owner!r}: a planner may command only under its own name"))
+            return Verdict(False, False)
         if cmd.owner == self.previous_owner and cmd.owner != self.active and now_ns < self.previous_until_ns:
             # The outgoing planner has not seen the switch yet: expected, not hostile.
             self.rejected += 1

@@ -1,4 +1,4 @@
-"""Robot bridge process: robot/command + skin/pressure + the planner's liveliness -> the arm -> robot/state.
+"""Robot bridge process: robot/command/<active> + skin/pressure + the planner's liveliness -> the arm -> robot/state.
 
 A thin adapter: :class:`~nwr.services.bridge.core.BridgeCore` decides, a
 backend (:class:`~nwr.services.bridge.backend.SimBackend` or
@@ -98,10 +98,10 @@ class Bridge:
         self.publish_state = node.publisher(keys.ROBOT_STATE)
 
     # -- callbacks (Zenoh's threads) -------------------------------------------------
-    def on_command(self, cmd: m.Command) -> None:
+    def on_command(self, relative: str, cmd: m.Command) -> None:
         with self.lock:
             now = self.node.clock.now_ns()
-            verdict = self.core.on_command(cmd, now)
+            verdict = self.core.on_command(cmd, now, publisher=keys.command_publisher(relative))
             if verdict.onset:
                 # The first command of a reflex goes to the backend now, not at
                 # the next cycle, and its acceptance is published at once.
@@ -197,7 +197,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         with Node("bridge", profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
             node.install_signal_handlers()
             bridge = Bridge(profile, node, backend, env, q0, n_pads)
-            node.subscribe(keys.ROBOT_COMMAND, bridge.on_command)
+            node.subscribe(keys.ROBOT_COMMANDS, bridge.on_command, keyed=True)
             node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin)
             node.subscribe(keys.SKIN_PAIN, bridge.on_pain)
             node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch)

@@ -1,4 +1,4 @@
-"""Reflex planner process: skin/pain + robot/state -> robot/command and reflex/<name>/status."""
+"""Reflex planner process: skin/pain + robot/state -> robot/command/<name> and reflex/<name>/status."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     # token of the active one.
     with Node(planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner") as node:
         node.install_signal_handlers()
-        send = node.publisher(keys.ROBOT_COMMAND)
+        send = node.publisher(keys.robot_command(cfg.name))
         send_status = node.publisher(keys.planner_status(cfg.name))
         send_decision = node.publisher(keys.planner_decision(cfg.name))
 

@@ -38,7 +38,7 @@ from nwr.common import messages as m
 from nwr.common.errors import DecodeError, NwrError
 
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-SCHEMA_NAMES = {"robot/command": "nwr.Command"}
+SCHEMA_NAMES = {"robot/command/*": "nwr.Command"}
 # Name of the metadata record with the session's description (written first,
 # so that it survives a crash) and of the one with the counts (written last).
 SESSION_METADATA = "session"
@@ -52,8 +52,9 @@ class RecordingError(NwrError):
 def publisher_of(message: Any) -> str:
     """Tells apart several publishers of one key, where the message says who sent it.
 
-    Commands name their planner (``owner``): several planners, or an intruder,
-    may publish on ``robot/command`` with their own counters. Skin samples name
+    Commands name their planner (``owner``): each planner has its own key
+    (``robot/command/<name>``), but a misbehaving one may claim another's
+    name, and its counter must not merge with the real one's. Skin samples name
     their source (a live gateway and a replay may overlap). Every other key has
     one publisher by construction (``reflex/<name>/status``, ``diag/<service>``,
     the bridge's ``robot/state``, whose ``owner`` is the *command* owner and
