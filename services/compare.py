@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-
+from nwr.common import keys
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services import analysis
 from nwr.services.recorder.core import Recorded, read_recording
@@ -122,8 +122,8 @@ def trajectory_error(a: Session, ta: analysis.TouchSummary, b: Session, tb: anal
 
 def command_streams(a: Session, b: Session) -> str:
     """Whether ``b``'s decoded commands are ``a``'s, message for message, or where they part."""
-    ca = [r.message for r in a.records if r.key == "robot/command"]
-    cb = [r.message for r in b.records if r.key == "robot/command"]
+    ca = [r.message for r in a.records if keys.is_command(r.key)]
+    cb = [r.message for r in b.records if keys.is_command(r.key)]
     first = next((i for i, (x, y) in enumerate(zip(ca, cb)) if x != y), None)
     if first is None and len(ca) == len(cb):
         return f"{b.label}: {len(cb)} commands, identical to {a.label}'s"

@@ -175,7 +175,7 @@ def task_start_ns(records: list[Recorded], chosen: list[Recorded]) -> int | None
     window = next((r for r in chosen if r.key == keys.SKIN_PRESSURE), None)
     if first is None or window is not first:
         return None
-    command = min((r.message.stamp_ns for r in records if r.key == keys.ROBOT_COMMAND), default=None)
+    command = min((r.message.stamp_ns for r in records if keys.is_command(r.key)), default=None)
     if command is None or command >= first.message.stamp_ns:
         return None
     return command

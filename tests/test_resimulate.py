@@ -206,7 +206,7 @@ def test_resimulation_without_ground_truth_is_a_clear_error():
 # ------------------------------------------------------------------------------ lockstep sessions and replays
 
 def commands(path: Path) -> list[bytes]:
-    return [msgspec.msgpack.encode(r.message) for r in read_recording(path)[0] if r.key == "robot/command"]
+    return [msgspec.msgpack.encode(r.message) for r in read_recording(path)[0] if keys.is_command(r.key)]
 
 
 DEMO = str(DATA / "resim.toml")  # the demo's kinds of touch, in 9 s

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 import websockets
 
+from nwr.common import keys
 from nwr.services.recorder.core import read_recording
 from nwr.services.view import core as c
 from nwr.services.view.export import export_foxglove
@@ -220,7 +221,7 @@ def test_live_view_and_recording_playback(tmp_path):
     assert np.median(intervals) == pytest.approx(1 / c.DEFAULT_RATE_HZ, rel=0.1)
     assert 0.8 * c.DEFAULT_RATE_HZ <= rate <= 1.02 * c.DEFAULT_RATE_HZ
     commands = np.array([r.message.stamp_ns for r in records
-                         if r.key == "robot/command" and r.message.phase == "TASK"], dtype=float)
+                         if keys.is_command(r.key) and r.message.phase == "TASK"], dtype=float)
     command_rate = 1e9 / np.median(np.diff(commands))
     assert command_rate == pytest.approx(500, rel=0.1)
     stats = [s for _, s in live.decoded("/nwr/view")]
