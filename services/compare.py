@@ -210,7 +210,7 @@ def _run(args: argparse.Namespace) -> int:
     rows = line_up(sessions, args.window)
     print(table(sessions, rows))
     if len(sessions) > 1:
-        print("\ncommand streams (robot/command, decoded) against the first file's:")
+        print("\ncommand streams (robot/command/<name>, decoded) against the first file's:")
         for session in sessions[1:]:
             print("  " + command_streams(sessions[0], session))
     if args.figure != "none":
