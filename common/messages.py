@@ -310,8 +310,8 @@ class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unkn
     count: int = 1
 
 
-Message = (SkinPressure | SkinTouch | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus | Diagnostic
-           | SwitchRequest | PlannerDecision)
+Message = (SkinPressure | SkinTouch | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus
+           | Diagnostic | SwitchRequest | PlannerDecision)
 
 
 def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:

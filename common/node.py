@@ -20,7 +20,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -131,7 +131,7 @@ def check_tls_files(cfg: ZenohSection, *, role: str | None = None) -> str:
                           f"({exc}); {fix}") from exc
     names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
     cn = str(names[0].value) if names else ""
-    now = datetime.now(timezone.utc)
+    now = datetime.now(UTC)
     left_days = (cert.not_valid_after_utc - now).total_seconds() / 86400
     if left_days <= 0:
         raise ConfigError(f"secure mode: certificate {cfg.certificate} ({cn}) expired on "

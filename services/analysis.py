@@ -21,7 +21,6 @@ from nwr.common import messages as m
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.recorder.core import Recorded
 
-
 RETURN_WINDOW_NS = 300_000_000
 
 

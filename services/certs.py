@@ -102,7 +102,7 @@ def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
 
 
 def _now() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc)
+    return dt.datetime.now(dt.UTC)
 
 
 def init_ca(directory: Path, *, days: int = CA_DAYS, lab: str = "nwr lab", force: bool = False) -> Path:
@@ -417,7 +417,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     init.add_argument("dir", metavar="DIR", help="directory of the CA and the certificates")
     init.add_argument("--days", type=int, default=CA_DAYS, help=f"validity in days (default {CA_DAYS})")
     init.add_argument("--lab", default="nwr lab", help="the lab's name, in the CA's subject")
-    init.add_argument("--force", action="store_true", help="replace an existing CA (every certificate must be re-issued)")
+    init.add_argument("--force", action="store_true",
+                      help="replace an existing CA (every certificate must be re-issued)")
     issue_p = certs_sub.add_parser("issue", help="a key and certificate for one service, signed by the CA")
     issue_p.add_argument("name", metavar="NAME",
                          help="certificate name: the file names and the common name ROLE:NAME (a planner: its name)")

@@ -26,8 +26,8 @@ import numpy as np
 from nwr.common import keys
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services import analysis
-from nwr.services.recorder.core import Recorded, read_recording
 from nwr.services.cli import profile_for
+from nwr.services.recorder.core import Recorded, read_recording
 
 
 @dataclass

@@ -25,9 +25,9 @@ import numpy as np  # noqa: E402
 from nwr.common import messages as m  # noqa: E402
 from nwr.common.config import STRATEGIES, PlannerSection  # noqa: E402
 from nwr.common.robot import RobotDescription, RobotModel, load_description  # noqa: E402
+from nwr.services.cli import profile_for  # noqa: E402
 from nwr.services.gain.core import continuous_gain, discrete_gain  # noqa: E402
 from nwr.services.planner.core import Planner  # noqa: E402
-from nwr.services.cli import profile_for  # noqa: E402
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"

@@ -48,9 +48,9 @@ from nwr.common.config import STRATEGIES, Profile, load_script
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.robot import RobotModel, load_description
+from nwr.services.cli import profile_for
 from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
 from nwr.services.recorder.core import McapRecorder, Recorded, read_recording, session_metadata
-from nwr.services.cli import profile_for
 
 if TYPE_CHECKING:
     from nwr.services.lockstep import ResimulatedSkin, SkinSource
@@ -193,7 +193,7 @@ def simulate(profile: Profile, script_name: str, strategy: str, output: Path) ->
     # The monotonic stamps are simulated (from SimulatedSkin's origin); the
     # wall-clock start is when the simulation ran.
     return record_lockstep(profile, source, strategy, output, labels=labels,
-                           start_time_iso=dt.datetime.now(dt.timezone.utc).isoformat())
+                           start_time_iso=dt.datetime.now(dt.UTC).isoformat())
 
 
 def _services_for(args: argparse.Namespace, output: Path) -> tuple[list[tuple[str, list[str]]], str]:

@@ -26,7 +26,6 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.services.cli import profile_for
@@ -151,7 +150,8 @@ def _print_blocks(done: list[tuple[int, str, Path]], profile) -> None:  # type: 
         onsets = [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
         approached = sum(1 for t in reflexes if (t.toward_mm or 0) > 1.0)
         p50 = f"{np.median(onsets):.2f}" if onsets else "-"
-        print(f"{block:5d}  {condition:9s}  {len(touches):7d}  {len(reflexes):8d}  {p50:>14s}  {approached:10d}  {path}")
+        print(f"{block:5d}  {condition:9s}  {len(touches):7d}  {len(reflexes):8d}  {p50:>14s}  {approached:10d}  "
+              f"{path}")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -160,7 +160,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--participant", required=True, help="participant ID (names the recordings' folder)")
     p.add_argument("--order", type=int, required=True,
-                   help="counterbalanced order: " + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
+                   help="counterbalanced order: "
+                        + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
     p.add_argument("--block-s", type=float, default=300.0, help="duration of each block, s (the study: about 5 min)")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the target pad every SECONDS (simulated skin)")

@@ -16,7 +16,6 @@ import time
 
 from nwr.common import keys
 from nwr.common import messages as m
-
 from nwr.common.node import Node
 from nwr.services.cli import profile_for
 
@@ -52,8 +51,9 @@ def _run(args: argparse.Namespace) -> int:
             return 1
         h = seen["last"].handover
         assert h is not None
-        print(f"active planner: {h.owner!r} (was {h.previous!r}); switched {(h.switched_ns - h.requested_ns) / 1e6:.1f} ms "
-              f"after the request, first command {(h.first_command_ns - h.requested_ns) / 1e6:.1f} ms after it "
+        print(f"active planner: {h.owner!r} (was {h.previous!r}); "
+              f"switched {(h.switched_ns - h.requested_ns) / 1e6:.1f} ms after the request, "
+              f"first command {(h.first_command_ns - h.requested_ns) / 1e6:.1f} ms after it "
               f"({(h.first_command_ns - h.requested_ns) / 1e9 / CYCLE_S:.1f} control cycles)")
     return 0
 

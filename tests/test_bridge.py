@@ -481,7 +481,7 @@ def test_stale_pain_holds_the_task_like_stale_skin():
 
 
 def test_a_command_on_another_planners_key_is_refused_whatever_owner_it_claims():
-    """Each planner commands on robot/command/<name>, which only its certificate may put on: the key names the sender."""
+    """Each planner commands on robot/command/<name>, which only its certificate may put on: the key names it."""
     c = core()
     verdict = c.on_command(vel([0.5, 0.0], seq=1, stamp=MS), MS, publisher="standby")  # claims owner "p"
     assert not verdict.accepted and c.rejected == 1

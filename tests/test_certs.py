@@ -50,7 +50,7 @@ def test_issue_puts_the_role_in_the_common_name(lab: Path) -> None:
     cert.verify_directly_issued_by(_cert(lab / "ca.crt"))
     usages = list(cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
     assert usages == [ExtendedKeyUsageOID.CLIENT_AUTH]  # a service's key cannot pose as the router
-    left = cert.not_valid_after_utc - dt.datetime.now(dt.timezone.utc)
+    left = cert.not_valid_after_utc - dt.datetime.now(dt.UTC)
     assert dt.timedelta(days=29) < left <= dt.timedelta(days=30)
     with pytest.raises(ConfigError, match="--force"):
         certs.issue(lab, "cartesian", "planner")
@@ -89,7 +89,7 @@ def test_list_shows_roles_expiry_and_foreign_certificates(lab: Path, tmp_path: P
     assert set(listing) == {"bridge", "gain", "spy"}
     assert listing["bridge"].role == "bridge" and listing["bridge"].signed_by_ca
     assert not listing["spy"].signed_by_ca
-    text = certs.format_listing(list(listing.values()), dt.datetime.now(dt.timezone.utc))
+    text = certs.format_listing(list(listing.values()), dt.datetime.now(dt.UTC))
     assert "expires soon" in text and "NOT signed" in text
     assert main(["certs", "list", "--dir", str(lab)]) == 0
     assert "bridge:bridge" in capsys.readouterr().out

@@ -15,7 +15,8 @@ TR = m.Trace(3, 100)
 
 def test_command_union_round_trip():
     c = keys.codec("robot/command/cartesian")
-    for msg in (m.PositionCommand(seq=1, stamp_ns=2, owner="p", q=[0.1, 0.2], trace=TR, reflex_seq=4, phase="RETURNING"),
+    for msg in (m.PositionCommand(seq=1, stamp_ns=2, owner="p", q=[0.1, 0.2], trace=TR, reflex_seq=4,
+                                  phase="RETURNING"),
                 m.VelocityCommand(seq=1, stamp_ns=2, owner="p", dq=[0.1], trace=TR)):
         assert c.decode(c.encode(msg)) == msg
 

@@ -66,7 +66,8 @@ def _docker_setup() -> tuple[list[str] | None, str]:
     base = _run(["bash", str(ROOT / "deploy" / "offline" / "build.sh"), "base-tag"]).stdout.strip()
     if subprocess.run(["docker", "image", "inspect", base], capture_output=True, timeout=30).returncode != 0:
         if os.geteuid() != 0:
-            return None, f"the base image {base} is not built yet and debootstrap needs root: sudo deploy/offline/build.sh base"
+            return None, (f"the base image {base} is not built yet and debootstrap needs root: "
+                          "sudo deploy/offline/build.sh base")
         if shutil.which("debootstrap") is None:
             return None, "no debootstrap to build the base image (apt-get install debootstrap)"
     return compose, ""
@@ -249,8 +250,8 @@ def _check_secure(dep: Deployment, tmp_path: Path) -> None:
         assert (root / service / f"{cert}.key").stat().st_mode & 0o077 == 0
         if service != "router":
             proc = _run(["docker", "logs", dep.container(service)], check=False)
-            assert f"secure mode: mutual TLS to tls/router:7447 as {'planner' if service == 'planner' else service}:{cert}" \
-                in proc.stdout + proc.stderr, service
+            role = "planner" if service == "planner" else service
+            assert f"secure mode: mutual TLS to tls/router:7447 as {role}:{cert}" in proc.stdout + proc.stderr, service
     image = dep.env["NWR_IMAGE"]
     network = f"{dep.project}_nwr"
     probe = ["status", "--check", "bridge", "--timeout", "3"]

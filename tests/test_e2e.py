@@ -9,18 +9,16 @@ import time
 from pathlib import Path
 
 import msgspec
-import numpy as np
 import pytest
 import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import ZenohSection, load_script
+from nwr.common.config import GainSection, ZenohSection, load_script
 from nwr.common.node import zenoh_config
 from nwr.common.robot import load_description
 from nwr.services import analysis
 from nwr.services.gain.core import GainEstimator
-from nwr.common.config import GainSection
 from nwr.services.recorder.core import read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]

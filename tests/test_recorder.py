@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
-from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from nwr.common import keys
 from nwr.common import messages as m

@@ -39,7 +39,8 @@ def skin_samples(script: str = "short.toml") -> list[m.SkinPressure]:
 
 def run_lockstep(strategy: str, samples: list[m.SkinPressure]) -> list[tuple[str, bytes, int]]:
     out: list[tuple[str, bytes, int]] = []
-    Lockstep(Profile(), strategy=strategy).run(samples, lambda k, msg, t: out.append((k, msgspec.msgpack.encode(msg), t)))
+    Lockstep(Profile(), strategy=strategy).run(
+        samples, lambda k, msg, t: out.append((k, msgspec.msgpack.encode(msg), t)))
     return out
 
 
@@ -108,16 +109,19 @@ def test_replay_fast_cli_and_live_against_the_outside_planner(tmp_path):
     profile.write_text(f'[zenoh]\nbase_port = 17950\n[recorder]\ndirectory = "{tmp_path}"\n')
     cli = [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "--log-level", "WARNING"]
 
-    fast = [subprocess.run([*cli, "replay", str(source), "--fast", "--reflex", "location", "-o", str(tmp_path / f"f{i}.mcap")],
-                           capture_output=True, text=True, timeout=120) for i in range(2)]
+    fast = [subprocess.run([*cli, "replay", str(source), "--fast", "--reflex", "location",
+                            "-o", str(tmp_path / f"f{i}.mcap")], capture_output=True, text=True, timeout=120)
+            for i in range(2)]
     assert all(p.returncode == 0 for p in fast), fast[0].stderr
     decoded = [[(r.key, msgspec.msgpack.encode(r.message)) for r in read_recording(tmp_path / f"f{i}.mcap")[0]]
                for i in range(2)]
     assert decoded[0] == decoded[1]  # two --fast replays: identical messages
 
-    planner = f"{sys.executable} {Path(__file__).parents[1] / 'examples' / 'minimal_planner.py'} --name mini --base-port 17950"
+    example = Path(__file__).parents[1] / "examples" / "minimal_planner.py"
+    planner = f"{sys.executable} {example} --name mini --base-port 17950"
     live = subprocess.run([*cli, "replay", str(source), "--planner-cmd", planner, "--name", "mini", "--start", "3.0",
-                           "--end", "8.5", "-o", str(tmp_path / "live.mcap")], capture_output=True, text=True, timeout=120)
+                           "--end", "8.5", "-o", str(tmp_path / "live.mcap")],
+                          capture_output=True, text=True, timeout=120)
     assert live.returncode == 0, live.stdout + live.stderr
     records, _ = read_recording(tmp_path / "live.mcap")
     states = [r.message for r in records if r.key == "robot/state"]

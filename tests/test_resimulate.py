@@ -11,7 +11,7 @@ import pytest
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import GatewaySection, Profile, SimSkinSection, Touch, TouchScript
+from nwr.common.config import GatewaySection, Profile, Touch, TouchScript
 from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotModel, load_description
 from nwr.services import analysis, compare
@@ -99,7 +99,8 @@ def test_touch_message_carries_the_ground_truth_or_says_it_has_none():
     q = np.array(DESC.home)
     (started,) = touches.start(2.0, MODEL.pad_points(q), MODEL.pad_normals(q))
     msg = touch_message(0, 5, 3, started, "elbow_outer", touches, q, 4)
-    assert (msg.pad, msg.name, msg.origin_ns, msg.shape, msg.ramp_s, msg.pose_stamp_ns) == (4, "elbow_outer", 3, "ramp", 0.1, 4)
+    assert (msg.pad, msg.name, msg.origin_ns, msg.shape, msg.ramp_s, msg.pose_stamp_ns) == (
+        4, "elbow_outer", 3, "ramp", 0.1, 4)
     assert msg.contact_point == pytest.approx(MODEL.pad_point(q, 4).tolist())
     assert msg.normal == pytest.approx(MODEL.pad_normal(q, 4).tolist())
     decoded = keys.codec(keys.SKIN_TOUCH).decode(keys.codec(keys.SKIN_TOUCH).encode(msg))

@@ -240,7 +240,7 @@ def _templates(session: zenoh.Session, wanted: set[str], timeout_s: float) -> di
 
 
 def insider(lab: Lab, port: int, cert: str, stop: threading.Event, report: Intrusion) -> None:
-    """A stolen recorder / view certificate (or an unlisted planner's): subscribe, then put on every key that matters."""
+    """A stolen recorder / view certificate (or an unlisted planner's): subscribe, then put on every key that counts."""
     wanted = {keys.SKIN_PRESSURE, keys.SKIN_PAIN, keys.ROBOT_STATE, keys.planner_status(ACTIVE)}
     with zenoh.open(zenoh_config(lab.zenoh(port, cert))) as session:
         count = [0]

@@ -2,14 +2,13 @@
 
 import numpy as np
 import pytest
+from test_bridge import ENV, pos, skin  # noqa: E402  (the bridge tests' helpers)
 
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.bridge.core import BridgeCore
 from nwr.services.planner.core import Planner
-
-from test_bridge import ENV, pos, skin  # noqa: E402  (the bridge tests' helpers)
 
 MS = 1_000_000
 

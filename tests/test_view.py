@@ -375,7 +375,7 @@ def test_export_adds_scene_channels_that_decode_and_a_description_pinocchio_load
         assert schemas["/nwr/pads"].name == "foxglove.SceneUpdate"
         assert schemas["/robot_description"].name == "std_msgs/String"
         assert schemas[f"nwr/{ROBOT}/robot/state"].name == "nwr.RobotState"  # the original channels stay
-        for schema, channel, message, decoded in reader.iter_decoded_messages(
+        for _schema, channel, _message, decoded in reader.iter_decoded_messages(
                 topics=["/tf", "/nwr/pads", "/nwr/contact", "/nwr/reflex"]):
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             if channel.topic == "/tf":
@@ -383,7 +383,8 @@ def test_export_adds_scene_channels_that_decode_and_a_description_pinocchio_load
             if channel.topic == "/nwr/pads":
                 assert len(decoded.entities) == 10
         f.seek(0)
-        description = [json.loads(msg.data) for _s, _c, msg in make_reader(f).iter_messages(topics=["/robot_description"])]
+        description = [json.loads(msg.data)
+                       for _s, _c, msg in make_reader(f).iter_messages(topics=["/robot_description"])]
         f.seek(0)
         metadata = {r.name: dict(r.metadata) for r in make_reader(f).iter_metadata()}
     assert set(seen) == {"/tf", "/nwr/pads", "/nwr/contact", "/nwr/reflex"} and seen["/tf"] == report.added["/tf"]

@@ -26,12 +26,12 @@ from typing import Any
 import numpy as np
 import pytest
 import websockets
+from test_view import DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
 
 from nwr.common import keys
 from nwr.services.recorder.core import read_recording
 from nwr.services.view import core as c
 from nwr.services.view.export import export_foxglove
-from test_view import DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -87,7 +87,7 @@ class Client:
         while not until() and time.monotonic() < deadline:
             try:
                 message = await asyncio.wait_for(self.ws.recv(), 0.2)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 continue
             except websockets.ConnectionClosed:
                 return

@@ -12,11 +12,11 @@ import argparse
 import logging
 
 from nwr.common import keys
+from nwr.common import messages as m
 from nwr.common.config import Profile, load_script
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.common.robot import RobotModel, load_description
-from nwr.common import messages as m
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                               f"pad {desc.pads[pad].name} stayed above the contact threshold for more than "
                               f"{cfg.max_contact_s} s: its baseline was re-acquired")
                 for pad in events.non_finite:
-                    node.diag("warning", "non_finite_pressure", f"pad {desc.pads[pad].name} reported a non-finite pressure")
+                    node.diag("warning", "non_finite_pressure",
+                              f"pad {desc.pads[pad].name} reported a non-finite pressure")
                 if args.exit_at_end and script is not None and t >= script.duration_s:
                     log.info("touch script finished after %.1f s", t)
                     break

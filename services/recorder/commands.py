@@ -7,10 +7,9 @@ import logging
 from pathlib import Path
 from typing import Any
 
-
+from nwr.services.cli import profile_for
 from nwr.services.recorder import main as recorder_main
 from nwr.services.recorder import salvage
-from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
