@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import msgspec
@@ -79,7 +80,7 @@ def reflex_end_pose(strategy: str, desc: RobotDescription, model: RobotModel, pa
     return start, planner.q.copy()
 
 
-def _draw_arm(ax, model: RobotModel, q: np.ndarray, color: str, lw: float, alpha: float = 1.0) -> None:
+def _draw_arm(ax: Any, model: RobotModel, q: np.ndarray, color: str, lw: float, alpha: float = 1.0) -> None:
     pts = np.vstack([[0.0, 0.0, 0.0], model.joint_positions(q)])
     ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-o", color=color, lw=lw, ms=3, alpha=alpha)
 

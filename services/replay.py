@@ -138,9 +138,12 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
                 recorder.write(keys.key(robot, keys.SKIN_TOUCH), touch, touch.stamp_ns)
             for sample in skin:  # the recorded input, on its own timeline
                 recorder.write(keys.key(robot, keys.SKIN_PRESSURE), sample, sample.stamp_ns)
+
+        def emit(key: str, message: object, stamp_ns: int) -> None:
+            recorder.write(keys.key(robot, key), message, stamp_ns)
+
         t = time.perf_counter()
-        report = lockstep.run(skin, lambda key, msg, ts: recorder.write(keys.key(robot, key), msg, ts),
-                              start_ns=start_ns)
+        report = lockstep.run(skin, emit, start_ns=start_ns)
         wall = time.perf_counter() - t
         recorder.finish()
     return output, report.simulated_s, wall

@@ -26,6 +26,7 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
+from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.services.cli import profile_for
@@ -136,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if len(done) == len(order) else 1
 
 
-def _print_blocks(done: list[tuple[int, str, Path]], profile) -> None:  # type: ignore[no-untyped-def]
+def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
     from nwr.common.robot import load_description
     from nwr.services import analysis
     from nwr.services.recorder.core import read_recording

@@ -250,7 +250,7 @@ def touch_profile(touch: Touch, t: float) -> float:
 
 
 def touch_message(seq: int, stamp_ns: int, origin_ns: int, active: ActiveTouch, pad_name: str, touches: TouchSet,
-                  q: Sequence[float] | None = None, pose_stamp_ns: int = 0) -> m.SkinTouch:
+                  q: Sequence[float] | np.ndarray | None = None, pose_stamp_ns: int = 0) -> m.SkinTouch:
     """The ground truth of a touch that just started (``skin/touch``)."""
     touch = active.touch
     known = active.point is not None and active.normal is not None

@@ -1,8 +1,11 @@
 """Recorder process: every message under nwr/<robot>/ -> MCAP file(s).
 
-The Zenoh callback only queues (key, payload, receive time); decoding,
+The Zenoh callback only queues (key, payload, receive time), on Zenoh's own
+network thread (no hand-off to a Python thread per message); decoding,
 writing, the time-based chunk flush and file splitting happen in this
-process's own loop (:mod:`.core`).
+process's own loop (:mod:`.core`), which wakes every ``BATCH_S`` and writes
+everything that arrived meanwhile: one wake-up per batch instead of one per
+message (about 700 messages a second at the default rates).
 """
 
 from __future__ import annotations
@@ -10,7 +13,8 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import logging
-import queue
+import sys
+from collections import deque
 from pathlib import Path
 from typing import IO
 
@@ -32,9 +36,13 @@ from nwr.services.recorder.core import (
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
-# How long the loop waits for a message before it checks the chunk's age and
-# the stop event: the time-based flush is this much late at worst.
-POLL_S = 0.1
+# How often the loop writes what arrived, checks the chunk's age and the stop
+# event: the time-based flush is this much late at worst, and a message waits
+# in memory this long at most (its log time is taken when it arrives).
+BATCH_S = 0.02
+# The network thread that queues a message waits for the GIL while the loop
+# writes a batch: switch at least this often (s; Python's default is 5 ms).
+SWITCH_INTERVAL_S = 0.001
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,7 +85,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     base = Path(args.output) if args.output else Path(cfg.directory) / f"{session}.mcap"
     base.parent.mkdir(parents=True, exist_ok=True)
     robot = profile.robot.name
-    inbox: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    # Appended on Zenoh's thread, drained by the loop (deque appends and pops are atomic).
+    inbox: deque[tuple[str, bytes, int]] = deque()
 
     def open_part(part: int) -> IO[bytes]:
         path = part_path(base, part, split.enabled)
@@ -101,10 +111,12 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         )
 
         def on_sample(sample: zenoh.Sample) -> None:
-            # Cheap on Zenoh's thread: decoding and writing happen below.
-            inbox.put((str(sample.key_expr), sample.payload.to_bytes(), node.clock.now_ns()))
+            # Cheap, and never blocks, so it may run on Zenoh's network thread
+            # (indirect=False): decoding and writing happen below.
+            inbox.append((str(sample.key_expr), sample.payload.to_bytes(), node.clock.now_ns()))
 
-        sub = node.session.declare_subscriber(f"{keys.prefix(robot)}/**", on_sample)
+        sub = node.session.declare_subscriber(f"{keys.prefix(robot)}/**",
+                                              zenoh.handlers.Callback(on_sample, indirect=False))
         log.info("recording %s/** to %s%s", keys.prefix(robot), base,
                  f" (split: {split.max_bytes / MB:g} MB, {split.max_duration_ns / 1e9:g} s)" if split.enabled else "")
         bad = 0
@@ -128,25 +140,19 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 return
             recorder.write(full_key, message, received)
 
+        def drain() -> None:
+            while inbox:
+                record(inbox.popleft())
+
         try:
-            while not node.stop.is_set():
-                try:
-                    item = inbox.get(timeout=POLL_S)
-                except queue.Empty:
-                    item = None
-                if item is not None:
-                    record(item)
+            while not node.stop.wait(BATCH_S):
+                drain()
                 # Also when nothing arrives: a quiet pipeline must not keep its last chunk in memory.
                 recorder.flush_if_due(node.clock.now_ns())
         finally:
             sub.undeclare()
             try:
-                while True:  # what arrived before the subscriber closed is kept
-                    try:
-                        item = inbox.get_nowait()
-                    except queue.Empty:
-                        break
-                    record(item)
+                drain()  # what arrived before the subscriber closed is kept
             finally:
                 report = recorder.finish()
             log.info("wrote %s; %d malformed samples dropped", report.format(), bad)
