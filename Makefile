@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo up test test-fast bench bench-quick lock clean
+.PHONY: demo up test test-fast lint bench bench-quick lock clean
 
 $(BIN)/nwr: pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,8 +18,17 @@ demo: $(BIN)/nwr   ## the whole pipeline on a scripted 30 s touch session, then 
 up: $(BIN)/nwr     ## every service as its own process until Ctrl-C
 	$(BIN)/nwr up
 
-test: $(BIN)/nwr   ## every test, the multi-process ones included
+test: lint        ## lint and types, then every test, the multi-process ones included
 	$(BIN)/python -m pytest
+
+# mypy checks the installed layout (nwr.common, nwr.services): a tree of links
+# maps it onto common/ and services/, as the editable install does.
+TYPECHECK := build/typecheck
+lint: $(BIN)/nwr   ## ruff (style, bugs, imports) and mypy (types) over the code
+	$(BIN)/ruff check .
+	rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/nwr
+	ln -s $(CURDIR)/common $(TYPECHECK)/nwr/common && ln -s $(CURDIR)/services $(TYPECHECK)/nwr/services
+	cd $(TYPECHECK) && $(CURDIR)/$(BIN)/mypy --config-file $(CURDIR)/pyproject.toml --explicit-package-bases -p nwr
 
 test-fast: $(BIN)/nwr  ## the fast tests only
 	$(BIN)/python -m pytest -m "not slow and not e2e"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 import time
 
@@ -32,6 +33,9 @@ log = logging.getLogger(__name__)
 CONFIRM_FLAG = "--i-am-next-to-the-robot"
 # After SIGTERM, the controlled stop may take at most this long beyond its own duration, s.
 SHUTDOWN_SLACK_S = 0.5
+# A command's handler waits for the GIL while the control loop runs Python:
+# switch at least this often, s (Python's default is 5 ms).
+SWITCH_INTERVAL_S = 0.0005
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -189,6 +193,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         print(env.describe())
         return 0
     backend = make_backend(cfg, env, q0, args)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     log.info("%s backend; the envelope it enforces:\n%s", backend.name, env.describe())
     backend.connect()
     if backend.name != "sim":
@@ -197,10 +202,12 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         with Node("bridge", profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
             node.install_signal_handlers()
             bridge = Bridge(profile, node, backend, env, q0, n_pads)
-            node.subscribe(keys.ROBOT_COMMANDS, bridge.on_command, keyed=True)
-            node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin)
-            node.subscribe(keys.SKIN_PAIN, bridge.on_pain)
-            node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch)
+            # Every handler on Zenoh's network thread (direct: no hand-off to a
+            # Python thread per command); the bridge subscribes to nothing it publishes.
+            node.subscribe(keys.ROBOT_COMMANDS, bridge.on_command, keyed=True, direct=True)
+            node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin, direct=True)
+            node.subscribe(keys.SKIN_PAIN, bridge.on_pain, direct=True)
+            node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch, direct=True)
             tokens = keys.key(profile.robot.name, keys.alive(PLANNER_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, bridge.on_liveliness, history=True)
             log.info("following planner %r (tokens %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 
 from nwr.common import keys
@@ -15,6 +16,11 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner.core import Planner
 
 log = logging.getLogger(__name__)
+
+# A pain message's handler waits for the GIL while the control loop runs
+# Python (the Cartesian stream's Jacobian, the retreat check): switch at least
+# this often, s (Python's default is 5 ms, more than the whole reflex budget).
+SWITCH_INTERVAL_S = 0.0005
 
 
 def planner_service(name: str) -> str:
@@ -33,6 +39,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.reflex:
         cfg.strategy = args.reflex
     desc = load_description(profile.robot.description or None)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     planner = Planner(cfg, desc, RobotModel(desc))
     lock = threading.Lock()
     # Each planner instance has its own liveliness token and diagnostics key,
@@ -83,9 +90,13 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             with lock:
                 planner.on_peer_status(status, node.clock.now_ns())
 
-        node.subscribe(keys.ROBOT_STATE, on_state)
+        # The reflex path's input and the arm's state run on Zenoh's network
+        # thread (direct: no hand-off to a Python thread). The statuses may not:
+        # this planner's own status, put while the lock is held, comes back to
+        # this process through that subscription, in the putting thread.
+        node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
         node.subscribe(keys.planner_status("*"), on_peer_status)
-        node.subscribe(keys.SKIN_PAIN, on_pain)
+        node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy_name, cfg.rate_hz)
         rate = Rate(cfg.rate_hz, "planner")
         status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
