@@ -102,7 +102,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         metadata = session_metadata(
             robot=robot, session=session, profile_json=encode_profile(profile).decode(),
             strategy=getattr(args, "strategy", None) or profile.planner.strategy, planner=profile.planner.name,
-            start_time_iso=dt.datetime.now(dt.timezone.utc).isoformat(), start_monotonic_ns=node.clock.now_ns(),
+            start_time_iso=dt.datetime.now(dt.UTC).isoformat(), start_monotonic_ns=node.clock.now_ns(),
             labels=labels,
         )
         recorder = SessionRecorder(
