@@ -5,10 +5,10 @@ BIN    := $(VENV)/bin
 
 .PHONY: demo up test test-fast lint bench bench-quick lock clean
 
-$(BIN)/nwr: pyproject.toml requirements.lock
+$(BIN)/nwr: pyproject.toml requirements.lock requirements-dev.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -r requirements.lock
+	$(BIN)/python -m pip install --quiet -r requirements.lock -r requirements-dev.lock
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(BIN)/nwr
 
@@ -39,10 +39,14 @@ bench: $(BIN)/nwr  ## measure the reflex path of the real pipeline (several minu
 bench-quick: $(BIN)/nwr  ## the benchmark's smoke run (under a minute)
 	$(BIN)/nwr bench --quick
 
-lock:              ## re-pin requirements.lock from the current environment
-	$(BIN)/python -m pip freeze --exclude-editable | grep -v '^-e' > requirements.lock.new
-	{ echo '# Exact versions for repeatable installs. Regenerate with: make lock'; cat requirements.lock.new; } > requirements.lock
-	rm requirements.lock.new
+lock:              ## re-pin requirements.lock (runtime and tests) and requirements-dev.lock (tools) from .venv
+	$(BIN)/python -m pip freeze --exclude-editable | grep -v '^-e' > lock.all
+	sed -n 's/==.*//p' requirements-dev.lock | sed 's/^/^/; s/$$/==/' > lock.dev-names
+	{ sed -n '1,/^# Regenerate/p' requirements-dev.lock; grep -i -f lock.dev-names lock.all; } > requirements-dev.lock.new
+	{ echo '# Exact versions for repeatable installs (pip install -r requirements.lock). Regenerate with: make lock'; \
+	  grep -v -i -f lock.dev-names lock.all; } > requirements.lock
+	mv requirements-dev.lock.new requirements-dev.lock
+	rm lock.all lock.dev-names
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -315,7 +315,8 @@ def _as_toml(data: dict[str, Any]) -> str:
 # ------------------------------------------------------------------------------ the recorder soak
 
 
-def recorder_soak(minutes: float, path: Path, profile: Profile | None = None, *, skin_hz: float = 25.0, state_hz: float = 125.0,
+def recorder_soak(minutes: float, path: Path, profile: Profile | None = None, *, skin_hz: float = 25.0,
+                  state_hz: float = 125.0,
                   command_hz: float = 500.0, status_hz: float = 20.0) -> dict[str, Any]:
     """``minutes`` of a session written through the recorder's decode-and-write path, as fast as it goes.
 
@@ -448,7 +449,8 @@ def tables(summary: dict[str, dict[str, Any]]) -> tuple[list[str], list[list[str
                 continue
             rows.append([name if first else "", metric, str(int(st["n"])), _f(st["p50"], ".3f"), _f(st["p90"], ".3f"),
                          _f(st["p99"], ".3f"), _f(st["max"], ".3f"),
-                         _f(s["lost_total"], ".0f") if first else "", _f(s["cpu_percent_total"], ".1f") if first else ""])
+                         _f(s["lost_total"], ".0f") if first else "",
+                         _f(s["cpu_percent_total"], ".1f") if first else ""])
             first = False
     cost_header = ["configuration", "service", "CPU % of a core", "peak RSS (MB)", "loop p50 (ms)", "loop p99 (ms)",
                    "loop worst (ms)", "overruns"]
@@ -472,7 +474,8 @@ def text_table(header: list[str], rows: list[list[str]]) -> str:
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
+    out = ["| " + " | ".join(header) + " |",
+           "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
     out += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(out)
 

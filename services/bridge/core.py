@@ -260,7 +260,8 @@ def check_command(cmd: object, env: Envelope, ctx: CheckContext) -> Checked:
             return reject(
                 "command_jump",
                 f"joint {env.joints[i]} target {values[i]:.4f} rad is {jump[i]:.4f} rad from the commanded "
-                f"{ctx.q_ref[i]:.4f} rad, limit {env.position_jump_rad} rad (resynchronise the planner from robot/state)",
+                f"{ctx.q_ref[i]:.4f} rad, limit {env.position_jump_rad} rad "
+                "(resynchronise the planner from robot/state)",
             )
         clipped = _clip(values, env.q_min, env.q_max)
         if not (clipped == values).all():
@@ -619,7 +620,8 @@ class BridgeCore:
         self.mode = "none"
         self.last_command_ns = 0
         if fault is None:
-            self.events.append(Event("info", "robot_recovered", f"robot recovered from {self.fault}: waiting for commands"))
+            self.events.append(Event("info", "robot_recovered",
+                                     f"robot recovered from {self.fault}: waiting for commands"))
         else:
             self.events.append(Event("error", fault, f"robot in {fault}: {detail}"))
         self.fault = fault
@@ -654,7 +656,8 @@ class BridgeCore:
             status, detail = "planner_lost", f"planner {self.active!r} lost its liveliness token"
         elif not self.planner_alive or self.last_command_ns == 0:
             status = "idle"
-            detail = f"waiting for planner {self.active!r}" if not self.planner_alive else "waiting for the first command"
+            detail = (f"waiting for planner {self.active!r}" if not self.planner_alive
+                      else "waiting for the first command")
         elif now_ns - self.last_command_ns > self.command_timeout_ns:
             status = "stale_command"
             detail = f"no command for more than {self.command_timeout_ns / 1e6:.0f} ms"
@@ -662,7 +665,7 @@ class BridgeCore:
             status = "stale_skin"
             if self.last_skin_ns is None:
                 age = "no skin data yet"
-            elif pain_stale and now_ns - self.last_skin_ns <= self.skin_timeout_ns:
+            elif pain_stale and self.last_pain_ns is not None and now_ns - self.last_skin_ns <= self.skin_timeout_ns:
                 age = f"pain data {(now_ns - self.last_pain_ns) / 1e6:.0f} ms old (is the gain estimator running?)"
             else:
                 age = f"skin data {(now_ns - self.last_skin_ns) / 1e6:.0f} ms old"
@@ -828,7 +831,7 @@ class BridgeCore:
 
     def release(self) -> None:
         """Drop the trajectory generator at shutdown (its objects must not outlive their module)."""
-        self._otg = self._otg_in = None  # type: ignore[assignment]
+        self._otg = self._otg_in = None
         if self.stop is not None:
             self.stop.trajectory = None
 

@@ -87,7 +87,8 @@ class GainEstimator:
         names = {p.name for p in pads}
         unknown = sorted(set(cfg.overrides) - names)
         if unknown:
-            raise ConfigError(f"gain.overrides names pads {unknown} that the skin does not have (pads: {sorted(names)})")
+            raise ConfigError(f"gain.overrides names pads {unknown} that the skin does not have "
+                              f"(pads: {sorted(names)})")
         self.per_pad: list[PadGain] = []
         for pad in pads:
             over = cfg.overrides.get(pad.name)

@@ -39,7 +39,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         # On Zenoh's network thread (direct): the handler never waits, and this
         # process subscribes to nothing it publishes.
         node.subscribe(keys.SKIN_PRESSURE, on_pressure, direct=True)
-        log.info("%s gain model, thresholds %s hPa, k = %s", profile.gain.model, profile.gain.thresholds_hpa, profile.gain.k)
+        log.info("%s gain model, thresholds %s hPa, k = %s", profile.gain.model, profile.gain.thresholds_hpa,
+                 profile.gain.k)
         node.stop.wait()
         log.info("processed %d skin samples, %d non-finite pad values", estimator.seq, estimator.non_finite)
     return 0

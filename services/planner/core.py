@@ -459,7 +459,8 @@ class Planner:
         t = t0
         for _ in range(samples):
             scale = smooth_profile(t, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s) if self.smooth else 1.0
-            q = np.clip(q + scale * self.cartesian.joint_velocity(q, count=False) * dt, self.desc.q_min, self.desc.q_max)
+            q = np.clip(q + scale * self.cartesian.joint_velocity(q, count=False) * dt,
+                        self.desc.q_min, self.desc.q_max)
             path.append(q.copy())
             t += dt
         return np.array(path), dt

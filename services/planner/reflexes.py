@@ -101,7 +101,8 @@ class JointReflex:
             return np.zeros_like(self.q_max)
         w = table.get(contact.region)
         if w is None:
-            raise ConfigError(f"planner.location_weights.pl{contact.level} has no weights for region {contact.region!r}")
+            raise ConfigError(f"planner.location_weights.pl{contact.level} has no weights "
+                              f"for region {contact.region!r}")
         return contact.gain * w * self.q_max
 
     def target(self, q: np.ndarray, contact: m.Contact) -> np.ndarray:
