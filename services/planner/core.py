@@ -24,10 +24,16 @@ when the two disagree (after the bridge stopped the arm, say).
 
 The reflex path is event driven: :meth:`on_pain` returns the first command
 of a reflex at once; :meth:`step` carries the motion on every control cycle.
+The retreat check of a reflex (a few ms of kinematics) is split so that it
+can run beside both: :meth:`retreat_check` takes what it needs (under the
+adapter's lock), :meth:`RetreatCheck.run` computes it on a model of its own,
+:meth:`apply_retreat` stores it if the reflex is still the current one.
+:meth:`assess` does all three at once.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass, field
 
@@ -57,6 +63,53 @@ class Reflex:
     target: np.ndarray | None = None
     corrected: bool = False
     retreat: m.Retreat | None = None
+
+
+@dataclass
+class RetreatCheck:
+    """The retreat check of one reflex, taken from the planner; :meth:`run` needs nothing else.
+
+    A joint-space reflex's path is sampled from its trajectory when the check
+    is taken (cheap); a Cartesian reflex's stream is integrated in :meth:`run`
+    (the expensive part) from a copy of the stream's state.
+    """
+
+    reflex: Reflex
+    path: np.ndarray | None  # joint-space reflexes: the planned positions
+    dt: float
+    cartesian: CartesianReflex | None  # Cartesian reflexes: a copy of the stream
+    q0: np.ndarray
+    t0: float
+    duration_s: float
+    smooth_ramp_s: float | None  # None: not smoothed
+    q_min: np.ndarray
+    q_max: np.ndarray
+
+    def run(self, model: RobotModel) -> retreat.Assessment:
+        """The retreat figures, computed on ``model`` (one that no other thread is using)."""
+        path, dt = self.path, self.dt
+        if path is None:
+            assert self.cartesian is not None
+            self.cartesian.model = model
+            path, dt = integrate_cartesian(self.cartesian, self.q0, self.t0, self.duration_s, self.smooth_ramp_s,
+                                           self.q_min, self.q_max)
+        return retreat.assess(model, path, dt, self.reflex.contact.pad)
+
+
+def integrate_cartesian(cartesian: CartesianReflex, q0: np.ndarray, t0: float, duration_s: float,
+                        smooth_ramp_s: float | None, q_min: np.ndarray, q_max: np.ndarray,
+                        samples: int = 40) -> tuple[np.ndarray, float]:
+    """A Cartesian stream from ``t0`` to its end, integrated from ``q0``."""
+    dt = duration_s / samples
+    q = q0.copy()
+    path = [q.copy()]
+    t = t0
+    for _ in range(samples):
+        scale = smooth_profile(t, duration_s, smooth_ramp_s) if smooth_ramp_s is not None else 1.0
+        q = np.clip(q + scale * cartesian.joint_velocity(q, count=False) * dt, q_min, q_max)
+        path.append(q.copy())
+        t += dt
+    return np.array(path), dt
 
 
 class Planner:
@@ -430,15 +483,39 @@ class Planner:
     # -- the retreat check ------------------------------------------------------
     def assess(self) -> m.Retreat | None:
         """Retreat figures of the current reflex's planned motion (off the event path)."""
+        check = self.retreat_check()
+        if check is None:
+            return None
+        self.apply_retreat(check, check.run(self.model))
+        return check.reflex.retreat
+
+    def retreat_check(self) -> RetreatCheck | None:
+        """What the retreat check of the current reflex needs (None outside a reflex)."""
         reflex = self.reflex
         if reflex is None or self.mode != "REFLEX":
             return None
-        path, dt = self.planned_path()
-        reflex.retreat = retreat.assess(self.model, path, dt, reflex.contact.pad).to_message(
+        smooth = self.cfg.smooth_ramp_s if self.smooth else None
+        if self.joint_reflex is not None:
+            path, dt = self.planned_path()
+            return RetreatCheck(reflex, path, dt, None, self.q.copy(), 0.0, self.cfg.reflex_duration_s, smooth,
+                                self.desc.q_min, self.desc.q_max)
+        assert self.cartesian is not None
+        stream = copy.copy(self.cartesian)
+        stream._twist = self.cartesian._twist.copy()
+        stream._normal = self.cartesian._normal.copy()
+        return RetreatCheck(reflex, None, 0.0, stream, self.q.copy(), reflex.elapsed_s, self.cfg.reflex_duration_s,
+                            smooth, self.desc.q_min, self.desc.q_max)
+
+    def apply_retreat(self, check: RetreatCheck, assessment: retreat.Assessment) -> bool:
+        """Store a check's figures on its reflex; False if a newer reflex has replaced it meanwhile."""
+        reflex = check.reflex
+        if reflex is not self.reflex:
+            return False
+        reflex.retreat = assessment.to_message(
             reflex.contact.pad, reflex.corrected or (self.cartesian is not None and self.cartesian.corrections > 0)
         )
         self.changed = True
-        return reflex.retreat
+        return True
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
         """Joint positions over the rest of the current reflex, from its planned motion."""
@@ -453,17 +530,9 @@ class Planner:
     def _integrate_cartesian(self, q0: np.ndarray, t0: float, samples: int = 40) -> tuple[np.ndarray, float]:
         """The Cartesian stream from ``t0`` to its end, integrated from ``q0``."""
         assert self.cartesian is not None
-        dt = self.cfg.reflex_duration_s / samples
-        q = q0.copy()
-        path = [q.copy()]
-        t = t0
-        for _ in range(samples):
-            scale = smooth_profile(t, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s) if self.smooth else 1.0
-            q = np.clip(q + scale * self.cartesian.joint_velocity(q, count=False) * dt,
-                        self.desc.q_min, self.desc.q_max)
-            path.append(q.copy())
-            t += dt
-        return np.array(path), dt
+        return integrate_cartesian(self.cartesian, q0, t0, self.cfg.reflex_duration_s,
+                                   self.cfg.smooth_ramp_s if self.smooth else None, self.desc.q_min,
+                                   self.desc.q_max, samples)
 
     def _position_command(self, now_ns: int) -> m.PositionCommand:
         msg = m.PositionCommand(

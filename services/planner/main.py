@@ -11,7 +11,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import STRATEGIES, Profile
 from nwr.common.node import Node
-from nwr.common.pacing import Rate
+from nwr.common.pacing import Rate, realtime
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner.core import Planner
 
@@ -40,6 +40,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         cfg.strategy = args.reflex
     desc = load_description(profile.robot.description or None)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    realtime(cfg.realtime_priority, "planner")  # before the session: Zenoh's threads inherit it
     planner = Planner(cfg, desc, RobotModel(desc))
     lock = threading.Lock()
     # Each planner instance has its own liveliness token and diagnostics key,
@@ -62,7 +63,34 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
+        # The retreat check (a few ms of kinematics per reflex) runs in a thread
+        # of its own, on its own model, outside the lock: neither the next pain
+        # message nor the control loop waits for it. Updates that arrive while
+        # it runs coalesce into one check of the newest reflex.
         assess_pending = threading.Event()
+        check_model = RobotModel(desc)
+
+        def check_retreats() -> None:
+            while not node.stop.is_set():
+                if not assess_pending.wait(0.1):
+                    continue
+                assess_pending.clear()
+                with lock:
+                    check = planner.retreat_check()
+                if check is None:
+                    continue
+                try:
+                    assessment = check.run(check_model)
+                except Exception as exc:  # a failed check must not end the checks of later reflexes
+                    log.exception("retreat check of reflex %d failed", check.reflex.seq)
+                    node.diag("error", "retreat_check_failed", f"retreat check of reflex {check.reflex.seq}: {exc!r}")
+                    continue
+                with lock:
+                    # Published with the reflex on the control loop's next status.
+                    planner.apply_retreat(check, assessment)
+
+        checker = threading.Thread(target=check_retreats, name="retreat-check", daemon=True)
+        checker.start()
 
         def on_pain(pain: m.SkinPain) -> None:
             # The event path: a reflex starts the moment its pain message arrives.
@@ -79,10 +107,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 # After the command: noting the decision costs the reflex nothing.
                 send_decision(planner.decision(pain, received, decided, command))
                 if command is not None:
-                    # The retreat check of the planned motion (a few ms) runs in
-                    # the control loop, not here: the next pain message must not
-                    # wait for it. Updates in between coalesce into one check.
-                    assess_pending.set()
+                    assess_pending.set()  # the retreat check, in its own thread
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
 
@@ -107,12 +132,11 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     command = planner.step(now)
                     if command is not None:
                         send(command)
-                    if assess_pending.is_set():
-                        assess_pending.clear()
-                        planner.assess()  # published with the reflex on the status below
                     if planner.changed or rate.ticks % status_every == 0:
                         send_status(planner.status(now))
         finally:
+            node.stop.set()
+            checker.join(1.0)
             log.info(rate.summary())
             log.info("%d reflexes, %d resynchronisations", planner.reflex_count, planner.resyncs)
     return 0
