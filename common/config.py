@@ -206,6 +206,10 @@ class PlannerSection(_Section):
     speed_fraction: Fraction = 0.9
     # Planner status rate, Hz (transitions are published at once as well).
     status_rate_hz: Positive = 20.0
+    # Real-time scheduling of the planner's threads: SCHED_FIFO at this
+    # priority (1-99), as on a lab PC with a real-time kernel; 0 = off. Needs
+    # CAP_SYS_NICE or an rtprio limit; without it, a warning and no change.
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
     task: TaskSection = msgspec.field(default_factory=TaskSection)
 
 
@@ -217,6 +221,9 @@ class BridgeSection(_Section):
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
     # Robot state publication rate, Hz (plus one out of schedule per reflex onset).
     state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 125.0
+    # Real-time scheduling of the bridge's threads: SCHED_FIFO at this priority
+    # (1-99); 0 = off. As planner.realtime_priority.
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
     # The only planner whose commands move the arm.
     active_planner: Name = "cartesian"
     # No command for this long: decelerate to rest and hold, s (10 control cycles).

@@ -7,12 +7,34 @@ at a bounded rate, and summarises the loop's timing at the end.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+
+def realtime(priority: int, name: str) -> bool:
+    """Run the calling thread under SCHED_FIFO at ``priority`` (1-99), as on a lab's real-time kernel.
+
+    Threads started afterwards (Zenoh's, when the session is opened after this)
+    inherit it. 0 leaves the scheduling alone. Fails soft: without the
+    permission (CAP_SYS_NICE, or an rtprio limit: ``ulimit -r``), or on a
+    system without SCHED_FIFO, a warning and the normal scheduler.
+    """
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        log.warning("%s: real-time scheduling (SCHED_FIFO, priority %d) is not permitted here (%s): running with "
+                    "the normal scheduler; grant CAP_SYS_NICE or an rtprio limit (ulimit -r %d) to use it",
+                    name, priority, exc, priority)
+        return False
+    log.info("%s: real-time scheduling, SCHED_FIFO priority %d", name, priority)
+    return True
 
 
 class Rate:

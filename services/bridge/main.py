@@ -22,6 +22,7 @@ from nwr.common import messages as m
 from nwr.common.config import BridgeSection, Profile
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.common.pacing import realtime
 from nwr.common.robot import load_description
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.core import BridgeCore, Envelope, Event, at_rest, make_envelope
@@ -194,6 +195,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         return 0
     backend = make_backend(cfg, env, q0, args)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    realtime(cfg.realtime_priority, "bridge")  # before the session: Zenoh's threads inherit it
     log.info("%s backend; the envelope it enforces:\n%s", backend.name, env.describe())
     backend.connect()
     if backend.name != "sim":
