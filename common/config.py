@@ -258,6 +258,11 @@ class BridgeSection(_Section):
     # ur_rtde backend: reconnection backoff, doubling from min to max, s.
     reconnect_min_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
     reconnect_max_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 8.0
+    # ur_rtde backend: the controller's watchdog on the bridge, Hz. The bridge
+    # kicks it every cycle; if no kick arrives within 1/watchdog_hz (a hung or
+    # starved bridge process), the controller stops the control script and
+    # with it the arm. It cannot be switched off.
+    watchdog_hz: Annotated[float, msgspec.Meta(ge=1, le=125)] = 10.0
 
 
 class RecorderSection(_Section):

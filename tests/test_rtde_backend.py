@@ -26,6 +26,7 @@ class FakeRobot:
         self.estop = False
         self.program = True
         self.refuse_connect = False
+        self.refuse_watchdog = False
 
 
 class FakeControl:
@@ -53,6 +54,14 @@ class FakeControl:
 
     def speedStop(self, a, /):
         self._call("speedStop", a)
+        return True
+
+    def setWatchdog(self, min_frequency=10.0, /):
+        self._call("setWatchdog", min_frequency)
+        return not self.r.refuse_watchdog
+
+    def kickWatchdog(self):
+        self._call("kickWatchdog")
         return True
 
     def initPeriod(self):
@@ -139,7 +148,7 @@ def setup():
         return FakeControl(robot), FakeReceive(robot)
 
     backend = URRtdeBackend(env, DT, "192.0.2.10", lookahead_s=0.1, gain=300.0, reconnect_min_s=0.5,
-                            reconnect_max_s=4.0, factory=factory, clock=clock)
+                            reconnect_max_s=4.0, watchdog_hz=20.0, factory=factory, clock=clock)
     return backend, robot, clock, made, np.asarray(q0)
 
 
@@ -184,8 +193,10 @@ def test_pacing_uses_init_and_wait_period(setup):
     backend, robot, _, _, _ = setup
     backend.connect()
     pacer = backend.pacer(500.0)
+    robot.calls.clear()
     assert pacer.sleep() and pacer.sleep()
-    assert names(robot) == ["initPeriod", "waitPeriod", "initPeriod"]
+    # The controller's watchdog is kicked every cycle.
+    assert names(robot) == ["initPeriod", "kickWatchdog", "waitPeriod", "initPeriod", "kickWatchdog"]
 
 
 def test_faults_are_reported(setup):
@@ -260,3 +271,39 @@ def test_connection_failure_says_what_to_check(setup):
     robot.refuse_connect = True
     with pytest.raises(RobotConnectionError, match="remote control mode.*30004"):
         backend.connect()
+
+
+def test_the_controller_watches_the_bridge(setup):
+    """setWatchdog right after connecting, and again whenever the control script restarts."""
+    backend, robot, clock, _, _ = setup
+    backend.connect()
+    assert robot.calls[0] == ("setWatchdog", 20.0)
+    robot.program = False  # the script stopped (program stopped on the pendant): re-uploaded, re-armed
+    backend.get_observation()
+    assert names(robot)[-2:] == ["reuploadScript", "setWatchdog"]
+    robot.connected = False  # a lost connection: the new one is watched again
+    backend.get_observation()
+    robot.connected = True
+    clock.t = 100.0
+    robot.calls.clear()
+    assert backend.get_observation().fault is None
+    assert ("setWatchdog", 20.0) in robot.calls
+
+
+def test_no_watchdog_no_arm(setup):
+    """A controller that refuses the watchdog is not driven: at start, after a reconnection, after a re-upload."""
+    backend, robot, clock, _, _ = setup
+    robot.refuse_watchdog = True
+    with pytest.raises(RobotConnectionError, match="watchdog"):
+        backend.connect()
+    assert not backend.connected and "stopScript" in names(robot)
+    robot.refuse_watchdog = False
+    backend.connect()
+    robot.refuse_watchdog, robot.program = True, False
+    backend.get_observation()  # re-uploads, cannot arm: stops the script again
+    assert names(robot)[-3:] == ["reuploadScript", "setWatchdog", "stopScript"]
+    robot.connected = False
+    backend.get_observation()
+    robot.connected = True
+    clock.t = 100.0
+    assert backend.get_observation().fault == "disconnected" and "watchdog" in backend.fault_reason

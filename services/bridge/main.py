@@ -81,7 +81,8 @@ def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argpar
     from nwr.services.bridge.ur_rtde import URRtdeBackend
 
     return URRtdeBackend(env, dt, args.robot_ip, lookahead_s=cfg.servo_lookahead_s, gain=cfg.servo_gain,
-                         reconnect_min_s=cfg.reconnect_min_s, reconnect_max_s=cfg.reconnect_max_s)
+                         reconnect_min_s=cfg.reconnect_min_s, reconnect_max_s=cfg.reconnect_max_s,
+                         watchdog_hz=cfg.watchdog_hz)
 
 
 class Bridge:

@@ -15,6 +15,10 @@
   control script. A lost connection is retried with exponential backoff.
 - ``disconnect()`` ends any stream, stops the control script and closes both
   interfaces: the robot is released at rest.
+- The controller watches the bridge: ``setWatchdog(watchdog_hz)`` right after
+  every (re)connection, ``kickWatchdog`` every cycle. A bridge that hangs or
+  is starved of CPU for longer than ``1 / watchdog_hz`` has the controller
+  stop its control script, and with it the arm, without the bridge's help.
 
 ``rtde_control`` / ``rtde_receive`` are imported only when this backend
 connects, so the simulated bridge and the tests never need them: the tests
@@ -80,6 +84,7 @@ class RtdePacer:
                 if self._t is not None:
                     control.waitPeriod(self._t)
                 self._t = control.initPeriod()
+                control.kickWatchdog()
             except RuntimeError:
                 self._t = None
                 self.backend.lost("waitPeriod failed")
@@ -117,6 +122,7 @@ class URRtdeBackend(Backend):
         gain: float = 300.0,
         reconnect_min_s: float = 0.5,
         reconnect_max_s: float = 8.0,
+        watchdog_hz: float = 10.0,
         factory: Factory = rtde_factory,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -128,6 +134,7 @@ class URRtdeBackend(Backend):
         self.gain = gain
         self.reconnect_min_s = reconnect_min_s
         self.reconnect_max_s = reconnect_max_s
+        self.watchdog_hz = watchdog_hz
         self.factory = factory
         self.clock = clock
         self.control: Any = None
@@ -149,6 +156,7 @@ class URRtdeBackend(Backend):
         """Connect, or raise RobotConnectionError with what to check."""
         try:
             self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
+            armed = self._arm_watchdog()
         except RobotConnectionError:
             raise
         except (RuntimeError, OSError) as exc:
@@ -157,12 +165,29 @@ class URRtdeBackend(Backend):
                 f"is powered on and in remote control mode, and that ports {RTDE_PORT} (RTDE) and "
                 f"{', '.join(map(str, SCRIPT_PORTS))} are reachable (docs/bridge.md)"
             ) from exc
+        if not armed:
+            self.disconnect()
+            raise RobotConnectionError(f"the UR controller at {self.robot_ip} refused the RTDE watchdog at "
+                                       f"{self.watchdog_hz:g} Hz: the bridge does not run the arm without it")
         self.connected = True
         self.streaming = None
         self.backoff_s = self.reconnect_min_s
         self.last_q = self._read_q()
         self.last_sent = self.last_q.copy()
         log.info("connected to the UR controller at %s (RTDE at %.0f Hz)", self.robot_ip, 1.0 / self.dt)
+
+    def _arm_watchdog(self) -> bool:
+        """The controller's watchdog on this bridge, set whenever its control script (re)starts.
+
+        It lives in the control script: every new connection and every
+        re-upload of the script needs it again. False if the controller
+        refused it.
+        """
+        if not self.control.setWatchdog(self.watchdog_hz):
+            return False
+        log.info("RTDE watchdog armed: the controller stops the arm if the bridge is silent for %.0f ms",
+                 1e3 / self.watchdog_hz)
+        return True
 
     def lost(self, reason: str) -> None:
         """The connection dropped: schedule a reconnection with backoff."""
@@ -185,6 +210,8 @@ class URRtdeBackend(Backend):
             if not ok:
                 self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
                 ok = True
+            if not self._arm_watchdog():
+                raise RuntimeError(f"the controller refused the RTDE watchdog at {self.watchdog_hz:g} Hz")
         except (RuntimeError, OSError) as exc:
             self.fault_reason = f"reconnection {self.reconnects} failed ({exc})"
             ok = False
@@ -253,8 +280,13 @@ class URRtdeBackend(Backend):
                     self.next_attempt = self.clock() + self.backoff_s
                     self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
                     if self.control.reuploadScript():
-                        self.backoff_s = self.reconnect_min_s
-                        log.info("control script re-uploaded")
+                        if self._arm_watchdog():
+                            self.backoff_s = self.reconnect_min_s
+                            log.info("control script re-uploaded")
+                        else:  # never a running script the controller does not watch
+                            self.control.stopScript()
+                            log.warning("control script re-uploaded, but the controller refused the RTDE "
+                                        "watchdog: stopped it again; retrying with backoff")
                 return Observation(q, dq, "script_not_running",
                                    "the ur_rtde control script is not running (remote control mode? program stopped "
                                    "on the pendant?): re-uploading it with backoff")
