@@ -168,6 +168,11 @@ class PlannerSection(_Section):
     strategy: Strategy = "cartesian"
     # Command rate, Hz (the UR e-Series control period is 2 ms).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
+    # The task is planned ahead: one command every this many control cycles,
+    # carrying the setpoints of the cycles until the next (the bridge
+    # interpolates). Reflexes and returns stream one command per cycle.
+    # 1 = one command per cycle in the task too. At most 0.1 s of cycles.
+    task_ahead_cycles: Annotated[int, msgspec.Meta(ge=1, le=50)] = 10
     # Joint-space reflexes: the paper's human range of motion q_max, degrees,
     # per joint (base, shoulder, elbow, wrist 1-3). UR adds uniform_fraction of
     # it (the paper's 1/2), LR adds G(p) W(PL, region) q_max; both in the
@@ -365,6 +370,12 @@ def _check_profile(profile: Profile) -> None:
         raise ConfigError(
             f"gateway: release_hpa ({profile.gateway.release_hpa}) must not exceed contact_hpa "
             f"({profile.gateway.contact_hpa})"
+        )
+    planner = profile.planner
+    if planner.task_ahead_cycles > 1 and planner.task_ahead_cycles / planner.rate_hz > 0.1 + 1e-9:
+        raise ConfigError(
+            f"planner.task_ahead_cycles = {planner.task_ahead_cycles} at {planner.rate_hz:g} Hz plans more than "
+            "0.1 s ahead, which the bridge refuses: lower it"
         )
     task = profile.planner.task
     if len(task.amplitude_rad) != len(task.double_frequency):

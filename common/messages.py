@@ -137,7 +137,13 @@ class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown
 
 
 class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_unknown_fields=True):
-    """Joint position target (rad) for the next control cycle."""
+    """Joint position target (rad) for the next control cycle.
+
+    A planned motion (the task) may also carry the setpoints of the cycles
+    after it: ``ahead[k]`` is the target ``(k + 1) * period_s`` after ``q``,
+    so one message covers several cycles (the bridge interpolates between
+    them and follows the next command as soon as it arrives).
+    """
 
     seq: int
     stamp_ns: int
@@ -146,6 +152,8 @@ class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_u
     trace: Trace
     reflex_seq: int = 0
     phase: Mode = "TASK"
+    ahead: list[list[Finite]] = []
+    period_s: Finite = 0.0
 
 
 class VelocityCommand(msgspec.Struct, tag="velocity", tag_field="kind", forbid_unknown_fields=True):

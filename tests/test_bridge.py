@@ -490,3 +490,98 @@ def test_a_command_on_another_planners_key_is_refused_whatever_owner_it_claims()
     assert "robot/command/standby" in event.message and "claims owner 'p'" in event.message
     assert c.on_command(vel([0.5, 0.0], seq=2, stamp=2 * MS), 2 * MS, publisher="p").accepted
     assert c.rejected == 1
+
+
+# --------------------------------------------------------------------------- commands planned ahead
+
+
+def plan(q, ahead, seq=1, period=DT, owner="p", stamp=0):
+    cmd = pos(q, owner=owner, seq=seq, stamp=stamp)
+    cmd.ahead = [list(row) for row in ahead]
+    cmd.period_s = period
+    return cmd
+
+
+@pytest.mark.parametrize(
+    ("ahead", "period", "text"),
+    [
+        ([[0.0, 0.0]], 0.0, "period_s 0.0"),
+        ([[0.0, 0.0]], 0.2, "period_s 0.2"),
+        ([[0.0, 0.0]] * 60, DT, "cover more than 0.1 s"),
+        ([[0.0, 0.0], [0.0]], DT, "does not have 2 joint values"),
+        ([[0.0, 0.0], [0.0, math.nan]], DT, "non-finite"),
+    ],
+)
+def test_setpoints_ahead_that_cannot_be_trusted_reject_the_command(ahead, period, text):
+    out = check_command(plan([0.0, 0.0], ahead, period=period), ENV, ctx())
+    assert out.rejected and out.values is None and out.ahead is None
+    assert out.events[0].code == "command_invalid" and text in out.events[0].message
+
+
+def test_a_jump_between_setpoints_ahead_rejects_the_command():
+    out = check_command(plan([0.0, 0.0], [[0.01, 0.0], [0.01, 0.2]]), ENV, ctx())
+    assert out.rejected and out.events[0].code == "command_jump"
+    assert "joint b setpoint 2 ahead moves 0.2000 rad" in out.events[0].message
+
+
+def test_setpoints_ahead_beyond_a_joint_limit_are_clipped():
+    out = check_command(plan([0.98, 0.0], [[0.99, 0.0], [1.01, 0.0]]), ENV, ctx(q_ref=np.array([0.98, 0.0])))
+    assert not out.rejected and out.clipped
+    assert out.ahead is not None and out.ahead.tolist() == [[0.99, 0.0], [1.0, 0.0]]
+    assert out.events[0].code == "command_clipped"
+
+
+def test_a_plan_is_followed_between_its_commands_and_times_out_after_its_end():
+    env = lim(q_min=[-2.0, -2.0], q_max=[2.0, 2.0])
+    c = core(env=env, command_timeout_s=0.02)
+    traj = lambda k: np.array([0.3 * (1 - math.cos(k * DT * 2.0)), -0.1 * (1 - math.cos(k * DT * 3.0))])  # noqa: E731
+    n = 10
+
+    def every_tenth(s, t):
+        if s % n:
+            return None
+        return plan(traj(s), [traj(s + k) for k in range(1, n + 1)], seq=s // n, stamp=t)
+
+    r = Run(c).cycles(1000, every_tenth)
+    qs, dqs = r.arrays()
+    assert_within(env, qs, dqs)
+    # Followed as closely as the same motion sent one command per cycle (the
+    # tracker's own lag of about a cycle's motion, ~1 mrad here).
+    single = Run(core(env=env)).cycles(1000, lambda s, t: pos(traj(s), seq=s, stamp=t)).arrays()[0]
+    errors = np.abs(qs - [traj(k) for k in range(1000)])[100:].max()
+    assert errors <= np.abs(single - [traj(k) for k in range(1000)])[100:].max() + 1e-6
+    assert errors < 2e-3
+    assert c.status == "ok" and c.covered_ns == n * 2 * MS
+    # The planner falls silent: the plan carries the arm to its end, then the timeout stops it.
+    r.cycles(60)
+    # The last command came on cycle 990: its plan reaches cycle 1000, the 20 ms timeout cycle 1010.
+    assert r.status[990:1011] == ["ok"] * 21 and r.status[1011] == "stale_command"
+    assert c.status == "stale_command"
+    assert "past the 20 ms the last one planned ahead" in c.detail
+
+
+def test_a_reflex_after_a_plan_starts_from_where_the_plan_is():
+    c = core()
+    c.on_command(plan([0.0, 0.0], [[0.002 * k, 0.0] for k in range(1, 11)]), 0)
+    for k in range(1, 6):
+        c.step(k * 2 * MS)
+    # Ten cycles later the plan is at 0.02 rad: a reflex starting at 0.0195 is no jump ...
+    assert check_command(pos([0.0195, 0.0], seq=2), ENV, ctx(q_ref=c._planned(20 * MS)[0])).events == []
+    verdict = c.on_command(pos([0.0195, 0.0], seq=2, phase="REFLEX", reflex=1, stamp=20 * MS), 20 * MS)
+    assert verdict.accepted and verdict.onset and c.plan is None and c.covered_ns == 0
+    # ... and the stream carries on at the plan's speed (1 rad/s) until its own period is known.
+    assert c.v_ff.tolist() == pytest.approx([1.0, 0.0])
+    # A target far from where the plan is now is refused as a jump.
+    c.on_command(plan([0.0, 0.0], [[0.012 * k, 0.0] for k in range(1, 11)], seq=3), 30 * MS)
+    c.step(30 * MS + 20 * MS)
+    verdict = c.on_command(pos([0.0, 0.0], seq=4), 50 * MS)
+    assert not verdict.accepted and "command_jump" in [e.code for e in c.drain_events()]
+
+
+def test_a_plan_faster_than_the_limits_is_followed_at_the_limit():
+    c = core()
+    c.drain_events()
+    verdict = c.on_command(plan([0.0, 0.0], [[0.004 * k, 0.0] for k in range(1, 11)]), 0)  # 2 rad/s, v_max 1
+    assert verdict.accepted and c.clipped == 1
+    assert "planned to move at 2.000 rad/s, v_max 1.000 rad/s" in c.drain_events()[0].message
+    assert c.plan_v[:, 0].tolist() == pytest.approx([1.0] * 10)

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection
+from nwr.common.config import PlannerSection, load_profile
+from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner.core import Planner
 from nwr.services.planner.reflexes import damped_pinv, scale_to_limits
@@ -30,13 +31,17 @@ class Sim:
     def step(self, n=1):
         for _ in range(n):
             self.t += DT_NS
+            before = self.p.q
             cmd = self.p.step(self.t)
-            if cmd is None:  # the tick after an event-driven first command
-                continue
-            self.record(cmd)
+            if cmd is not None:
+                self.record(cmd)
+            elif self.p.q is not before:  # a task cycle the last command planned ahead
+                self.record(None)
+            # else: the tick after an event-driven first command (no motion)
 
     def record(self, cmd):
-        self.commands.append(cmd)
+        if cmd is not None:
+            self.commands.append(cmd)
         self.qs.append(self.p.q.copy())
         self.modes.append(self.p.mode)
 
@@ -230,3 +235,49 @@ def test_least_squares_solution_for_pads_with_fewer_joints():
     jac = MODEL.pad_jacobian(q, pad)
     expected = np.linalg.pinv(jac) @ np.concatenate([v_c, np.zeros(3)])
     np.testing.assert_allclose(dq, expected, atol=1e-9)
+
+
+def test_the_task_is_sent_planned_ahead_and_the_plan_is_what_the_planner_then_does():
+    sim = Sim()
+    sim.until("TASK")
+    start = len(sim.commands)
+    sim.step(1000)
+    task = [c for c in sim.commands[start:] if c.phase == "TASK"]
+    assert 95 <= len(task) <= 101  # one command per 10 cycles
+    first = len(sim.qs) - 1000
+    for c in task[1:]:
+        assert len(c.ahead) == 10 and c.period_s == pytest.approx(0.002)
+        k = next(i for i in range(first, len(sim.qs)) if np.array_equal(sim.qs[i], c.q))
+        done = [q.tolist() for q in sim.qs[k + 1:k + 11]]
+        assert c.ahead[: len(done)] == done  # bit for bit
+
+
+def test_a_touch_interrupts_the_plan_at_once_and_the_return_resumes_planning():
+    sim = Sim()
+    sim.until("TASK")
+    sim.step(7)  # mid-plan
+    q_contact = sim.p.q.copy()
+    first = sim.pain(DESC.pad("forearm_top").id, 0.8)
+    assert first is not None and first.phase == "REFLEX"
+    np.testing.assert_array_equal(sim.p.saved, q_contact)  # the pose of this cycle, not the plan's start
+    n = len(sim.commands)
+    sim.until("RETURNING")
+    sim.until("TASK")
+    # Reflex and return: one command per cycle, none planned ahead.
+    assert all(not getattr(c, "ahead", []) for c in sim.commands[n:-1]) and len(sim.commands) - n > 200
+    assert sim.commands[-1].phase == "TASK" and len(sim.commands[-1].ahead) == 10
+
+
+def test_one_command_per_cycle_in_the_task_on_request():
+    sim = Sim(PlannerSection(task_ahead_cycles=1))
+    sim.until("TASK")
+    n = len(sim.commands)
+    sim.step(100)
+    assert len(sim.commands) - n == 100 and not any(c.ahead for c in sim.commands[n:])
+
+
+def test_a_plan_longer_than_the_bridge_accepts_is_a_configuration_error(tmp_path):
+    bad = tmp_path / "far.toml"
+    bad.write_text("[planner]\nrate_hz = 100.0\ntask_ahead_cycles = 20\n")
+    with pytest.raises(ConfigError, match="plans more than 0.1 s ahead"):
+        load_profile(str(bad))

@@ -59,6 +59,9 @@ MAX_STEP_S = 0.05
 # Bounds of the estimated period of a planner's position stream, s.
 MIN_PERIOD_S = 0.0005
 MAX_PERIOD_S = 0.05
+# A command planned ahead may cover at most this long, s: the bridge notices a
+# dead planner at most this much later than with one command per cycle.
+MAX_AHEAD_S = 0.1
 # Relative tolerance before an implied speed counts as a clip (rounding).
 SPEED_TOLERANCE = 1.01
 # The bridge's and the planner's loops are not synchronised: a velocity
@@ -210,6 +213,7 @@ class Checked:
     rejected: bool = False
     clipped: bool = False
     restarted: bool = False  # the sender's seq fell back: a restarted planner
+    ahead: np.ndarray | None = None  # clipped setpoints planned ahead (rows), None if none
 
 
 def _name(cmd: object) -> str:
@@ -254,6 +258,33 @@ def check_command(cmd: object, env: Envelope, ctx: CheckContext) -> Checked:
 
     out = Checked(values, restarted=restarted)
     if position:
+        ahead = cmd.ahead  # type: ignore[union-attr]
+        if ahead:
+            period = cmd.period_s  # type: ignore[union-attr]
+            if not MIN_PERIOD_S <= period <= MAX_PERIOD_S:
+                return reject("command_invalid", f"period_s {period} of its setpoints ahead is outside "
+                                                 f"[{MIN_PERIOD_S}, {MAX_PERIOD_S}] s")
+            if len(ahead) * period > MAX_AHEAD_S + 1e-9:
+                return reject("command_invalid", f"{len(ahead)} setpoints ahead at {period} s cover more than "
+                                                 f"{MAX_AHEAD_S} s")
+            if any(len(row) != env.n for row in ahead):
+                return reject("command_invalid", f"a setpoint ahead does not have {env.n} joint values")
+            points = np.asarray(ahead, dtype=float)
+            if not np.isfinite(points).all():
+                return reject("command_invalid", "non-finite values in its setpoints ahead")
+            step = np.abs(np.diff(np.vstack([values, points]), axis=0))
+            if (step > env.position_jump_rad).any():
+                k, i = (int(x) for x in np.unravel_index(int(np.argmax(step)), step.shape))
+                return reject(
+                    "command_jump",
+                    f"joint {env.joints[i]} setpoint {k + 1} ahead moves {step[k, i]:.4f} rad in one step, "
+                    f"limit {env.position_jump_rad} rad",
+                )
+            out.ahead = _clip(points, env.q_min, env.q_max)
+            if not (out.ahead == points).all():
+                out.events.append(Event("warning", "command_clipped",
+                                        f"{_name(cmd)}: setpoints ahead beyond the joint limits: clipped to them"))
+                out.clipped = True
         jump = np.abs(values - ctx.q_ref)
         if (jump > env.position_jump_rad).any():
             i = int(np.argmax(jump))
@@ -361,6 +392,12 @@ class BridgeCore:
         self.target = q0.copy()  # q (position) or dq (velocity)
         self.v_ff = np.zeros(n)  # feed-forward velocity of a position stream
         self.target_ns = now_ns
+        # A position command planned ahead: its setpoints (rows, the first at
+        # target_ns, one every plan_period_s), their speeds, how long they reach.
+        self.plan: np.ndarray | None = None
+        self.plan_v = np.zeros((0, n))
+        self.plan_period_s = 0.0
+        self.covered_ns = 0
         self.periods: deque[float] = deque(maxlen=15)
         self.last_seq: int | None = None
         self.last_stamp_ns = 0
@@ -428,7 +465,7 @@ class BridgeCore:
         # (the arm may lag it while the bridge limits it); anything else must
         # start from where the bridge has the arm.
         streaming = self.mode == "position" and self.status == "ok"
-        q_ref = self.target if streaming else self.q
+        q_ref = (self._planned(now_ns)[0] if self.plan is not None else self.target) if streaming else self.q
         ctx = CheckContext(self.active, self.planner_alive, q_ref, self.last_seq, self.seq_restart_gap)
         checked = check_command(cmd, self.env, ctx)
         self.events.extend(checked.events)
@@ -446,11 +483,13 @@ class BridgeCore:
                                      f"{_name(cmd)} not sent: the robot is in {self.fault} ({self.fault_detail})"))
             return Verdict(False, False)
         if isinstance(cmd, m.PositionCommand):
-            self._follow_position(cmd, checked.values, now_ns)
+            self._follow_position(cmd, checked.values, now_ns, checked.ahead)
         else:
             self.mode = "velocity"
             self.target = checked.values
             self.v_ff = np.zeros(self.env.n)
+            self.plan = None
+            self.covered_ns = 0
         self.phase = cmd.phase
         self._clip_reported = False
         self.last_seq = cmd.seq
@@ -472,11 +511,19 @@ class BridgeCore:
         switched = self._maybe_switch(now_ns)
         return Verdict(True, onset, switched)
 
-    def _follow_position(self, cmd: m.PositionCommand, q: np.ndarray, now_ns: int) -> None:
+    def _follow_position(self, cmd: m.PositionCommand, q: np.ndarray, now_ns: int, ahead: np.ndarray | None) -> None:
         env = self.env
         v_ff = np.zeros(env.n)
         gap = cmd.seq - self.last_seq if self.last_seq is not None else 0
-        if self.mode == "position" and 1 <= gap <= 10 and cmd.stamp_ns > self.last_stamp_ns:
+        if ahead is not None:
+            self._follow_plan(cmd, q, ahead, now_ns)
+            return
+        if self.mode == "position" and self.plan is not None:
+            # After a plan, a stream of one command per cycle (a reflex) carries
+            # on at the plan's speed until its own period is measured.
+            v_ff = self._planned(now_ns)[1].copy()
+            self.periods.clear()
+        elif self.mode == "position" and 1 <= gap <= 10 and cmd.stamp_ns > self.last_stamp_ns:
             # The stream's own period (median of its stamp steps, robust to the
             # jitter of both loops) turns successive targets into a velocity.
             self.periods.append((cmd.stamp_ns - self.last_stamp_ns) / gap / 1e9)
@@ -500,6 +547,48 @@ class BridgeCore:
         self.target = q
         self.v_ff = v_ff
         self.target_ns = now_ns
+        self.plan = None
+        self.covered_ns = 0
+
+    def _follow_plan(self, cmd: m.PositionCommand, q: np.ndarray, ahead: np.ndarray, now_ns: int) -> None:
+        """A position command planned ahead: its setpoints, one every ``cmd.period_s`` from now."""
+        env = self.env
+        plan = np.vstack([q, ahead])
+        period = cmd.period_s
+        v = np.diff(plan, axis=0) / period
+        ratio = (np.abs(v) / env.v_max).max(axis=1)
+        worst = float(ratio.max())
+        if worst > SPEED_TOLERANCE:
+            k = int(np.argmax(ratio))
+            i = int(np.argmax(np.abs(v[k]) / env.v_max))
+            self.events.append(Event(
+                "warning", "command_clipped",
+                f"{_name(cmd)}: joint {env.joints[i]} planned to move at {v[k, i]:.3f} rad/s, "
+                f"v_max {env.v_max[i]:.3f} rad/s: followed at the limit",
+            ))
+            self.clipped += 1
+        if worst > 1.0:
+            v = v / np.maximum(ratio, 1.0)[:, None]
+        self.periods.clear()
+        self.mode = "position"
+        self.target = q
+        self.v_ff = v[0]
+        self.target_ns = now_ns
+        self.plan, self.plan_v, self.plan_period_s = plan, v, period
+        self.covered_ns = round(len(ahead) * period * 1e9)
+
+    def _planned(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """The plan's target and feed-forward velocity at ``t_ns``: interpolated, or extrapolated past its end."""
+        plan, v = self.plan, self.plan_v
+        assert plan is not None
+        x = max((t_ns - self.target_ns) / 1e9, 0.0) / self.plan_period_s  # in periods
+        k = int(x)
+        last = len(plan) - 1
+        if k < last:
+            return plan[k] + (plan[k + 1] - plan[k]) * (x - k), v[k]
+        # Past the last setpoint (the next command is late): on at the last speed, briefly.
+        over = min((x - last) * self.plan_period_s, MAX_PERIOD_S)
+        return _clip(plan[last] + v[last - 1] * over, self.env.q_min, self.env.q_max), v[last - 1]
 
     def on_skin(self, pressure: m.SkinPressure, now_ns: int) -> None:
         """A skin sample: fresh skin data (if it is this robot's skin)."""
@@ -658,9 +747,11 @@ class BridgeCore:
             status = "idle"
             detail = (f"waiting for planner {self.active!r}" if not self.planner_alive
                       else "waiting for the first command")
-        elif now_ns - self.last_command_ns > self.command_timeout_ns:
+        elif now_ns - self.last_command_ns - self.covered_ns > self.command_timeout_ns:
             status = "stale_command"
             detail = f"no command for more than {self.command_timeout_ns / 1e6:.0f} ms"
+            if self.covered_ns:
+                detail += f" past the {self.covered_ns / 1e6:.0f} ms the last one planned ahead"
         elif skin_stale and self.phase != "REFLEX":
             status = "stale_skin"
             if self.last_skin_ns is None:
@@ -722,12 +813,16 @@ class BridgeCore:
     def _track(self, h: float) -> None:
         env = self.env
         if self.mode == "position":
-            ahead = min((self.last_step_ns - self.target_ns) / 1e9, MAX_PERIOD_S)
-            target = _clip(self.target + self.v_ff * max(ahead, 0.0), env.q_min, env.q_max)
+            if self.plan is not None:
+                target, v_ff = self._planned(self.last_step_ns)
+            else:
+                ahead = min((self.last_step_ns - self.target_ns) / 1e9, MAX_PERIOD_S)
+                target = _clip(self.target + self.v_ff * max(ahead, 0.0), env.q_min, env.q_max)
+                v_ff = self.v_ff
             e = target - self.q
             # Feed-forward plus a correction that can always brake in time:
             # no overshoot on a step, no lag on a smooth stream.
-            v_des = self.v_ff + np.sign(e) * np.minimum(np.abs(e) / h, np.sqrt(2.0 * env.a_max * np.abs(e)))
+            v_des = v_ff + np.sign(e) * np.minimum(np.abs(e) / h, np.sqrt(2.0 * env.a_max * np.abs(e)))
         elif self.mode == "velocity":
             v_des = self.target.copy()
             jump = np.abs(v_des - self.dq) / (env.a_max * max(h, self.period_s))

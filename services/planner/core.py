@@ -154,6 +154,7 @@ class Planner:
         self.changed = True  # a transition not yet published on the status
         self.resyncs = 0
         self._advanced_early = False
+        self._planned_ahead = 0  # task cycles the last command's setpoints ahead still cover
         self.active = True  # until the bridge says it follows another planner
         self.peer: m.PlannerStatus | None = None  # the active planner's status, when another one is
         self.peer_ns = 0
@@ -240,6 +241,7 @@ class Planner:
         self.saved = None
         self.reflex = None
         self._advanced_early = False
+        self._planned_ahead = 0
         if self.peer is not None:
             self.mode = self.peer.mode
             self.clock.s = self._peer_task_time(now_ns)
@@ -250,6 +252,7 @@ class Planner:
         self.dq = np.zeros_like(q) if dq is None else dq.copy()
         self.ddq[:] = 0.0
         self.shadow = None
+        self._planned_ahead = 0
         self.clock.s = self._peer_task_time(now_ns)
         peer = self.peer
         log.info("planner %r takes over at task time %.3f s (outgoing planner in %s)", self.name, self.clock.s,
@@ -372,6 +375,7 @@ class Planner:
             reflex.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
         self.reflex = reflex
         self.mode = "REFLEX"
+        self._planned_ahead = 0
         self.changed = True
 
     def _ruckig_to(self, target: np.ndarray) -> None:
@@ -404,6 +408,7 @@ class Planner:
         assert self.saved is not None
         self._ruckig_to(self.saved)
         self.mode = "RETURNING"
+        self._planned_ahead = 0
         self.changed = True
 
     def _resume_task(self) -> None:
@@ -415,6 +420,7 @@ class Planner:
         self.reflex = None
         self.clock.resume()
         self.mode = "TASK"
+        self._planned_ahead = 0
         self.changed = True
 
     # -- the control cycle ----------------------------------------------------
@@ -438,7 +444,23 @@ class Planner:
         dq_new = rate * self.task.velocity(self.clock.s)
         self.ddq = (dq_new - self.dq) / self.dt
         self.q, self.dq = q_new, dq_new
-        return self._position_command(now_ns)
+        if self._planned_ahead > 0:
+            self._planned_ahead -= 1  # the bridge has this cycle's setpoint already
+            return None
+        command = self._position_command(now_ns)
+        cycles = self.cfg.task_ahead_cycles
+        if cycles > 1:
+            # The task is known ahead: this command carries the setpoints of the
+            # cycles until the next one, and one more (the overlap absorbs jitter).
+            clock = copy.copy(self.clock)
+            ahead = []
+            for _ in range(cycles):
+                clock.advance(self.dt)
+                ahead.append(self.task.position(clock.s).tolist())
+            command.ahead = ahead
+            command.period_s = self.dt
+            self._planned_ahead = cycles - 1
+        return command
 
     def _advance_reflex(self, now_ns: int) -> m.Command | None:
         """One cycle of the reflex; None (and RETURNING) once it is over."""
