@@ -146,7 +146,8 @@ class Pipeline:
         gateway = self.procs["gateway"]
         deadline = time.monotonic() + timeout_s
         while gateway.poll() is None:
-            dead = {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
+            # The gateway itself may end between the loop's check and this one: that is the session's end.
+            dead = {n: p.returncode for n, p in self.procs.items() if n != "gateway" and p.poll() is not None}
             assert not dead, f"exited early: {dead}\n" + "\n".join(f"--- {n}\n{self.log(n)[-3000:]}" for n in dead)
             assert time.monotonic() < deadline, f"the session did not end within {timeout_s} s\n{self.log('gateway')}"
             time.sleep(0.2)
