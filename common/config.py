@@ -224,8 +224,11 @@ class BridgeSection(_Section):
     backend: Literal["sim", "ur_rtde"] = "sim"
     # Simulation and control rate, Hz (the UR e-Series controller runs at 500 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
-    # Robot state publication rate, Hz (plus one out of schedule per reflex onset).
-    state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 125.0
+    # Robot state publication rate, Hz (plus one out of schedule per reflex
+    # onset and per switch). Every state costs a put and a receive in each
+    # subscriber (planners, gateway, recorder, view): 50 Hz keeps the idle
+    # pipeline cheap; raise it for finer recorded arm motion.
+    state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 50.0
     # Real-time scheduling of the bridge's threads: SCHED_FIFO at this priority
     # (1-99); 0 = off. As planner.realtime_priority.
     realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0

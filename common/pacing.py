@@ -50,6 +50,7 @@ class Rate:
         self.ticks = 0
         self.overruns = 0
         self._periods = np.zeros(keep)
+        self._samples = 0  # periods recorded (one per wake: a wake may take several ticks)
         self._last_warning = 0
 
     def sleep(self, stop: threading.Event | None = None) -> bool:
@@ -71,13 +72,67 @@ class Rate:
                 self._last_warning = now
                 log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, -delay / 1e6, self.overruns)
         now = time.monotonic_ns()
-        self._periods[self.ticks % len(self._periods)] = (now - self._last) / 1e6
+        self._record((now - self._last) / 1e6)
         self._last = now
         self.ticks += 1
         return stop is None or not stop.is_set()
 
+    # -- loops that may sleep through cycles they can compute later -------------------
+    def wait(self, stop: threading.Event | None = None, *, through: int = 0,
+             wake: threading.Event | None = None) -> bool:
+        """Sleep until the next deadline not yet taken, or ``through`` deadlines after it,
+        or until ``wake`` is set; False when ``stop`` is set.
+
+        Takes no deadline: :meth:`take` does, in the loop or in whichever
+        thread needs the cycles stepped first (under the caller's lock).
+        """
+        delay = self._next + through * self.period_ns - time.monotonic_ns()
+        if delay > 0:
+            if wake is not None:
+                if wake.wait(delay / 1e9):
+                    wake.clear()
+            else:
+                time.sleep(delay / 1e9)
+        return stop is None or not stop.is_set()
+
+    def take(self, now_ns: int, limit: int | None = None) -> int:
+        """Take the deadlines that have passed by ``now_ns`` (at most ``limit``); how many."""
+        if now_ns < self._next:
+            return 0
+        n = (now_ns - self._next) // self.period_ns + 1
+        if limit is not None:
+            n = min(n, limit)
+            if n <= 0:
+                return 0
+        self._next += n * self.period_ns
+        self._record((now_ns - self._last) / n / 1e6)  # the mean period of the ticks taken
+        self._last = now_ns
+        self.ticks += n
+        return n
+
+    def restart(self, now_ns: int) -> None:
+        """Start the schedule afresh at ``now_ns`` (after a slow start-up; not an overrun)."""
+        self._next = now_ns + self.period_ns
+        self._last = now_ns
+
+    def skip(self, now_ns: int) -> int:
+        """Drop the deadlines that have passed untaken (a late loop: an overrun); how many."""
+        n = 0 if now_ns < self._next else (now_ns - self._next) // self.period_ns + 1
+        if n:
+            late = now_ns - self._next + self.period_ns
+            self._next += n * self.period_ns
+            self.overruns += 1
+            if now_ns - self._last_warning > 5_000_000_000 and late > 2 * self.period_ns:
+                self._last_warning = now_ns
+                log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, late / 1e6, self.overruns)
+        return n
+
+    def _record(self, period_ms: float) -> None:
+        self._periods[self._samples % len(self._periods)] = period_ms
+        self._samples += 1
+
     def summary(self) -> str:
-        n = min(self.ticks, len(self._periods))
+        n = min(self._samples, len(self._periods))
         if n == 0:
             return f"{self.name}: no ticks"
         p = self._periods[:n]

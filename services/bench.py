@@ -13,8 +13,9 @@ timing (from the Rate summaries the services log at exit). Each
 configuration runs ``--reps`` times, interleaved, and the table reports the
 median of each statistic over the repetitions.
 
-A recorder soak test writes an hour of a session (default rates) through the
-recorder's own decode-and-write path in this process and samples its memory.
+A recorder soak test writes an hour of a busy session (a command every cycle,
+state at 125 Hz) through the recorder's own decode-and-write path in this
+process and samples its memory.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_profile
+from nwr.common.config import BridgeSection, Profile, load_profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.robot import load_description
 from nwr.services.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
@@ -72,7 +73,7 @@ class Config:
     topology: str  # "embedded" (peers on loopback) or "router" (clients of a local nwr router)
     onsets: int  # reflex-causing touches of its script (0: nobody touches the arm)
     duration_s: float = 0.0  # idle configurations: how long
-    state_rate_hz: float = 125.0
+    state_rate_hz: float = BridgeSection().state_rate_hz
 
 
 def configurations(quick: bool, onsets: int) -> list[Config]:
@@ -319,6 +320,9 @@ def recorder_soak(minutes: float, path: Path, profile: Profile | None = None, *,
                   state_hz: float = 125.0,
                   command_hz: float = 500.0, status_hz: float = 20.0) -> dict[str, Any]:
     """``minutes`` of a session written through the recorder's decode-and-write path, as fast as it goes.
+
+    Busier than the defaults: a command every cycle (as during reflexes) and
+    the state at 125 Hz.
 
     The messages are encoded once per kind and decoded per message with the
     key's codec, as the recorder process does, then written by a

@@ -83,3 +83,48 @@ def test_demo_script_loads():
     script = load_script("demo")
     assert script.duration_s == pytest.approx(30.0)
     assert len(script.touch) >= 6
+
+
+# --------------------------------------------------------------------------- pacing: sleeping through cycles
+
+
+def test_rate_take_steps_each_cycle_once_whoever_takes_it():
+    from nwr.common.pacing import Rate
+
+    rate = Rate(500, "loop")
+    p = rate.period_ns
+    rate.restart(0)
+    assert rate.take(p - 1) == 0  # nothing due before the first deadline
+    assert rate.take(5 * p + p // 2, limit=3) == 3  # an event takes what it may (deadlines 1-3) ...
+    assert rate.take(5 * p + p // 2, limit=10) == 2  # ... the loop the rest (4-5), none twice
+    assert rate.take(5 * p + p // 2) == 0
+    assert rate.ticks == 5 and rate.overruns == 0
+    assert rate.take(10 * p) == 5  # slept through 5 cycles: taken at once, on time
+    assert rate.overruns == 0
+    # A late loop: the cycles beyond what it takes are dropped, and that is an overrun.
+    assert rate.take(14 * p, limit=1) == 1 and rate.skip(14 * p) == 3
+    assert rate.overruns == 1 and rate.ticks == 11
+    assert rate.take(15 * p) == 1
+    assert "12 ticks at 500 Hz, period p50 2.000 ms" in rate.summary()
+
+
+def test_rate_wait_sleeps_through_cycles_until_woken():
+    import threading
+    import time
+
+    from nwr.common.pacing import Rate
+
+    rate = Rate(100, "loop")  # 10 ms
+    rate.restart(time.monotonic_ns())
+    wake = threading.Event()
+    t0 = time.monotonic()
+    assert rate.wait(None, through=4, wake=wake)  # five deadlines: 50 ms
+    assert time.monotonic() - t0 >= 0.049
+    assert rate.take(time.monotonic_ns(), limit=5) == 5
+    threading.Timer(0.01, wake.set).start()
+    t0 = time.monotonic()
+    assert rate.wait(None, through=50, wake=wake)  # woken after ~10 ms, not 0.5 s
+    assert time.monotonic() - t0 < 0.4 and not wake.is_set()
+    stop = threading.Event()
+    stop.set()
+    assert not rate.wait(stop)

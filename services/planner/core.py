@@ -424,6 +424,18 @@ class Planner:
         self.changed = True
 
     # -- the control cycle ----------------------------------------------------
+    @property
+    def quiet_cycles(self) -> int:
+        """The coming cycles whose setpoints the bridge already has (the task's plan).
+
+        Stepping them only advances the task, deterministically and without a
+        command: a loop may sleep through them and step them when it wakes, or
+        when an event needs this planner's state of the moment.
+        """
+        if self.mode != "TASK" or not self.active or not self.initialized or self._advanced_early:
+            return 0
+        return self._planned_ahead
+
     def step(self, now_ns: int) -> m.Command | None:
         """One control cycle: advance the motion and return its command."""
         if not self.initialized or not self.active:

@@ -43,6 +43,20 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     realtime(cfg.realtime_priority, "planner")  # before the session: Zenoh's threads inherit it
     planner = Planner(cfg, desc, RobotModel(desc))
     lock = threading.Lock()
+    # The control loop sleeps through the cycles the task's plan covers
+    # (Planner.quiet_cycles) and steps them when it wakes; an event that needs
+    # the planner's state of the moment steps the ones due first (catch_up),
+    # and wakes the loop when the planner must step every cycle again.
+    rate = Rate(cfg.rate_hz, "planner")
+    wake = threading.Event()
+
+    def catch_up(now: int) -> None:
+        for _ in range(rate.take(now, limit=planner.quiet_cycles)):
+            planner.step(now)  # a planned cycle: no command
+
+    def wake_if_needed() -> None:
+        if planner.quiet_cycles == 0:
+            wake.set()
     # Each planner instance has its own liveliness token and diagnostics key,
     # alive/planner-<name> and diag/planner-<name>: the bridge watches the
     # token of the active one.
@@ -58,10 +72,13 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 node.diag("warning", "bad_state", f"robot state has {q.size} joints, the robot has {planner.q.size}")
                 return
             with lock:
+                now = node.clock.now_ns()
+                catch_up(now)
                 planner.on_state(q, following=state.owner == cfg.name and state.status == "ok",
-                                 dq=m.as_array(state.dq), owner=state.owner, now_ns=node.clock.now_ns())
+                                 dq=m.as_array(state.dq), owner=state.owner, now_ns=now)
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
+                wake_if_needed()
 
         # The retreat check (a few ms of kinematics per reflex) runs in a thread
         # of its own, on its own model, outside the lock: neither the next pain
@@ -96,6 +113,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             # The event path: a reflex starts the moment its pain message arrives.
             received = node.clock.now_ns()
             with lock:
+                catch_up(received)
                 try:
                     command = planner.on_pain(pain, node.clock.now_ns())
                 except ValueError as exc:
@@ -110,10 +128,12 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     assess_pending.set()  # the retreat check, in its own thread
                 if planner.changed:
                     send_status(planner.status(node.clock.now_ns()))
+                wake_if_needed()
 
         def on_peer_status(status: m.PlannerStatus) -> None:
             with lock:
                 planner.on_peer_status(status, node.clock.now_ns())
+                wake_if_needed()
 
         # The reflex path's input and the arm's state run on Zenoh's network
         # thread (direct: no hand-off to a Python thread). The statuses may not:
@@ -123,16 +143,28 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.subscribe(keys.planner_status("*"), on_peer_status)
         node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy_name, cfg.rate_hz)
-        rate = Rate(cfg.rate_hz, "planner")
         status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
+        status_tick = 0
+        with lock:
+            rate.restart(node.clock.now_ns())  # not the deadlines that passed while the session opened
         try:
-            while rate.sleep(node.stop):
+            while True:
+                with lock:
+                    quiet = planner.quiet_cycles
+                if not rate.wait(node.stop, through=quiet, wake=wake if quiet else None):
+                    break
                 with lock:
                     now = node.clock.now_ns()
-                    command = planner.step(now)
-                    if command is not None:
-                        send(command)
-                    if planner.changed or rate.ticks % status_every == 0:
+                    due = rate.take(now, limit=planner.quiet_cycles + 1)
+                    if due == 0:
+                        continue  # woken early, or an event stepped the cycles due
+                    rate.skip(now)  # cycles beyond those are lost to a late loop (motion slows, never jumps)
+                    for _ in range(due):
+                        command = planner.step(now)
+                        if command is not None:
+                            send(command)
+                    if planner.changed or rate.ticks - status_tick >= status_every:
+                        status_tick = rate.ticks
                         send_status(planner.status(now))
         finally:
             node.stop.set()
