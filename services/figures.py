@@ -15,31 +15,44 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-import matplotlib
 import msgspec
+import numpy as np
 
-matplotlib.use("Agg")  # files only: no display is needed or wanted
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from nwr.common import messages as m  # noqa: E402
-from nwr.common.config import STRATEGIES, PlannerSection  # noqa: E402
-from nwr.common.robot import RobotDescription, RobotModel, load_description  # noqa: E402
-from nwr.services.cli import profile_for  # noqa: E402
-from nwr.services.gain.core import continuous_gain, discrete_gain  # noqa: E402
-from nwr.services.planner.core import Planner  # noqa: E402
+from nwr.common import messages as m
+from nwr.common.config import STRATEGIES, PlannerSection
+from nwr.common.robot import RobotDescription, RobotModel, load_description
+from nwr.services.cli import profile_for
+from nwr.services.gain.core import continuous_gain, discrete_gain
+from nwr.services.planner.core import Planner
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"
 TOUCHES = ("upper_arm_top", "forearm_top", "wrist_2")  # one pad on each of three regions
 TOUCH_COLORS = ("#2ca02c", "#9467bd", "#e377c2")  # upper arm green, forearm purple, wrist pink (as the paper)
+
+
+def _pyplot() -> Any:
+    """matplotlib's pyplot on the file-only backend, imported when a figure is drawn.
+
+    Not at import: every ``nwr`` command (every service process) imports this
+    module to register its subcommand, and matplotlib costs ~0.5 s and tens
+    of MB there.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only: no display is needed or wanted
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 TITLES = {"uniform": "Uniform (UR)", "location": "Location-dependent (LR)", "cartesian": "Cartesian (CR)",
           "cartesian-smooth": "Cartesian, smoothed"}
 
 
 def gain_figure(path: Path, thresholds: tuple[float, ...] = (2.0, 6.0, 12.0, 20.0), k: float = 3.0) -> Path:
     p = np.linspace(0.0, 25.0, 2501)
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=150)
     ax.plot(p, [discrete_gain(x, thresholds) for x in p], color=DISCRETE_COLOR, lw=2, label="discrete $G_d(p)$")
     ax.plot(p, [continuous_gain(x, thresholds, k) for x in p], color=CONTINUOUS_COLOR, lw=2,
@@ -88,6 +101,7 @@ def _draw_arm(ax: Any, model: RobotModel, q: np.ndarray, color: str, lw: float, 
 def reflexes_figure(path: Path, strategies: tuple[str, ...] = STRATEGIES, cfg: PlannerSection | None = None) -> Path:
     desc = load_description()
     model = RobotModel(desc)
+    plt = _pyplot()
     fig = plt.figure(figsize=(4.0 * len(strategies), 4.6), dpi=130)
     for i, strategy in enumerate(strategies):
         ax = fig.add_subplot(1, len(strategies), i + 1, projection="3d")
