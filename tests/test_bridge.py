@@ -585,3 +585,61 @@ def test_a_plan_faster_than_the_limits_is_followed_at_the_limit():
     assert verdict.accepted and c.clipped == 1
     assert "planned to move at 2.000 rad/s, v_max 1.000 rad/s" in c.drain_events()[0].message
     assert c.plan_v[:, 0].tolist() == pytest.approx([1.0] * 10)
+
+
+# --------------------------------------------------------------------------- per-joint arithmetic = numpy's
+
+
+def _numpy_limit(env, q, dq, v_des, h, target=None):
+    """The tracker's limits as numpy expressions: the reference the per-joint floats must equal bit for bit."""
+    if target is not None:
+        e = target - q
+        v_des = v_des + np.sign(e) * np.minimum(np.abs(e) / h, np.sqrt(2.0 * env.a_max * np.abs(e)))
+    v_des = np.minimum(np.maximum(v_des, -env.v_max), env.v_max)
+    v_hi = env.braking_speed(env.q_max - q)
+    v_lo = -env.braking_speed(q - env.q_min)
+    bounded = np.minimum(np.maximum(v_des, v_lo), v_hi)
+    v = np.minimum(np.maximum(bounded, dq - env.a_max * h), dq + env.a_max * h)
+    q1 = np.minimum(np.maximum(q + 0.5 * (dq + v) * h, env.q_min), env.q_max)
+    return q1, v, (v - dq) / h
+
+
+def _numpy_guard(env, previous, sp, dt):
+    dq = np.minimum(np.maximum(sp.dq, -env.v_max), env.v_max)
+    step = env.v_max * max(sp.h, dt) * 1.5 + 1e-9
+    q = sp.q
+    if sp.mode == "position":
+        q = np.minimum(np.maximum(np.minimum(np.maximum(sp.q, previous - step), previous + step), env.q_min),
+                       env.q_max)
+    return q, dq
+
+
+def test_the_tracker_and_the_guard_compute_what_numpy_computes():
+    desc = load_description()
+    env, _q0, _pads = envelope_for(Profile())
+    rng = np.random.default_rng(11)
+    n = len(desc.joints)
+    for trial in range(3000):
+        c = BridgeCore(env, desc.home.copy(), 0, active="p", n_pads=3)
+        c.q = rng.uniform(env.q_min, env.q_max)
+        if trial % 10 == 0:  # at a limit exactly, and at rest
+            c.q[trial % n] = env.q_max[trial % n]
+        c.dq = rng.uniform(-env.v_max, env.v_max) * rng.choice([0.0, 0.1, 1.0])
+        h = float(rng.choice([0.002, 0.0015, 0.05, 1e-6]))
+        v_des = rng.uniform(-2 * env.v_max, 2 * env.v_max) * rng.choice([0.0, 0.01, 1.0])
+        target = None
+        if trial % 2:
+            target = np.clip(c.q + rng.normal(0, 10.0 ** rng.integers(-6, 0), n), env.q_min, env.q_max)
+            if trial % 7 == 0:
+                target = c.q.copy()  # e = 0 exactly
+        expected = _numpy_limit(env, c.q, c.dq, v_des, h, target)
+        c._limit(v_des.tolist(), h, None if target is None else target.tolist())
+        for got, want in zip((c.q, c.dq, c.ddq), expected):
+            assert got.tolist() == want.tolist()  # bit for bit, not approximately
+        previous = c.q + rng.normal(0, 0.01, n)
+        sp = Setpoint(str(rng.choice(["position", "velocity"])), c.q + rng.normal(0, 0.02, n),
+                      c.dq * rng.choice([1.0, 3.0]), c.ddq, h)
+        sent, why = guard(env, previous, sp, 0.002)
+        q_ref, dq_ref = _numpy_guard(env, previous, sp, 0.002)
+        assert sent.q.tolist() == q_ref.tolist() and sent.dq.tolist() == dq_ref.tolist()
+        assert (why is None) == (q_ref.tolist() == sp.q.tolist() and dq_ref.tolist() == sp.dq.tolist())

@@ -136,3 +136,17 @@ def test_target_follower_presses_the_target_periodically():
     sim = SimSkin(SimSkinSection(noise_hpa=0.0, drift_walk_hpa=0.0, drift_sine_hpa=0.0), pads(), None)
     sim.add_touch(1, touch)
     assert sim.touch_pressure(2.0 + touch.ramp_s + 0.1)[1] == pytest.approx(touch.peak_hpa)
+
+
+@pytest.mark.parametrize("closed_loop", [False, True])
+def test_the_pads_pose_is_needed_only_when_a_touch_uses_it(closed_loop):
+    from nwr.services.gateway.core import TouchSet
+
+    touches = TouchSet(2, 0.02, closed_loop)
+    touches.add(1, Touch(pad="b", start_s=1.0, duration_s=0.5, peak_hpa=9.0, shape="ramp", ramp_s=0.25))
+    assert not touches.needs_pose(0.9)
+    assert touches.needs_pose(1.0)  # it begins: it meets its pad where the pad is
+    points = normals = np.zeros((2, 3))
+    touches.start(1.0, points, normals)
+    assert touches.needs_pose(1.5) == closed_loop  # under way: only the closed loop follows the pad
+    assert not touches.needs_pose(2.01)  # over

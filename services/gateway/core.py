@@ -160,6 +160,18 @@ class TouchSet:
         self.touches = [a for a in self.touches
                         if not a.started or a.touch.start_s + a.touch.duration_s + 2 * a.touch.ramp_s >= t]
 
+    def needs_pose(self, t: float) -> bool:
+        """Whether :meth:`start` or :meth:`pressure` at ``t`` use the pads' points: a touch begins,
+        or (closed loop) one with a contact point is under way. Otherwise the kinematics can wait."""
+        for a in self.touches:
+            if not a.started:
+                if a.touch.start_s <= t:
+                    return True
+            elif self.closed_loop and a.point is not None and t <= a.touch.start_s + a.touch.duration_s \
+                    + 2 * a.touch.ramp_s:
+                return True
+        return False
+
     def start(self, t: float, points: np.ndarray | None, normals: np.ndarray | None) -> list[ActiveTouch]:
         """The touches that begin at or before ``t`` and had not yet: each meets its pad where it is now."""
         out = []

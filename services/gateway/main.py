@@ -96,7 +96,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                         sim.add_touch(*touch)
                 state = pose[0]
                 points = normals = None
-                if state is not None and len(sim.touches):
+                if state is not None and sim.touches.needs_pose(t):  # forward kinematics only when used
                     points, normals = model.pad_points(state.q), model.pad_normals(state.q)
                 for started in sim.start(t, points, normals):
                     publish_touch(touch_message(touch_seq, now, t0, started, desc.pads[started.pad].name, sim.touches,
