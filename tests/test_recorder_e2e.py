@@ -115,7 +115,7 @@ def test_recorder_killed_mid_session_is_recovered(tmp_path: Path) -> None:
     window = [(key, pub, seq) for key, pub, seq, t in seen
               if first_ns + 200_000_000 <= t <= t_kill - MAX_LOSS_S * 1e9 and not key.startswith("diag/")]
     missing = [w for w in window if w not in have]
-    assert len(window) > 1000
+    assert len(window) > 500  # about 200 messages a second while the arm does its task
     assert not missing, missing[:10]
     lost = [(key, pub, seq) for key, pub, seq, t in seen if last_ns < t < t_kill]
     print(f"messages the reference saw after the last saved one and before the kill: {len(lost)}")
