@@ -511,8 +511,8 @@ def report_markdown(result: dict[str, Any]) -> str:
     soak = result.get("recorder_soak")
     if soak:
         lines += [
-            f"Recorder soak: {soak['simulated_min']:g} simulated minutes ({soak['messages']} messages at the default "
-            f"rates) through the recorder's decode-and-write path in {soak['wall_s']:.0f} s; RSS "
+            f"Recorder soak: {soak['simulated_min']:g} simulated minutes ({soak['messages']} messages: a command every "
+            f"cycle, state at 125 Hz) through the recorder's decode-and-write path in {soak['wall_s']:.0f} s; RSS "
             f"{soak['rss_mb_per_minute'][1 if len(soak['rss_mb_per_minute']) > 1 else 0]:.1f} MB after the first "
             f"minute, {soak['rss_mb_per_minute'][-1]:.1f} MB at the end (growth {soak['rss_growth_mb']:+.1f} MB); "
             f"{soak['lost']} lost; file {soak['file_mb']:.1f} MB.",
