@@ -547,18 +547,7 @@ class BridgeCore:
             self.periods.append((cmd.stamp_ns - self.last_stamp_ns) / gap / 1e9)
             # statistics.median: the same value as np.median, without its overhead on 15 numbers.
             period = min(max(float(statistics.median(self.periods)), MIN_PERIOD_S), MAX_PERIOD_S)
-            v_ff = (q - self.target) / (gap * period)
-            ratio = float(np.max(np.abs(v_ff) / env.v_max))
-            if ratio > SPEED_TOLERANCE:
-                i = int(np.argmax(np.abs(v_ff) / env.v_max))
-                self.events.append(Event(
-                    "warning", "command_clipped",
-                    f"{_name(cmd)}: joint {env.joints[i]} position stream moves at {v_ff[i]:.3f} rad/s, "
-                    f"v_max {env.v_max[i]:.3f} rad/s: followed at the limit",
-                ))
-                self.clipped += 1
-            if ratio > 1.0:
-                v_ff = v_ff / ratio
+            v_ff = self._at_the_limit(cmd, ((q - self.target) / (gap * period))[None, :], "position stream moves")[0]
         elif self.mode != "position":
             self.periods.clear()
         self.mode = "position"
@@ -570,23 +559,9 @@ class BridgeCore:
 
     def _follow_plan(self, cmd: m.PositionCommand, q: np.ndarray, ahead: np.ndarray, now_ns: int) -> None:
         """A position command planned ahead: its setpoints, one every ``cmd.period_s`` from now."""
-        env = self.env
         plan = np.vstack([q, ahead])
         period = cmd.period_s
-        v = np.diff(plan, axis=0) / period
-        ratio = (np.abs(v) / env.v_max).max(axis=1)
-        worst = float(ratio.max())
-        if worst > SPEED_TOLERANCE:
-            k = int(np.argmax(ratio))
-            i = int(np.argmax(np.abs(v[k]) / env.v_max))
-            self.events.append(Event(
-                "warning", "command_clipped",
-                f"{_name(cmd)}: joint {env.joints[i]} planned to move at {v[k, i]:.3f} rad/s, "
-                f"v_max {env.v_max[i]:.3f} rad/s: followed at the limit",
-            ))
-            self.clipped += 1
-        if worst > 1.0:
-            v = v / np.maximum(ratio, 1.0)[:, None]
+        v = self._at_the_limit(cmd, np.diff(plan, axis=0) / period, "planned to move")
         self.periods.clear()
         self.mode = "position"
         self.target = q
@@ -594,6 +569,22 @@ class BridgeCore:
         self.target_ns = now_ns
         self.plan, self.plan_v, self.plan_period_s = plan, v, period
         self.covered_ns = round(len(ahead) * period * 1e9)
+
+    def _at_the_limit(self, cmd: m.PositionCommand, v: np.ndarray, what: str) -> np.ndarray:
+        """Joint velocities (one row per step) scaled down to v_max where faster; the worst is reported once."""
+        env = self.env
+        ratio = (np.abs(v) / env.v_max).max(axis=1)
+        worst = float(ratio.max())
+        if worst > SPEED_TOLERANCE:
+            k = int(np.argmax(ratio))
+            i = int(np.argmax(np.abs(v[k]) / env.v_max))
+            self.events.append(Event(
+                "warning", "command_clipped",
+                f"{_name(cmd)}: joint {env.joints[i]} {what} at {v[k, i]:.3f} rad/s, "
+                f"v_max {env.v_max[i]:.3f} rad/s: followed at the limit",
+            ))
+            self.clipped += 1
+        return v / np.maximum(ratio, 1.0)[:, None] if worst > 1.0 else v
 
     def _planned(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """The plan's target and feed-forward velocity at ``t_ns``: interpolated, or extrapolated past its end."""
