@@ -348,7 +348,10 @@ def test_live_session_records_ground_truth_and_its_fast_replay_makes_the_same_de
             ta, qa = compare.trajectory(sessions[0], oa, oa + 300_000_000)
             tb, qb = compare.trajectory(sessions[1], ob, ob + 300_000_000)
             qi = np.column_stack([np.interp(ta, tb, qb[:, j]) for j in range(qb.shape[1])])
-            assert np.abs((qa - qa[0]) - (qi - qb[0])).max() < 0.02
+            # Within 50 mrad over 300 ms: a live planner that overruns on a loaded machine loses cycles (its
+            # motion slows, never jumps), and the lag grows over the window (6-23 mrad measured); another
+            # reflex, or the same one in another direction, is off by 0.1-0.5 rad.
+            assert np.abs((qa - qa[0]) - (qi - qb[0])).max() < 0.05
     # A live session was recorded open loop: --resimulate changes what the withdrawn pads felt.
     fast = {r.message.seq: r.message for r in read_recording(outputs["fast"])[0] if r.key == "skin/pressure"}
     resim = {r.message.seq: r.message for r in read_recording(outputs["resim"])[0] if r.key == "skin/pressure"}
