@@ -154,7 +154,9 @@ class Planner:
         self.changed = True  # a transition not yet published on the status
         self.resyncs = 0
         self._advanced_early = False
-        self._planned_ahead = 0  # task cycles the last command's setpoints ahead still cover
+        # Task cycles the last command's setpoints ahead still cover; reset
+        # wherever the task (re)starts (_resume_task, _take_over).
+        self._planned_ahead = 0
         self.active = True  # until the bridge says it follows another planner
         self.peer: m.PlannerStatus | None = None  # the active planner's status, when another one is
         self.peer_ns = 0
@@ -241,7 +243,6 @@ class Planner:
         self.saved = None
         self.reflex = None
         self._advanced_early = False
-        self._planned_ahead = 0
         if self.peer is not None:
             self.mode = self.peer.mode
             self.clock.s = self._peer_task_time(now_ns)
@@ -375,7 +376,6 @@ class Planner:
             reflex.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
         self.reflex = reflex
         self.mode = "REFLEX"
-        self._planned_ahead = 0
         self.changed = True
 
     def _ruckig_to(self, target: np.ndarray) -> None:
@@ -408,7 +408,6 @@ class Planner:
         assert self.saved is not None
         self._ruckig_to(self.saved)
         self.mode = "RETURNING"
-        self._planned_ahead = 0
         self.changed = True
 
     def _resume_task(self) -> None:

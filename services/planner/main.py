@@ -132,8 +132,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
         def on_peer_status(status: m.PlannerStatus) -> None:
             with lock:
-                planner.on_peer_status(status, node.clock.now_ns())
-                wake_if_needed()
+                planner.on_peer_status(status, node.clock.now_ns())  # inactive only: it never sleeps then
 
         # The reflex path's input and the arm's state run on Zenoh's network
         # thread (direct: no hand-off to a Python thread). The statuses may not:
