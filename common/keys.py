@@ -14,6 +14,7 @@ reflex/<name>/status         PlannerStatus                          data        
 reflex/<name>/decision       PlannerDecision                        data        no         block
 control/active               SwitchRequest                          interactive yes        block
 diag/<service>               Diagnostic                             data-low    no         drop
+journal/<service>            Journal                                data        no         block
 alive/<service>              (liveliness token, no payload)
 ===========================  =====================================  ==========  =========  =======
 
@@ -81,6 +82,8 @@ TOPICS: tuple[Topic, ...] = (
           "which planner should be active (the bridge carries the switch out)"),
     Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
           "warnings and errors with a code and a readable message"),
+    Topic("journal/*", m.Journal, zenoh.Priority.DATA, False, False,
+          "what a service received, in order, with its clock readings: enough to re-run it exactly (nwr verify)"),
 )
 
 SKIN_PRESSURE = "skin/pressure"
@@ -125,6 +128,19 @@ def planner_decision(name: str) -> str:
 
 def diag(service: str) -> str:
     return f"diag/{service}"
+
+
+# Each planner instance is its own service, ``planner-<name>``: its liveliness
+# token, diagnostics and journal carry that name (the bridge watches the tokens).
+PLANNER_SERVICE_PREFIX = "planner-"
+
+
+def planner_service(name: str) -> str:
+    return f"{PLANNER_SERVICE_PREFIX}{name}"
+
+
+def journal(service: str) -> str:
+    return f"journal/{service}"
 
 
 def alive(service: str) -> str:

@@ -318,8 +318,46 @@ class Diagnostic(msgspec.Struct, tag="diagnostic", tag_field="kind", forbid_unkn
     count: int = 1
 
 
+class JournalEntry(msgspec.Struct, array_like=True, forbid_unknown_fields=True):
+    """One input a service handled, in the order it handled them (see :mod:`nwr.common.journal`).
+
+    ``key``, ``seq`` and ``stamp_ns`` name a recorded message (``key`` empty:
+    an input that is no message, a tick or a liveliness token); ``now`` holds
+    every clock reading the handler made, in order; ``arg``, ``text`` and
+    ``data`` carry an input that is not recorded elsewhere (a token's name
+    and whether it appeared, an arm's measured state).
+    """
+
+    input: str
+    now: list[int] = []
+    key: str = ""
+    seq: int = -1
+    stamp_ns: int = 0
+    arg: int = 0
+    text: str = ""
+    data: list[Finite] = []
+
+
+class Journal(msgspec.Struct, tag="journal", tag_field="kind", forbid_unknown_fields=True):
+    """A batch of one service run's journal: what it needs to be re-run exactly (``nwr verify``).
+
+    ``run_ns`` tells the runs of one service apart (a restart starts a new
+    run, its batches from ``seq`` 0 again); the first batch of a run carries
+    ``config`` (JSON: the effective profile and the service's own
+    parameters), the last one (a clean exit) ``final``.
+    """
+
+    seq: int
+    stamp_ns: int
+    service: str
+    run_ns: int
+    entries: list[JournalEntry] = []
+    config: str = ""
+    final: bool = False
+
+
 Message = (SkinPressure | SkinTouch | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus
-           | Diagnostic | SwitchRequest | PlannerDecision)
+           | Diagnostic | SwitchRequest | PlannerDecision | Journal)
 
 
 def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:

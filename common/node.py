@@ -31,6 +31,7 @@ from nwr.common import messages as m
 from nwr.common.clock import Clock, MonotonicClock
 from nwr.common.config import ZenohSection
 from nwr.common.errors import ConfigError, DecodeError
+from nwr.common.journal import JOURNAL_PERIOD_S, Batcher, Recording, service_config
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +215,58 @@ class Node:
             congestion_control=zenoh.CongestionControl.DROP,
         )
         self._diag_codec = keys.codec(keys.diag(service))
-        self._token = self.session.liveliness().declare_token(keys.key(robot, keys.alive(service))) if token else None
+        self._token: Any = None
+        if token:
+            self.declare_token()
+        self._journal: tuple[Recording, threading.Lock, Batcher, Callable[[Any], None]] | None = None
+        self._journal_thread: threading.Thread | None = None
+        self._journal_stop = threading.Event()
+
+    def declare_token(self) -> None:
+        """Announce this service (``alive/<service>``); a Node declares it at once unless ``token=False``."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(keys.key(self.robot, keys.alive(self.service)))
+
+    # -- the service's wiring and its journal -------------------------------
+    def wire(self, factory: Callable[..., Any], profile: Any, lock: threading.Lock, **kwargs: Any) -> Any:
+        """The service's wiring, built on this node: its outputs published here, its journal on ``journal/<service>``.
+
+        ``factory(profile, journal=, out=, diag=, **kwargs)`` builds it; every
+        call into it must hold ``lock``, which the journal's batches are taken
+        under too (every :data:`JOURNAL_PERIOD_S`, and a final one at close).
+        """
+        journal = Recording(self.clock)
+        publishers: dict[str, Callable[[Any], None]] = {}
+
+        def out(key: str, message: Any) -> None:
+            publishers[key](message)
+
+        with lock:
+            run_ns = self.clock.now_ns()
+            wiring = factory(profile, journal=journal, out=out, diag=self.diag, **kwargs)
+        for key in wiring.outputs:
+            publishers[key] = self.publisher(key)
+        batcher = Batcher(self.service, run_ns, service_config(profile, **wiring.params()))
+        self._journal = (journal, lock, batcher, self.publisher(keys.journal(self.service)))
+        self._journal_thread = threading.Thread(target=self._publish_journal, name="journal", daemon=True)
+        self._journal_thread.start()
+        return wiring
+
+    def _flush_journal(self, final: bool = False) -> None:
+        assert self._journal is not None
+        journal, lock, batcher, publish = self._journal
+        with lock:
+            entries = journal.take()
+        message = batcher.batch(entries, self.clock.now_ns(), final=final)
+        if message is not None:
+            publish(message)
+
+    def _publish_journal(self) -> None:
+        while not self._journal_stop.wait(JOURNAL_PERIOD_S):
+            try:
+                self._flush_journal()
+            except zenoh.ZError:  # the session is closing
+                return
 
     # -- publishing -------------------------------------------------------
     def publisher(self, relative: str) -> Callable[[Any], None]:
@@ -332,6 +384,14 @@ class Node:
         for sub in self._subscribers:
             sub.undeclare()
         self._subscribers.clear()
+        if self._journal_thread is not None:
+            self._journal_stop.set()
+            self._journal_thread.join()
+            self._journal_thread = None
+            try:
+                self._flush_journal(final=True)  # after the last handler: the run ends here
+            except zenoh.ZError:
+                log.warning("%s: the journal's last batch could not be published", self.service)
         if self._token is not None:
             self._token.undeclare()
             self._token = None

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +31,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.robot import Pad
 from nwr.services.gateway.core import Gateway
-from nwr.services.lockstep import Lockstep
+from nwr.services.lockstep import Emit, Lockstep, Pose, RecordedSkin
 from nwr.services.recorder.core import Recorded
 
 STAT_NAMES = ("n", "p50", "p90", "p99", "max")
@@ -133,51 +133,51 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
 # ------------------------------------------------------------------------------ the lower bound
 
 
-class TimedLockstep(Lockstep):
-    """The cores chained as direct calls, timed per skin sample with ``time.perf_counter_ns``.
+class TimedSkin(RecordedSkin):
+    """Recorded samples, each first put through the gateway's core (its absolute pressures): the clock starts there."""
 
-    Per sample: the gateway core (from the recorded absolute pressures), the
-    gain estimator and the planner's event path up to its decision (the
-    sample latency's lower bound) and, when a reflex starts, on through the
-    bridge's acceptance and the backend's first setpoint (the onset's).
-    Messages are not encoded or sent: that is what the pipeline adds.
-    """
+    def __init__(self, profile: Profile, samples: Sequence[m.SkinPressure]) -> None:
+        super().__init__(samples)
+        self.gateway = Gateway(profile.gateway, len(samples[0].absolute_hpa) if samples else 0)
+        self.t0_ns = self.samples[0].stamp_ns if self.samples else 0
+        self.started_ns: int | None = None
 
-    def __init__(self, profile: Profile, *, strategy: str) -> None:
-        super().__init__(profile, strategy=strategy)
-        self.gateway = Gateway(profile.gateway, len(self.gain.pads))
-        self.sample_ns: list[int] = []
-        self.onset_ns: list[int] = []
-        self._t0_ns: int | None = None
-
-    def deliver(self, sample: m.SkinPressure, t: int, emit: Callable[[str, Any, int], None]) -> m.Command | None:
+    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
+        sample = self.samples[i]
         absolute = np.asarray(sample.absolute_hpa, dtype=float)  # the device's reading: not timed
-        if self._t0_ns is None:
-            self._t0_ns = sample.stamp_ns
-        start = time.perf_counter_ns()
-        self.gateway.process((sample.stamp_ns - self._t0_ns) / 1e9, sample.stamp_ns, absolute)
-        self.bridge.on_skin(sample, t)
-        pain = self.gain.process(sample, t)
-        command = self.planner.on_pain(pain, t)
-        decided = time.perf_counter_ns()
-        self.sample_ns.append(decided - start)
-        if command is not None:
-            verdict = self.bridge.on_command(command, t)
-            if verdict.onset:
-                self.backend.send_action(self.bridge.step(t))
-                self.onset_ns.append(time.perf_counter_ns() - start)
-                self._state(t, emit)
-            self.planner.assess()
-        if self.planner.changed:
-            self._status(t, emit)
-        return command
+        self.started_ns = time.perf_counter_ns()
+        self.gateway.process((sample.stamp_ns - self.t0_ns) / 1e9, sample.stamp_ns, absolute)
+        return sample
 
 
 def lower_bound(profile: Profile, strategy: str, samples: Sequence[m.SkinPressure]) -> tuple[list[float], list[float]]:
-    """Sample and onset latencies (ms) of the cores chained in this process, on the same skin samples."""
-    chain = TimedLockstep(profile, strategy=strategy)
-    chain.run(samples, lambda _key, _msg, _t: None, settle_s=0.5)
-    return [x / 1e6 for x in chain.sample_ns], [x / 1e6 for x in chain.onset_ns]
+    """Sample and onset latencies (ms) of the services' wirings chained in this process, on the same skin samples.
+
+    Per sample, from the gateway's core on: through the gain estimator's and
+    the planner's wirings up to the planner's decision (the sample latency's
+    lower bound) and, when a reflex starts, on through the bridge's wiring to
+    the robot state that reports its acceptance (the onset's). Messages are
+    not encoded or sent, and no journal is kept: that is what the pipeline adds.
+    """
+    source = TimedSkin(profile, samples)
+    chain = Lockstep(profile, strategy=strategy, journal=False)
+    decision_key = keys.planner_decision(chain.name)
+    sample_ns: list[int] = []
+    onset_ns: list[int] = []
+    onsets: set[int] = set()
+
+    def emit(key: str, message: Any, _t: int) -> None:
+        started = source.started_ns
+        if started is None:
+            return
+        if key == decision_key:
+            sample_ns.append(time.perf_counter_ns() - started)
+        elif key == keys.ROBOT_STATE and message.accepted is not None and message.accepted_ns not in onsets:
+            onsets.add(message.accepted_ns)
+            onset_ns.append(time.perf_counter_ns() - started)
+
+    chain.run(source, emit, settle_s=0.5)
+    return [x / 1e6 for x in sample_ns], [x / 1e6 for x in onset_ns]
 
 
 # ------------------------------------------------------------------------------ the touch script

@@ -40,12 +40,16 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.router",
     "nwr.services.replay",
     "nwr.services.compare",
+    "nwr.services.verify",
     "nwr.services.study",
     "nwr.services.bench",
     "nwr.services.certs",
 ]
-# Started in this order; the gateway starts its clock once the others are alive.
-START_ORDER = ["bridge", "planner", "gain", "recorder", "gateway"]
+# Started in this order: the recorder first (the others start once it is
+# alive, so it records every service's journal from its first batch); the
+# gateway starts its clock once the others are alive. Stopped in reverse, the
+# recorder last, once the others have exited (their journals' last batches).
+START_ORDER = ["recorder", "bridge", "planner", "gain", "gateway"]
 
 
 def _service_module(name: str) -> Any:
@@ -123,27 +127,33 @@ def _spawn(profile: str, log_level: str, service: str, extra: list[str]) -> subp
 
 
 def _stop_all(procs: dict[str, subprocess.Popen[bytes]], timeout_s: float = 10.0) -> dict[str, int]:
-    """SIGTERM in reverse start order (the gateway first, the bridge last); kill stragglers."""
-    for name in reversed(list(procs)):
-        if procs[name].poll() is None:
-            procs[name].send_signal(signal.SIGTERM)
-            if name == "gateway":
-                time.sleep(0.05)
+    """SIGTERM in reverse start order (the gateway first), the recorder once the others have exited; kill stragglers."""
     deadline = time.monotonic() + timeout_s
     codes = {}
-    for name, proc in procs.items():
-        try:
-            codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            log.error("%s did not stop within %.0f s: killing it", name, timeout_s)
-            proc.kill()
-            codes[name] = proc.wait()
-    return codes
+
+    def stop(names: list[str]) -> None:
+        for name in names:
+            if procs[name].poll() is None:
+                procs[name].send_signal(signal.SIGTERM)
+                if name == "gateway":
+                    time.sleep(0.05)
+        for name in names:
+            try:
+                codes[name] = procs[name].wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("%s did not stop within %.0f s: killing it", name, timeout_s)
+                procs[name].kill()
+                codes[name] = procs[name].wait()
+
+    stop([n for n in reversed(list(procs)) if n != "recorder"])
+    if "recorder" in procs:
+        stop(["recorder"])
+    return {n: codes[n] for n in procs}
 
 
 def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float = 2.0) -> tuple[int, Path | None]:
     """Start every service; wait for Ctrl-C/SIGTERM (or the script's end); stop them all."""
-    from nwr.services.planner.main import planner_service
+    from nwr.common.keys import planner_service
     from nwr.services.recorder.main import session_name
 
     profile = profile_for(args)
@@ -198,6 +208,8 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
     try:
         for label, service, extra in units:
             procs[label] = _spawn(args.profile, args.log_level, service, extra)
+            if label == "recorder":
+                _wait_for_recorder(profile)
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
         while not stop:
             dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
@@ -218,6 +230,17 @@ def launch(args: argparse.Namespace, *, until_script_end: bool, settle_s: float 
         log.error("service(s) stopped with errors: %s", bad)
         return 1, None
     return 0, (output if "recorder" in procs else None)
+
+
+def _wait_for_recorder(profile: Profile, timeout_s: float = 30.0) -> None:
+    """Until the recorder is alive (subscribed): what the others publish from their start is recorded."""
+    if profile.zenoh.secure:
+        return  # the launcher has no certificate of its own: the services start at once
+    from nwr.common.node import Node
+
+    with Node("launcher", profile.robot.name, profile.zenoh, token=False) as node:
+        if node.wait_for(["recorder"], timeout_s):
+            log.warning("the recorder is not alive after %.0f s: starting the other services anyway", timeout_s)
 
 
 def run_demo_fast(args: argparse.Namespace) -> int:

@@ -1,15 +1,19 @@
-"""The pipeline's cores chained in one process, on simulated time, in lockstep.
+"""The pipeline's services in one process, on simulated time, in lockstep: their own wirings, re-wired nowhere.
 
-Skin samples go through the gain estimator, the planner and the bridge with
-its simulated arm exactly as the services chain them over Zenoh, but as
-direct calls, each control cycle of 2 ms one step of simulated time:
+Each service's wiring (``services/<service>/wiring.py``, the code the live
+process runs) is built here on a simulated clock, and the messages one
+publishes are delivered to those that subscribe, through one queue, after
+the publishing handler returns; every control cycle of 2 ms is one step of
+simulated time:
 
-- a skin sample is delivered at its own stamp: gain estimator, then the
-  planner's event path (a reflex's first command reaches the bridge at once);
-- every control cycle the planner steps, the bridge takes its command and
-  steps the arm;
-- the robot state goes back to the planner at ``state_rate_hz``, the planner
-  status is published on every transition and at ``status_rate_hz``.
+- a skin sample is delivered at its own stamp: the bridge (fresh skin) and
+  the gain estimator, whose pain message goes to the bridge and the
+  planner's event path (a reflex's first command reaches the bridge at once,
+  its retreat check runs at once);
+- every control cycle the planner's loop ticks, then the bridge's: the
+  robot state goes back to the planner (and the simulated skin) at
+  ``state_rate_hz``, the planner's status at ``status_rate_hz`` and on every
+  transition.
 
 Where the skin samples come from (a :class:`SkinSource`):
 
@@ -17,20 +21,19 @@ Where the skin samples come from (a :class:`SkinSource`):
 - :class:`ResimulatedSkin`: a simulated session's samples with their touches
   re-simulated against this run's arm (``nwr replay --fast --resimulate``,
   :class:`nwr.services.gateway.core.Resimulator`);
-- :class:`SimulatedSkin`: the simulated skin itself on a touch script, open
+- :class:`SimulatedSkin`: the gateway's own wiring on a touch script, open
   or closed loop against this run's arm (``nwr demo --fast``).
 
-A source that makes samples sees the arm's pose at the control cycle the
-sample is delivered in (at most one cycle after its stamp) and emits what it
-makes (``skin/pressure``, ``skin/touch``) at its own stamp.
-
 Nothing here reads a clock, so a run is deterministic: the same skin samples
-give the same messages, bit for bit. It is what ``nwr replay --fast`` runs
-(as fast as the cores go) and the lower bound of ``nwr bench``.
+give the same messages, bit for bit. Each wiring keeps its journal as the
+live services do, so ``nwr verify`` re-runs a lockstep recording as it does
+a live one. It is what ``nwr replay --fast`` runs (as fast as the cores go)
+and the lower bound of ``nwr bench``.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -40,16 +43,19 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
+from nwr.common.clock import ManualClock
 from nwr.common.config import Profile, TouchScript
-from nwr.common.robot import RobotModel, load_description
-from nwr.services.bridge.backend import SimBackend
-from nwr.services.bridge.core import BridgeCore
-from nwr.services.bridge.main import envelope_for
-from nwr.services.gain.core import GainEstimator
-from nwr.services.gateway.core import Gateway, Resimulator, SimSkin, touch_message
-from nwr.services.planner.core import Planner
+from nwr.common.journal import JOURNAL_PERIOD_S, Batcher, Journal, Recording, Untracked, service_config
+from nwr.common.robot import RobotModel
+from nwr.services.bridge.wiring import BridgeWiring
+from nwr.services.gain.wiring import GainWiring
+from nwr.services.gateway.core import Resimulator, touch_message
+from nwr.services.gateway.wiring import GatewayWiring
+from nwr.services.planner.wiring import PlannerWiring, planner_profile
+from nwr.services.wiring import Out, no_diag
 
 Emit = Callable[[str, Any, int], None]  # (relative key, message, simulated time ns)
+Pose = tuple[np.ndarray, int]  # the arm's joint positions as the newest robot state gives them, and its stamp
 
 
 class SkinSource:
@@ -62,8 +68,12 @@ class SkinSource:
         """Stamp of the ``i``-th sample, ns."""
         raise NotImplementedError
 
-    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
-        """The ``i``-th sample, made with the arm at ``q``; emits what it makes."""
+    def wiring(self, clock: ManualClock, journal: Journal, out: Out) -> GatewayWiring | None:
+        """The gateway's wiring, for a source that is the gateway (its samples go to ``out``)."""
+        return None
+
+    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
+        """The ``i``-th sample, made with the arm at ``pose`` (emits what it makes); None: the wiring published it."""
         raise NotImplementedError
 
 
@@ -79,7 +89,7 @@ class RecordedSkin(SkinSource):
     def stamp(self, i: int) -> int:
         return self.samples[i].stamp_ns
 
-    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
         return self.samples[i]
 
 
@@ -92,34 +102,34 @@ class ResimulatedSkin(RecordedSkin):
         self.model = model
         self.touch_seq = 0
 
-    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
+    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
         res = self.resimulator
+        q, pose_stamp = pose
         sample, started = res.apply(self.samples[i], self.model.pad_points(q), self.model.pad_normals(q))
         for touch in started:  # the ground truth of this run: the touches met the pads where this arm had them
             emit(keys.SKIN_TOUCH, touch_message(self.touch_seq, sample.stamp_ns, res.origin_ns, touch,
                                                 self.model.desc.pads[touch.pad].name, res.touches, q,
-                                                sample.stamp_ns), sample.stamp_ns)
+                                                pose_stamp), sample.stamp_ns)
             self.touch_seq += 1
         emit(keys.SKIN_PRESSURE, sample, sample.stamp_ns)
         return sample
 
 
 class SimulatedSkin(SkinSource):
-    """The simulated skin on a touch script at ``gateway.rate_hz``, as the gateway process runs it.
+    """The simulated skin on a touch script at ``gateway.rate_hz``: the gateway's own wiring.
 
     Its script clock starts at ``origin_ns``; the samples are stamped every
     sample period from one period after it until the script's end (the
     sample at or after ``duration_s`` is the last, as ``--exit-at-end``).
+    Like the live gateway, it sees the arm where the newest robot state puts it.
     """
 
-    def __init__(self, profile: Profile, script: TouchScript, model: RobotModel, origin_ns: int = 10**9) -> None:
-        cfg = profile.gateway
-        self.pads = model.desc.pads
-        self.sim = SimSkin(cfg.sim, self.pads, script)
-        self.gateway = Gateway(cfg, len(self.pads), source="sim")
-        self.model = model
+    def __init__(self, profile: Profile, script: TouchScript, model: RobotModel | None = None,
+                 origin_ns: int = 10**9) -> None:
+        self.profile = profile
+        self.script = script
         self.origin_ns = origin_ns
-        period = 1e9 / cfg.rate_hz
+        period = 1e9 / profile.gateway.rate_hz
         self.stamps: list[int] = []
         k = 1
         while True:
@@ -127,7 +137,7 @@ class SimulatedSkin(SkinSource):
             if (self.stamps[-1] - origin_ns) / 1e9 >= script.duration_s:
                 break
             k += 1
-        self.touch_seq = 0
+        self.gateway: GatewayWiring | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -135,18 +145,18 @@ class SimulatedSkin(SkinSource):
     def stamp(self, i: int) -> int:
         return self.stamps[i]
 
-    def take(self, i: int, q: np.ndarray, emit: Emit) -> m.SkinPressure:
-        now = self.stamps[i]
-        t = (now - self.origin_ns) / 1e9
-        points, normals = self.model.pad_points(q), self.model.pad_normals(q)
-        for started in self.sim.start(t, points, normals):
-            touch = touch_message(self.touch_seq, now, self.origin_ns, started, self.pads[started.pad].name,
-                                  self.sim.touches, q, now)
-            self.touch_seq += 1
-            emit(keys.SKIN_TOUCH, touch, now)
-        sample, _ = self.gateway.process(t, now, self.sim.sample(t, points), self.sim.touch_hpa)
-        emit(keys.SKIN_PRESSURE, sample, now)
-        return sample
+    def wiring(self, clock: ManualClock, journal: Journal, out: Out) -> GatewayWiring:
+        t = clock.t_ns
+        clock.t_ns = self.origin_ns
+        self.gateway = GatewayWiring(self.profile, journal=journal, out=out, diag=no_diag, script=self.script)
+        self.gateway.origin()
+        clock.t_ns = t
+        return self.gateway
+
+    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
+        assert self.gateway is not None, "SimulatedSkin.wiring() first"
+        self.gateway.tick()
+        return None
 
 
 @dataclass
@@ -158,71 +168,102 @@ class LockstepReport:
 
 
 class Lockstep:
-    """gain -> planner -> bridge (simulated arm), stepped on simulated time."""
+    """(gateway ->) gain -> planner -> bridge (simulated arm): the services' own wirings on simulated time.
 
-    def __init__(self, profile: Profile, *, strategy: str | None = None, name: str | None = None) -> None:
-        cfg = msgspec.structs.replace(profile.planner, strategy=strategy or profile.planner.strategy,
-                                      name=name or strategy or profile.planner.name)
-        self.profile = profile
-        desc = load_description(profile.robot.description or None)
-        self.gain = GainEstimator(profile.gain, desc.pads)
-        self.planner = Planner(cfg, desc, RobotModel(desc))
-        env, q0, n_pads = envelope_for(profile)
+    Messages travel through one queue, in the order they were published, each
+    delivered after the handler that published it has returned (as the
+    services receive them over the network, less the network's delay). With
+    ``journal``, every wiring keeps its journal and the run emits it on
+    ``journal/<service>`` like the live services, so ``nwr verify`` can
+    re-run a lockstep recording too.
+    """
+
+    def __init__(self, profile: Profile, *, strategy: str | None = None, name: str | None = None,
+                 journal: bool = True) -> None:
+        profile = planner_profile(profile, name=name, strategy=strategy)
+        self.profile = msgspec.structs.replace(
+            profile, bridge=msgspec.structs.replace(profile.bridge, active_planner=profile.planner.name))
+        self.name = self.profile.planner.name
         self.period_ns = round(1e9 / profile.bridge.rate_hz)
-        self.bridge = BridgeCore(env, q0, 0, active=cfg.name, n_pads=n_pads,
-                                 command_timeout_s=profile.bridge.command_timeout_s,
-                                 skin_timeout_s=profile.bridge.skin_timeout_s,
-                                 seq_restart_gap=profile.bridge.seq_restart_gap,
-                                 period_s=1.0 / profile.bridge.rate_hz)
-        self.backend = SimBackend(env, 1.0 / profile.bridge.rate_hz, q0)
-        self.backend.connect()
-        self.status_key = keys.planner_status(cfg.name)
-        self.decision_key = keys.planner_decision(cfg.name)
-        self.state_every = max(1, round(profile.bridge.rate_hz / profile.bridge.state_rate_hz))
-        self.status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
-        self.state_seq = 0
+        self.clock = ManualClock()
+        self.keep_journal = journal
+        self.journals: list[tuple[Any, Journal, Batcher]] = []  # (wiring, journal, batcher)
+        self.queue: deque[tuple[str, Any]] = deque()
+        self.emit: Emit = _no_emit
         self.cycles = 0
         self.messages = 0
+        self.gateway: GatewayWiring | None = None
+        self.state: m.RobotState | None = None  # the newest robot state
 
-    def _command(self, cmd: m.Command | None, t: int, emit: Emit) -> None:
-        if cmd is None:
+    def _journal(self) -> Journal:
+        return Recording(self.clock) if self.keep_journal else Untracked(self.clock)
+
+    def _out(self, key: str, message: Any) -> None:
+        self.emit(key, message, self.clock.t_ns)
+        self.messages += 1
+        self.queue.append((key, message))
+
+    def _wire(self, factory: Any, **kwargs: Any) -> Any:
+        journal = self._journal()
+        wiring = factory(self.profile, journal=journal, out=self._out, diag=no_diag, **kwargs)
+        self.journals.append((wiring, journal, Batcher(wiring.service, self.clock.t_ns,
+                                                       service_config(self.profile, **wiring.params()))))
+        return wiring
+
+    def _start(self, t0: int, source: SkinSource) -> None:
+        self.clock.t_ns = t0
+        self.bridge: BridgeWiring = self._wire(BridgeWiring)
+        self.planner: PlannerWiring = self._wire(PlannerWiring)
+        self.gain: GainWiring = self._wire(GainWiring)
+        journal = self._journal()
+        self.gateway = source.wiring(self.clock, journal, self._out)
+        if self.gateway is not None:
+            gw = self.gateway
+            self.journals.append((gw, journal, Batcher(gw.service, source.origin_ns if isinstance(
+                source, SimulatedSkin) else t0, service_config(self.profile, **gw.params()))))
+        self.bridge.on_token(self.name, True)
+
+    def _flush_journals(self, final: bool = False) -> None:
+        if not self.keep_journal:
             return
-        emit(keys.robot_command(cmd.owner), cmd, t)
-        self.messages += 1
-        verdict = self.bridge.on_command(cmd, t)
-        if verdict.onset:  # as the bridge process: the onset goes to the arm at once
-            self.backend.send_action(self.bridge.step(t))
-            self._state(t, emit)
+        for wiring, journal, batcher in self.journals:
+            assert isinstance(journal, Recording)
+            message = batcher.batch(journal.take(), self.clock.t_ns, final=final)
+            if message is not None:
+                self.emit(keys.journal(wiring.service), message, self.clock.t_ns)
 
-    def _state(self, t: int, emit: Emit) -> None:
-        obs = self.backend.get_observation()
-        state = self.bridge.state(self.state_seq, t, obs.q, obs.dq, self.backend.name)
-        self.state_seq += 1
-        emit(keys.ROBOT_STATE, state, t)
-        self.messages += 1
-        self.planner.on_state(m.as_array(state.q), state.owner == self.planner.name and state.status == "ok",
-                              dq=m.as_array(state.dq), owner=state.owner, now_ns=t)
+    def pose(self) -> Pose:
+        """Where the newest robot state puts the arm (as the live gateway sees it), else where the arm starts."""
+        if self.state is None:
+            return self.bridge.backend.get_observation().q, 0
+        return m.as_array(self.state.q), self.state.stamp_ns
 
-    def _status(self, t: int, emit: Emit) -> None:
-        emit(self.status_key, self.planner.status(t), t)
-        self.messages += 1
+    def deliver(self, sample: m.SkinPressure) -> None:
+        """A skin sample (recorded, or re-simulated) on the skin's key, then everything it causes."""
+        self.queue.append((keys.SKIN_PRESSURE, sample))
+        self.drain()
 
-    def deliver(self, sample: m.SkinPressure, t: int, emit: Emit) -> m.Command | None:
-        """One skin sample at simulated time ``t``, through the event path; the command it caused."""
-        self.bridge.on_skin(sample, t)
-        pain = self.gain.process(sample, t)
-        emit(keys.SKIN_PAIN, pain, t)
-        self.messages += 1
-        self.bridge.on_pain(pain, t)
-        command = self.planner.on_pain(pain, t)
-        self._command(command, t, emit)
-        emit(self.decision_key, self.planner.decision(pain, t, t, command), t)
-        self.messages += 1
-        if command is not None:
-            self.planner.assess()
-        if self.planner.changed:
-            self._status(t, emit)
-        return command
+    def drain(self) -> None:
+        """Deliver the queued messages, and those they cause, in order (the pipeline's graph)."""
+        queue = self.queue
+        while queue:
+            key, message = queue.popleft()
+            if key == keys.SKIN_PRESSURE:
+                self.bridge.on_skin(message)
+                self.gain.on_pressure(message)
+            elif key == keys.SKIN_PAIN:
+                self.bridge.on_pain(message)
+                if self.planner.on_pain(message, self.clock.t_ns) is not None:
+                    self.planner.assess()  # the retreat check, at once
+            elif keys.is_command(key):
+                self.bridge.on_command(key, message)
+            elif key == keys.ROBOT_STATE:
+                self.state = message
+                self.planner.on_state(message)
+                if self.gateway is not None:
+                    self.gateway.on_state(message)
+            elif key == self.planner.status_key:
+                self.planner.on_peer_status(key, message)
 
     def run(self, samples: Iterable[m.SkinPressure] | SkinSource, emit: Emit, *,
             settle_s: float = 2.0, start_ns: int | None = None) -> LockstepReport:
@@ -238,25 +279,36 @@ class Lockstep:
         n = len(source)
         if not n:
             return LockstepReport(0, 0, 0, 0.0)
+        self.emit = emit
         t0 = (source.stamp(0) if start_ns is None else min(start_ns, source.stamp(0))) - self.period_ns
         end = source.stamp(n - 1) + round(settle_s * 1e9)
-        self.bridge.on_planner_token(self.planner.name, True, t0)
-        self.bridge.last_step_ns = t0
+        self._start(t0, source)
+        self.drain()
+        flush_every = max(1, round(JOURNAL_PERIOD_S * 1e9 / self.period_ns))
+        clock = self.clock
         i = 0
         t = t0
-        self._state(t, emit)
         while t < end:
             t += self.period_ns
             while i < n and source.stamp(i) <= t:
-                self.deliver(source.take(i, self.backend.get_observation().q, emit), t, emit)
+                clock.t_ns = source.stamp(i)  # a source that makes samples stamps them as its own
+                sample = source.take(i, self.pose(), emit)
+                clock.t_ns = t
+                if sample is not None:
+                    self.queue.append((keys.SKIN_PRESSURE, sample))
+                self.drain()
                 i += 1
-            self._command(self.planner.step(t), t, emit)
-            self.backend.send_action(self.bridge.step(t))
+            clock.t_ns = t
+            self.planner.tick()
+            self.drain()
+            self.bridge.tick()
+            self.drain()
             self.cycles += 1
-            if self.cycles % self.state_every == 0 or self.bridge.publish_now:
-                self._state(t, emit)
-            if self.planner.changed or self.cycles % self.status_every == 0:
-                self._status(t, emit)
-            self.bridge.drain_events()
+            if self.cycles % flush_every == 0:
+                self._flush_journals()
+        self._flush_journals(final=True)
         return LockstepReport(i, self.cycles, self.messages, (t - t0) / 1e9)
 
+
+def _no_emit(key: str, message: Any, t: int) -> None:
+    pass

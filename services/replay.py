@@ -212,8 +212,8 @@ def _services_for(args: argparse.Namespace, output: Path) -> tuple[list[tuple[st
 
 
 def _run(args: argparse.Namespace) -> int:
+    from nwr.common.keys import planner_service
     from nwr.services.cli import _spawn, _stop_all
-    from nwr.services.planner.main import planner_service
 
     profile = profile_for(args)
     source = Path(args.file)

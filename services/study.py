@@ -77,8 +77,8 @@ class Switcher:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from nwr.common.keys import planner_service
     from nwr.services.cli import _spawn, _stop_all
-    from nwr.services.planner.main import planner_service
 
     profile = profile_for(args)
     order = order_of(args.order)

@@ -43,6 +43,8 @@ EXAMPLES = {
                                           task_time_s=0.0),
     "reflex/fuzz/decision": m.PlannerDecision(seq=0, stamp_ns=1, name="c", trace=TR, pain_seq=0, pain_stamp_ns=1),
     "diag/fuzz": m.Diagnostic(seq=0, stamp_ns=1, service="s", level="info", code="c", message="m"),
+    "journal/fuzz": m.Journal(seq=0, stamp_ns=1, service="s", run_ns=1, config="{}", entries=[
+        m.JournalEntry("pain", [1, 2, 3], "skin/pain", 4, 5, 6), m.JournalEntry("token", [7], arg=1, text="p")]),
     "control/active": m.SwitchRequest(seq=0, stamp_ns=1, name="location", requested_by="fuzz"),
 }
 

@@ -1,9 +1,8 @@
 """Robot bridge process: robot/command/<active> + skin/pressure + the planner's liveliness -> the arm -> robot/state.
 
-A thin adapter: :class:`~nwr.services.bridge.core.BridgeCore` decides, a
-backend (:class:`~nwr.services.bridge.backend.SimBackend` or
-:class:`~nwr.services.bridge.ur_rtde.URRtdeBackend`) moves the arm. The
-command callback and the control loop share both under one lock.
+A thin adapter around :class:`~nwr.services.bridge.wiring.BridgeWiring`
+(the core, a backend and the call order): Zenoh callbacks and the control
+loop call it under one lock.
 """
 
 from __future__ import annotations
@@ -13,22 +12,21 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh
 
 from nwr.common import keys
-from nwr.common import messages as m
 from nwr.common.config import BridgeSection, Profile
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
-from nwr.common.robot import load_description
 from nwr.services.bridge.backend import Backend, SimBackend
-from nwr.services.bridge.core import BridgeCore, Envelope, Event, at_rest, make_envelope
-from nwr.services.planner.main import planner_service
+from nwr.services.bridge.core import Envelope
+from nwr.services.bridge.wiring import SERVICE, BridgeWiring, envelope_for
 
-PLANNER_PREFIX = planner_service("")
 log = logging.getLogger(__name__)
 
 CONFIRM_FLAG = "--i-am-next-to-the-robot"
@@ -49,24 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--print-envelope", action="store_true", help="print the enforced envelope and exit")
 
 
-def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
-    """The envelope, the initial pose and the number of pads, from the profile."""
-    cfg = profile.bridge
-    desc = load_description(profile.robot.description or None)
-    env = make_envelope(
-        desc.joints,
-        {"q_min": desc.q_min, "q_max": desc.q_max, "v_max": desc.v_max, "a_max": desc.a_max, "j_max": desc.j_max},
-        speed_fraction=cfg.speed_fraction, acceleration_fraction=cfg.acceleration_fraction,
-        jerk_fraction=cfg.jerk_fraction,
-        tighter={"q_min": cfg.q_min, "q_max": cfg.q_max, "v_max": cfg.v_max, "a_max": cfg.a_max, "j_max": cfg.j_max},
-        position_jump_rad=cfg.position_jump_rad,
-    )
-    q0 = np.asarray(cfg.initial_q, dtype=float) if cfg.initial_q else np.asarray(desc.home, dtype=float)
-    if q0.shape != (env.n,):
-        raise ConfigError(f"bridge.initial_q has {q0.size} joints, the robot has {env.n}: give {env.n} or none")
-    return env, q0, len(desc.pads)
-
-
 def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
     dt = 1.0 / cfg.rate_hz
     if cfg.backend == "sim":
@@ -83,105 +63,6 @@ def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argpar
     return URRtdeBackend(env, dt, args.robot_ip, lookahead_s=cfg.servo_lookahead_s, gain=cfg.servo_gain,
                          reconnect_min_s=cfg.reconnect_min_s, reconnect_max_s=cfg.reconnect_max_s,
                          watchdog_hz=cfg.watchdog_hz)
-
-
-class Bridge:
-    """Wires the core and a backend to the node; every entry point takes the lock."""
-
-    def __init__(self, profile: Profile, node: Node, backend: Backend, env: Envelope, q0: np.ndarray,
-                 n_pads: int) -> None:
-        cfg = profile.bridge
-        self.cfg = cfg
-        self.node = node
-        self.backend = backend
-        self.lock = threading.Lock()
-        self.core = BridgeCore(
-            env, q0, node.clock.now_ns(), active=cfg.active_planner, n_pads=n_pads,
-            command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
-            seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
-        )
-        self.seq = 0
-        self.publish_state = node.publisher(keys.ROBOT_STATE)
-
-    # -- callbacks (Zenoh's threads) -------------------------------------------------
-    def on_command(self, relative: str, cmd: m.Command) -> None:
-        with self.lock:
-            now = self.node.clock.now_ns()
-            verdict = self.core.on_command(cmd, now, publisher=keys.command_publisher(relative))
-            if verdict.onset:
-                # The first command of a reflex goes to the backend now, not at
-                # the next cycle, and its acceptance is published at once.
-                self._cycle(now)
-                self._publish(now)
-            elif self.core.publish_now:
-                self._publish(now)
-            events = self.core.drain_events()
-        self._report(events)
-
-    def on_skin(self, pressure: m.SkinPressure) -> None:
-        with self.lock:
-            self.core.on_skin(pressure, self.node.clock.now_ns())
-            events = self.core.drain_events()
-        self._report(events)
-
-    def on_pain(self, pain: m.SkinPain) -> None:
-        with self.lock:
-            self.core.on_pain(pain, self.node.clock.now_ns())
-            events = self.core.drain_events()
-        self._report(events)
-
-    def on_liveliness(self, sample: zenoh.Sample) -> None:
-        """Any planner's token (alive/planner-<name>) appearing or vanishing."""
-        service = str(sample.key_expr).rsplit("/", 1)[-1]
-        name = service.removeprefix(PLANNER_PREFIX)
-        with self.lock:
-            self.core.on_planner_token(name, sample.kind == zenoh.SampleKind.PUT, self.node.clock.now_ns())
-            events = self.core.drain_events()
-        self._report(events)
-
-    def on_switch(self, request: m.SwitchRequest) -> None:
-        with self.lock:
-            now = self.node.clock.now_ns()
-            self.core.request_switch(request, now)
-            if self.core.publish_now:
-                self._publish(now)  # the planners learn who is active at once
-            events = self.core.drain_events()
-        self._report(events)
-
-    # -- the control loop --------------------------------------------------------------
-    def tick(self, publish: bool) -> None:
-        with self.lock:
-            now = self.node.clock.now_ns()
-            obs = self.backend.get_observation()
-            if obs.fault != self.core.fault:
-                self.core.on_fault(obs.fault, obs.detail, obs.q, now)
-                self.backend.resync(obs.q)
-            self.core.observe(obs.q)
-            self._cycle(now)
-            if publish or self.core.publish_now:
-                self._publish(now)
-            events = self.core.drain_events()
-        self._report(events)
-
-    def _cycle(self, now: int) -> None:
-        setpoint = self.core.step(now)
-        if self.core.fault is None:
-            self.backend.send_action(setpoint)
-
-    def _publish(self, now: int) -> None:
-        obs = self.backend.get_observation()
-        state = self.core.state(self.seq, now, obs.q, obs.dq, self.backend.name)
-        state.clipped += self.backend.guarded
-        self.publish_state(state)
-        self.seq += 1
-
-    def at_rest(self) -> bool:
-        with self.lock:
-            return self.core.stop is None or self.core.stop.done or at_rest(self.core.dq)
-
-    def _report(self, events: list[Event]) -> None:
-        for event in events:
-            self.node.diag(event.level, event.code, event.message)
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
@@ -201,35 +82,53 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     backend.connect()
     if backend.name != "sim":
         q0 = backend.get_observation().q
+    lock = threading.Lock()  # the handlers, the control loop and the journal's batches
     try:
-        with Node("bridge", profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
+        with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
             node.install_signal_handlers()
-            bridge = Bridge(profile, node, backend, env, q0, n_pads)
+            bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
+
+            def locked(handler: Callable[..., None]) -> Callable[..., None]:
+                def call(*args: Any) -> None:
+                    with lock:
+                        handler(*args)
+                return call
+
+            def on_liveliness(sample: zenoh.Sample) -> None:
+                """Any planner's token (alive/planner-<name>) appearing or vanishing."""
+                name = str(sample.key_expr).rsplit("/", 1)[-1].removeprefix(keys.PLANNER_SERVICE_PREFIX)
+                with lock:
+                    bridge.on_token(name, sample.kind == zenoh.SampleKind.PUT)
+
             # Every handler on Zenoh's network thread (direct: no hand-off to a
             # Python thread per command); the bridge subscribes to nothing it publishes.
-            node.subscribe(keys.ROBOT_COMMANDS, bridge.on_command, keyed=True, direct=True)
-            node.subscribe(keys.SKIN_PRESSURE, bridge.on_skin, direct=True)
-            node.subscribe(keys.SKIN_PAIN, bridge.on_pain, direct=True)
-            node.subscribe(keys.CONTROL_ACTIVE, bridge.on_switch, direct=True)
-            tokens = keys.key(profile.robot.name, keys.alive(PLANNER_PREFIX + "$*"))
-            watcher = node.session.liveliness().declare_subscriber(tokens, bridge.on_liveliness, history=True)
+            node.subscribe(keys.ROBOT_COMMANDS, locked(bridge.on_command), keyed=True, direct=True)
+            node.subscribe(keys.SKIN_PRESSURE, locked(bridge.on_skin), direct=True)
+            node.subscribe(keys.SKIN_PAIN, locked(bridge.on_pain), direct=True)
+            node.subscribe(keys.CONTROL_ACTIVE, locked(bridge.on_switch), direct=True)
+            tokens = keys.key(profile.robot.name, keys.alive(keys.PLANNER_SERVICE_PREFIX + "$*"))
+            watcher = node.session.liveliness().declare_subscriber(tokens, on_liveliness, history=True)
             log.info("following planner %r (tokens %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",
                      cfg.active_planner, tokens, cfg.rate_hz, cfg.command_timeout_s * 1e3,
                      cfg.skin_timeout_s * 1e3)
             pacer = backend.pacer(cfg.rate_hz)
-            state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
             try:
                 while pacer.sleep(node.stop):
-                    bridge.tick(pacer.ticks % state_every == 0)
+                    with lock:
+                        bridge.tick()
             finally:
                 # One shutdown path: a controlled stop, then the robot released.
-                with bridge.lock:
-                    bridge.core.request_stop(node.clock.now_ns(), "bridge shutting down")
-                    deadline = time.monotonic() + bridge.core.stop_time_s + SHUTDOWN_SLACK_S
-                while not bridge.at_rest() and time.monotonic() < deadline:
+                with lock:
+                    deadline = time.monotonic() + bridge.stop("bridge shutting down") + SHUTDOWN_SLACK_S
+                while time.monotonic() < deadline:
+                    with lock:
+                        if bridge.at_rest():
+                            break
                     pacer.sleep(None)
-                    bridge.tick(pacer.ticks % state_every == 0)
-                bridge.tick(True)
+                    with lock:
+                        bridge.tick()
+                with lock:
+                    bridge.tick(publish=True)
                 watcher.undeclare()
                 bridge.core.release()
                 log.info(pacer.summary())

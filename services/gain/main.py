@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import threading
 
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.node import Node
-from nwr.common.robot import load_description
-from nwr.services.gain.core import GainEstimator
+from nwr.services.gain.wiring import SERVICE, GainWiring
 
 log = logging.getLogger(__name__)
 
@@ -22,19 +22,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.model:
         profile.gain.model = args.model
-    desc = load_description(profile.robot.description or None)
-    estimator = GainEstimator(profile.gain, desc.pads)
-    with Node("gain", profile.robot.name, profile.zenoh, listen_slot="gain") as node:
+    lock = threading.Lock()  # the journal's batches are taken under it
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain") as node:
         node.install_signal_handlers()
-        publish = node.publisher(keys.SKIN_PAIN)
+        wiring = node.wire(GainWiring, profile, lock)
 
         def on_pressure(sample: m.SkinPressure) -> None:
-            try:
-                pain = estimator.process(sample, node.clock.now_ns())
-            except ValueError as exc:
-                node.diag("warning", "bad_skin_sample", str(exc))
-                return
-            publish(pain)
+            with lock:
+                wiring.on_pressure(sample)
 
         # On Zenoh's network thread (direct): the handler never waits, and this
         # process subscribes to nothing it publishes.
@@ -42,5 +37,6 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         log.info("%s gain model, thresholds %s hPa, k = %s", profile.gain.model, profile.gain.thresholds_hpa,
                  profile.gain.k)
         node.stop.wait()
+        estimator = wiring.estimator
         log.info("processed %d skin samples, %d non-finite pad values", estimator.seq, estimator.non_finite)
     return 0

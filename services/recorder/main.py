@@ -100,7 +100,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     def close_part(_part: int, stream: IO[bytes]) -> None:
         stream.close()
 
-    with Node("recorder", robot, profile.zenoh, listen_slot="recorder") as node:
+    # The token is declared once the subscriber is: a launcher that waits for
+    # the recorder to be alive knows nothing published after it is lost.
+    with Node("recorder", robot, profile.zenoh, listen_slot="recorder", token=False) as node:
         node.install_signal_handlers()
         metadata = session_metadata(
             robot=robot, session=session, profile_json=encode_profile(profile).decode(),
@@ -120,6 +122,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
         sub = node.session.declare_subscriber(f"{keys.prefix(robot)}/**",
                                               zenoh.handlers.Callback(on_sample, indirect=False))
+        node.declare_token()
         log.info("recording %s/** to %s%s", keys.prefix(robot), base,
                  f" (split: {split.max_bytes / MB:g} MB, {split.max_duration_ns / 1e9:g} s)" if split.enabled else "")
         bad = 0

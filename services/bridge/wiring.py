@@ -1,0 +1,196 @@
+"""The robot bridge's wiring: commands, skin, pain, tokens, switches and control cycles -> the arm -> robot/state.
+
+The call order of the service per input, with no Zenoh, no thread and no
+clock of its own (time comes from the journal): the live process
+(:mod:`.main`), lockstep runs and ``nwr verify`` run this code.
+:class:`~nwr.services.bridge.core.BridgeCore` decides, a backend
+(:class:`~nwr.services.bridge.backend.SimBackend` or the ur_rtde one) moves
+the arm.
+
+- a command is checked, with the planner its key belongs to; the first
+  command of a reflex goes to the backend at once and its acceptance is
+  published at once (not at the next cycle);
+- skin and pain messages keep the skin data fresh;
+- a planner's liveliness token appearing or vanishing, and a switch request,
+  change who moves the arm (a switch is published at once);
+- each control cycle: the backend's fault, the arm's measured pose, one
+  setpoint, and the robot state every ``state_rate_hz``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
+from nwr.common.journal import Journal
+from nwr.common.robot import load_description
+from nwr.services.bridge.backend import Backend, SimBackend
+from nwr.services.bridge.core import BridgeCore, Envelope, at_rest, make_envelope
+from nwr.services.wiring import Diag, Out
+
+SERVICE = "bridge"
+
+
+def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
+    """The envelope, the initial pose and the number of pads, from the profile."""
+    cfg = profile.bridge
+    desc = load_description(profile.robot.description or None)
+    env = make_envelope(
+        desc.joints,
+        {"q_min": desc.q_min, "q_max": desc.q_max, "v_max": desc.v_max, "a_max": desc.a_max, "j_max": desc.j_max},
+        speed_fraction=cfg.speed_fraction, acceleration_fraction=cfg.acceleration_fraction,
+        jerk_fraction=cfg.jerk_fraction,
+        tighter={"q_min": cfg.q_min, "q_max": cfg.q_max, "v_max": cfg.v_max, "a_max": cfg.a_max, "j_max": cfg.j_max},
+        position_jump_rad=cfg.position_jump_rad,
+    )
+    q0 = np.asarray(cfg.initial_q, dtype=float) if cfg.initial_q else np.asarray(desc.home, dtype=float)
+    if q0.shape != (env.n,):
+        raise ConfigError(f"bridge.initial_q has {q0.size} joints, the robot has {env.n}: give {env.n} or none")
+    return env, q0, len(desc.pads)
+
+
+class BridgeWiring:
+    service = SERVICE
+    outputs = (keys.ROBOT_STATE,)
+
+    def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag,
+                 backend: Backend | None = None) -> None:
+        cfg = profile.bridge
+        env, q0, n_pads = envelope_for(profile)
+        if backend is None:  # the simulated arm, as the profile describes it
+            backend = SimBackend(env, 1.0 / cfg.rate_hz, q0)
+            backend.connect()
+        elif backend.name != "sim":
+            q0 = backend.get_observation().q  # a real arm starts where it is
+        self.env = env
+        self.backend = backend
+        self.journal = journal
+        self.out = out
+        self.diag = diag
+        journal.begin("start")
+        self.core = BridgeCore(
+            env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
+            command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
+            seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
+        )
+        self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
+        self.ticks = 0
+        self.seq = 0
+
+    @classmethod
+    def rebuild(cls, profile: Profile, params: dict[str, Any], *, journal: Journal, out: Out,
+                diag: Diag) -> BridgeWiring:
+        backend = params.get("backend", "sim")
+        if backend != "sim":
+            raise ConfigError(f"the bridge drove the {backend} backend: the arm's measurements are not journaled, "
+                              "so only a bridge on the simulated arm can be re-run")
+        return cls(profile, journal=journal, out=out, diag=diag)
+
+    def params(self) -> dict[str, Any]:
+        return {"backend": self.backend.name}
+
+    # -- inputs ------------------------------------------------------------------------
+    def on_command(self, key: str, cmd: m.Command) -> None:
+        self.journal.begin("command", key, cmd)
+        now = self.journal.now_ns()
+        core = self.core
+        verdict = core.on_command(cmd, now, publisher=keys.command_publisher(key))
+        if verdict.onset:
+            # The first command of a reflex goes to the backend now, not at
+            # the next cycle, and its acceptance is published at once.
+            self._cycle(now)
+            self._publish(now)
+        elif core.publish_now:
+            self._publish(now)
+        self._report()
+
+    def on_skin(self, pressure: m.SkinPressure) -> None:
+        self.journal.begin("skin", keys.SKIN_PRESSURE, pressure)
+        self.core.on_skin(pressure, self.journal.now_ns())
+        self._report()
+
+    def on_pain(self, pain: m.SkinPain) -> None:
+        self.journal.begin("pain", keys.SKIN_PAIN, pain)
+        self.core.on_pain(pain, self.journal.now_ns())
+        self._report()
+
+    def on_token(self, name: str, alive: bool) -> None:
+        """The liveliness token of planner ``name`` appeared (``alive``) or vanished."""
+        self.journal.begin("token", arg=int(alive), text=name)
+        self.core.on_planner_token(name, alive, self.journal.now_ns())
+        self._report()
+
+    def on_switch(self, request: m.SwitchRequest) -> None:
+        self.journal.begin("switch", keys.CONTROL_ACTIVE, request)
+        now = self.journal.now_ns()
+        self.core.request_switch(request, now)
+        if self.core.publish_now:
+            self._publish(now)  # the planners learn who is active at once
+        self._report()
+
+    def tick(self, *, publish: bool = False) -> None:
+        """One control cycle; the robot state every ``state_rate_hz`` (``publish``: this cycle too)."""
+        self.journal.begin("tick", arg=int(publish))
+        now = self.journal.now_ns()
+        core, backend = self.core, self.backend
+        self.ticks += 1
+        obs = backend.get_observation()
+        if obs.fault != core.fault:
+            core.on_fault(obs.fault, obs.detail, obs.q, now)
+            backend.resync(obs.q)
+        core.observe(obs.q)
+        self._cycle(now)
+        if publish or self.ticks % self.state_every == 0 or core.publish_now:
+            self._publish(now)
+        self._report()
+
+    def stop(self, reason: str) -> float:
+        """A controlled stop to rest; how long it takes at most, s."""
+        self.journal.begin("stop", text=reason)
+        self.core.request_stop(self.journal.now_ns(), reason)
+        self._report()
+        return self.core.stop_time_s
+
+    def at_rest(self) -> bool:
+        core = self.core
+        return core.stop is None or core.stop.done or at_rest(core.dq)
+
+    def _cycle(self, now: int) -> None:
+        setpoint = self.core.step(now)
+        if self.core.fault is None:
+            self.backend.send_action(setpoint)
+
+    def _publish(self, now: int) -> None:
+        obs = self.backend.get_observation()
+        state = self.core.state(self.seq, now, obs.q, obs.dq, self.backend.name)
+        state.clipped += self.backend.guarded
+        self.out(keys.ROBOT_STATE, state)
+        self.seq += 1
+
+    def _report(self) -> None:
+        for event in self.core.drain_events():
+            self.diag(event.level, event.code, event.message)
+
+    def replay(self, entry: m.JournalEntry, message: Any) -> None:
+        match entry.input:
+            case "command":
+                self.on_command(entry.key, message)
+            case "skin":
+                self.on_skin(message)
+            case "pain":
+                self.on_pain(message)
+            case "token":
+                self.on_token(entry.text, bool(entry.arg))
+            case "switch":
+                self.on_switch(message)
+            case "tick":
+                self.tick(publish=bool(entry.arg))
+            case "stop":
+                self.stop(entry.text)
+            case _:
+                raise ValueError(f"the bridge has no input {entry.input!r}")

@@ -1,0 +1,125 @@
+"""The skin gateway's wiring: the simulated skin's ticks + robot/state (+ statuses) -> skin/pressure, skin/touch.
+
+The call order of the service, with no Zenoh, no thread and no clock of its
+own (time comes from the journal): the live process (:mod:`.main`), lockstep
+runs and ``nwr verify`` run this code.
+
+- a robot state is kept: where the arm is when a touch meets its pad (the
+  ground truth on ``skin/touch``) and, in closed loop, how far a pad has
+  withdrawn from the finger;
+- a planner's status names the study's target pad (``--follow-target``);
+- :meth:`GatewayWiring.origin` starts the touch script's clock;
+- each tick: the follower's touch, the touches that start (forward
+  kinematics only when one needs the pose), the sample.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, TouchScript
+from nwr.common.journal import Journal
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
+from nwr.services.wiring import Diag, Out
+
+SERVICE = "gateway"
+
+
+class GatewayWiring:
+    service = SERVICE
+    outputs = (keys.SKIN_PRESSURE, keys.SKIN_TOUCH)
+
+    def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag, script: TouchScript | None = None,
+                 follow_target_s: float | None = None) -> None:
+        cfg = profile.gateway
+        self.cfg = cfg
+        self.desc = load_description(profile.robot.description or None)
+        self.pads = self.desc.pads
+        self.script = script
+        self.follow_target_s = follow_target_s
+        self.sim = SimSkin(cfg.sim, self.pads, script)
+        self.gateway = Gateway(cfg, len(self.pads), source="sim")
+        self.model = RobotModel(self.desc)
+        self.follower = TargetFollower(follow_target_s, cfg.sim.seed) if follow_target_s else None
+        self.journal = journal
+        self.out = out
+        self.diag = diag
+        self.pose: m.RobotState | None = None  # the newest robot state
+        self.target = -1  # the study's target pad, from the planners' statuses
+        self.origin_ns = 0
+        self.touch_seq = 0
+        journal.begin("start")
+
+    @classmethod
+    def rebuild(cls, profile: Profile, params: dict[str, Any], *, journal: Journal, out: Out,
+                diag: Diag) -> GatewayWiring:
+        script = params.get("script")
+        return cls(profile, journal=journal, out=out, diag=diag,
+                   script=msgspec.convert(script, TouchScript) if script is not None else None,
+                   follow_target_s=params.get("follow_target_s"))
+
+    def params(self) -> dict[str, Any]:
+        return {"script": msgspec.to_builtins(self.script) if self.script is not None else None,
+                "follow_target_s": self.follow_target_s}
+
+    # -- inputs ------------------------------------------------------------------------
+    def on_state(self, state: m.RobotState) -> None:
+        self.journal.begin("state", keys.ROBOT_STATE, state)
+        self.pose = state
+
+    def on_status(self, key: str, status: m.PlannerStatus) -> None:
+        self.journal.begin("status", key, status)
+        self.target = status.target_pad
+
+    def origin(self) -> int:
+        """The touch script's clock starts now; its origin, ns."""
+        self.journal.begin("origin")
+        self.origin_ns = self.journal.now_ns()
+        return self.origin_ns
+
+    def tick(self) -> float:
+        """One sample period: the touches that start, the sample; the script's time, s."""
+        self.journal.begin("tick")
+        now = self.journal.now_ns()
+        t = (now - self.origin_ns) / 1e9
+        sim = self.sim
+        if self.follower is not None:
+            touch = self.follower.poll(t, self.target)
+            if touch is not None:
+                sim.add_touch(*touch)
+        state = self.pose
+        points = normals = None
+        if state is not None and sim.touches.needs_pose(t):  # forward kinematics only when used
+            points, normals = self.model.pad_points(state.q), self.model.pad_normals(state.q)
+        for started in sim.start(t, points, normals):
+            self.out(keys.SKIN_TOUCH, touch_message(
+                self.touch_seq, now, self.origin_ns, started, self.pads[started.pad].name, sim.touches,
+                state.q if state is not None else None, state.stamp_ns if state is not None else 0))
+            self.touch_seq += 1
+        msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
+        self.out(keys.SKIN_PRESSURE, msg)
+        for pad in events.reacquired:
+            self.diag("warning", "baseline_reacquired",
+                      f"pad {self.pads[pad].name} stayed above the contact threshold for more than "
+                      f"{self.cfg.max_contact_s} s: its baseline was re-acquired")
+        for pad in events.non_finite:
+            self.diag("warning", "non_finite_pressure", f"pad {self.pads[pad].name} reported a non-finite pressure")
+        return t
+
+    def replay(self, entry: m.JournalEntry, message: Any) -> None:
+        match entry.input:
+            case "state":
+                self.on_state(message)
+            case "status":
+                self.on_status(entry.key, message)
+            case "origin":
+                self.origin()
+            case "tick":
+                self.tick()
+            case _:
+                raise ValueError(f"the gateway has no input {entry.input!r}")

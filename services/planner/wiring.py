@@ -1,0 +1,171 @@
+"""The reflex planner's wiring: skin/pain + robot/state + peer statuses + ticks -> commands, statuses, decisions.
+
+The call order of the service per input, with no Zenoh, no thread and no
+clock of its own (time comes from the journal, the control cycles from a
+:class:`~nwr.common.pacing.Rate`'s deadlines computed on that time): the
+live process (:mod:`.main`), lockstep runs and ``nwr verify`` run this code.
+
+- a pain message steps the control cycles that are due first (``catch up``),
+  then the planner's event path; a reflex's first command is published
+  before the decision that notes it;
+- a robot state does the same catch-up before the planner sees it;
+- a tick steps the cycles due (at most one beyond those the task's plan
+  covers: the live loop sleeps through those) and publishes the status on a
+  change or every ``status_rate_hz``;
+- the retreat check of a reflex is taken (:meth:`PlannerWiring.retreat_take`)
+  and applied (:meth:`PlannerWiring.retreat_apply`) as two inputs: the live
+  process computes it between the two in a thread of its own.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile
+from nwr.common.journal import Journal
+from nwr.common.pacing import Rate
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.planner import retreat
+from nwr.services.planner.core import Planner, RetreatCheck
+from nwr.services.wiring import Diag, Out
+
+
+class PlannerWiring:
+    def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag) -> None:
+        cfg = profile.planner
+        desc = load_description(profile.robot.description or None)
+        self.planner = Planner(cfg, desc, RobotModel(desc))
+        self.name = cfg.name
+        self.service = keys.planner_service(cfg.name)
+        self.command_key = keys.robot_command(cfg.name)
+        self.status_key = keys.planner_status(cfg.name)
+        self.decision_key = keys.planner_decision(cfg.name)
+        self.outputs = (self.command_key, self.status_key, self.decision_key)
+        self.journal = journal
+        self.out = out
+        self.diag = diag
+        self.rate = Rate(cfg.rate_hz, "planner")
+        self.status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
+        self.status_tick = 0
+        self.check_model = RobotModel(desc)  # the retreat check's own, when it runs in the caller's thread
+        self.check: RetreatCheck | None = None
+        journal.begin("start")
+        self.rate.restart(journal.now_ns())
+
+    @classmethod
+    def rebuild(cls, profile: Profile, params: dict[str, Any], *, journal: Journal, out: Out,
+                diag: Diag) -> PlannerWiring:
+        return cls(profile, journal=journal, out=out, diag=diag)
+
+    def params(self) -> dict[str, Any]:
+        return {}
+
+    # -- inputs ------------------------------------------------------------------------
+    def _catch_up(self, now: int) -> None:
+        for _ in range(self.rate.take(now, limit=self.planner.quiet_cycles)):
+            self.planner.step(now)  # a planned cycle: no command
+
+    def _status(self, now: int) -> None:
+        self.out(self.status_key, self.planner.status(now))
+
+    def on_state(self, state: m.RobotState) -> None:
+        self.journal.begin("state", keys.ROBOT_STATE, state)
+        planner = self.planner
+        q = m.as_array(state.q)
+        if q.shape != planner.q.shape:
+            self.diag("warning", "bad_state", f"robot state has {q.size} joints, the robot has {planner.q.size}")
+            return
+        now = self.journal.now_ns()
+        self._catch_up(now)
+        planner.on_state(q, following=state.owner == self.name and state.status == "ok",
+                         dq=m.as_array(state.dq), owner=state.owner, now_ns=now)
+        if planner.changed:
+            self._status(self.journal.now_ns())
+
+    def on_pain(self, pain: m.SkinPain, received_ns: int) -> m.Command | None:
+        """The event path: a reflex starts the moment its pain message arrives (at ``received_ns``)."""
+        self.journal.begin("pain", keys.SKIN_PAIN, pain, arg=received_ns)
+        planner = self.planner
+        self._catch_up(received_ns)
+        try:
+            command = planner.on_pain(pain, self.journal.now_ns())
+        except ValueError as exc:
+            self.diag("warning", "bad_pain", str(exc))
+            return None
+        decided = self.journal.now_ns()
+        if command is not None:
+            self.out(self.command_key, command)
+        # After the command: noting the decision costs the reflex nothing.
+        self.out(self.decision_key, planner.decision(pain, received_ns, decided, command))
+        if planner.changed:
+            self._status(self.journal.now_ns())
+        return command
+
+    def on_peer_status(self, key: str, status: m.PlannerStatus) -> None:
+        self.journal.begin("status", key, status)
+        self.planner.on_peer_status(status, self.journal.now_ns())
+
+    def tick(self) -> None:
+        """The control loop woke: step the cycles due, publish the status when it is due."""
+        self.journal.begin("tick")
+        now = self.journal.now_ns()
+        planner = self.planner
+        due = self.rate.take(now, limit=planner.quiet_cycles + 1)
+        if due == 0:
+            self.journal.discard()  # woken early, or an event stepped the cycles due
+            return
+        self.rate.skip(now)  # cycles beyond those are lost to a late loop (motion slows, never jumps)
+        for _ in range(due):
+            command = planner.step(now)
+            if command is not None:
+                self.out(self.command_key, command)
+        if planner.changed or self.rate.ticks - self.status_tick >= self.status_every:
+            self.status_tick = self.rate.ticks
+            self._status(now)
+
+    def retreat_take(self) -> RetreatCheck | None:
+        """What the retreat check of the current reflex needs (None outside a reflex)."""
+        self.journal.begin("retreat_take")
+        self.check = self.planner.retreat_check()
+        return self.check
+
+    def retreat_apply(self, check: RetreatCheck, assessment: retreat.Assessment) -> None:
+        """A check's figures, published with the reflex on the next status."""
+        self.journal.begin("retreat_apply")
+        self.planner.apply_retreat(check, assessment)
+
+    def assess(self) -> None:
+        """The retreat check taken, run and applied at once (lockstep: in the caller's thread)."""
+        check = self.retreat_take()
+        if check is not None:
+            self.retreat_apply(check, check.run(self.check_model))
+
+    def replay(self, entry: m.JournalEntry, message: Any) -> None:
+        match entry.input:
+            case "state":
+                self.on_state(message)
+            case "pain":
+                self.on_pain(message, entry.arg)
+            case "status":
+                self.on_peer_status(entry.key, message)
+            case "tick":
+                self.tick()
+            case "retreat_take":
+                self.retreat_take()
+            case "retreat_apply":
+                if self.check is None:
+                    raise ValueError("a retreat check applied that was never taken")
+                self.retreat_apply(self.check, self.check.run(self.check_model))
+            case _:
+                raise ValueError(f"the planner has no input {entry.input!r}")
+
+
+def planner_profile(profile: Profile, *, name: str | None = None, strategy: str | None = None) -> Profile:
+    """``profile`` with its planner's name and strategy overridden (a copy)."""
+    cfg = msgspec.structs.replace(profile.planner, strategy=strategy or profile.planner.strategy,
+                                  name=name or strategy or profile.planner.name)
+    return msgspec.structs.replace(profile, planner=cfg)

@@ -1,0 +1,266 @@
+"""``nwr verify FILE``: re-run every recorded service over its own recorded inputs and compare, message for message.
+
+Each service journals what it handled, in order, with every clock reading
+it made (``journal/<service>``, :mod:`nwr.common.journal`). For each run of
+each service found in the recording, this rebuilds the service's wiring
+from the configuration its journal carries, feeds it the recorded inputs the
+journal names through :class:`~nwr.common.journal.Playback`, and compares
+what it publishes with what the recording holds on the service's output keys
+in that run: the same messages, bit for bit (their JSON encoding), matched
+by sequence number.
+
+A run is *identical* when every output it recorded is re-made exactly; it
+*differs* at the first output (or journal entry) where the re-run parts from
+the recording; it *cannot be verified* when the recording lacks what the
+re-run needs (the journal's first batch, a batch in the middle, an input
+message), and the report says which. Outputs the re-run makes that the
+recording lacks were lost on the way to the recorder (telemetry may drop);
+they are counted, not failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile
+from nwr.common.errors import ConfigError, NwrError
+from nwr.common.journal import Divergence, Playback
+from nwr.services.bridge.wiring import BridgeWiring
+from nwr.services.gain.wiring import GainWiring
+from nwr.services.gateway.wiring import GatewayWiring
+from nwr.services.planner.wiring import PlannerWiring
+from nwr.services.recorder.core import Recorded, read_recording
+from nwr.services.wiring import no_diag
+
+NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded by an older nwr, by another tool, "
+              "or without the services' journals, so its services cannot be re-run")
+
+
+def wiring_for(service: str) -> Any:
+    """The wiring class of a service name as journaled (``planner-<name>`` for planners)."""
+    if service.startswith(keys.PLANNER_SERVICE_PREFIX):
+        return PlannerWiring
+    found = {"gain": GainWiring, "gateway": GatewayWiring, "bridge": BridgeWiring}.get(service)
+    if found is None:
+        raise ConfigError(f"no wiring for a service named {service!r}")
+    return found
+
+
+@dataclass
+class RunResult:
+    """The verdict on one run of one service."""
+
+    service: str
+    run: int  # 1-based, in start order
+    runs: int
+    verdict: str  # "identical", "differs" or "unverifiable"
+    entries: int = 0
+    outputs: dict[str, int] = field(default_factory=dict)  # key -> outputs compared
+    lost: int = 0  # re-made outputs the recording lacks (lost before the recorder)
+    after_journal: int = 0  # recorded outputs after the journal's last batch (the service was killed)
+    detail: str = ""
+
+    def format(self) -> str:
+        head = f"{self.service:<20s} run {self.run}/{self.runs}  {self.entries:>7d} inputs  "
+        if self.verdict == "identical":
+            counts = ", ".join(f"{k} {n}" for k, n in sorted(self.outputs.items()))
+            extra = []
+            if self.lost:
+                extra.append(f"{self.lost} re-made outputs not in the recording (lost on the way to the recorder)")
+            if self.after_journal:
+                extra.append(f"{self.after_journal} recorded outputs after the journal's end (the service was "
+                             "killed before it journaled them)")
+            more = f"; {'; '.join(extra)}" if extra else ""
+            return f"{head}identical: {sum(self.outputs.values())} outputs ({counts}){more}"
+        word = "DIFFERS" if self.verdict == "differs" else "cannot be verified"
+        return f"{head}{word}: {self.detail}"
+
+
+@dataclass
+class _Run:
+    service: str
+    run_ns: int
+    batches: list[m.Journal]
+
+
+def _runs(records: Iterable[Recorded]) -> list[_Run]:
+    found: dict[tuple[str, int], list[m.Journal]] = defaultdict(list)
+    for r in records:
+        if isinstance(r.message, m.Journal):
+            found[(r.message.service, r.message.run_ns)].append(r.message)
+    return [_Run(service, run_ns, sorted(batches, key=lambda b: b.seq))
+            for (service, run_ns), batches in sorted(found.items(), key=lambda kv: (kv[0][0], kv[0][1]))]
+
+
+def _diff(recorded: Any, remade: Any) -> str:
+    a, b = msgspec.to_builtins(recorded), msgspec.to_builtins(remade)
+    if isinstance(a, dict) and isinstance(b, dict):
+        for name in a.keys() | b.keys():
+            if a.get(name) != b.get(name):
+                return f"field {name!r}: recorded {_short(a.get(name))}, re-run {_short(b.get(name))}"
+    return f"recorded {_short(a)}, re-run {_short(b)}"
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+def _from_service(key: str, message: Any, wiring: Any) -> bool:
+    """Whether a recorded output on one of the wiring's keys is this service's (not a replay's or an impostor's)."""
+    if isinstance(message, m.SkinPressure):
+        return message.source == "sim"
+    if isinstance(message, (m.PositionCommand, m.VelocityCommand)):
+        return message.owner == getattr(wiring, "name", message.owner)
+    return True
+
+
+def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[str, list[Any]], *,
+               number: int, runs: int, until_ns: int | None) -> RunResult:
+    """Re-run one service run; ``outputs``: the recording's messages per key, ``until_ns``: the next run's start."""
+    result = RunResult(run.service, number, runs, "unverifiable")
+    batches = run.batches
+    if batches[0].seq != 0 or not batches[0].config:
+        result.detail = (f"the journal's first batch (with the service's configuration) is not in the recording "
+                         f"(first: batch {batches[0].seq}): the recorder started after the service")
+        return result
+    missing = [b.seq for prev, b in zip(batches, batches[1:], strict=False) if b.seq != prev.seq + 1]
+    if missing:
+        result.detail = f"journal batch(es) before {missing[:5]} are missing from the recording: the re-run needs all"
+        return result
+    try:
+        config = json.loads(batches[0].config)
+        profile = msgspec.convert(config["profile"], Profile)
+        params = config.get("params", {})
+        factory = wiring_for(run.service)
+    except (ValueError, KeyError, TypeError, msgspec.ValidationError, ConfigError) as exc:
+        result.detail = f"the journal's configuration cannot be read: {exc}"
+        return result
+    entries = [e for b in batches for e in b.entries]
+    result.entries = len(entries)
+    remade: dict[str, dict[int, Any]] = defaultdict(dict)
+
+    def out(key: str, message: Any) -> None:
+        remade[key][message.seq] = message
+
+    journal = Playback(entries)
+    try:
+        wiring = factory.rebuild(profile, params, journal=journal, out=out, diag=no_diag)
+        while (entry := journal.peek()) is not None:
+            message = None
+            if entry.key:
+                message = index.get((entry.key, entry.seq, entry.stamp_ns))
+                if message is None:
+                    result.detail = (f"entry {journal.index + 1} ({entry.input}): its input, {entry.key} seq "
+                                     f"{entry.seq} stamped {entry.stamp_ns}, is not in the recording")
+                    return result
+            wiring.replay(entry, message)
+        journal.finish_entry()
+    except Divergence as exc:
+        result.verdict, result.detail = "differs", str(exc)
+        return result
+    except ConfigError as exc:
+        result.detail = str(exc)
+        return result
+    except Exception as exc:  # the re-run failed where the live run did not
+        result.verdict = "differs"
+        result.detail = f"entry {journal.index}: the re-run raised {exc!r} where the live run went on"
+        return result
+    final = batches[-1].final
+    last_ns = max((t for e in entries for t in e.now), default=run.run_ns)
+    encode = msgspec.json.encode
+    first_diff: tuple[int, str] | None = None
+    for key in wiring.outputs:
+        mine = remade.get(key, {})
+        count = 0
+        seen: set[int] = set()
+        for message in outputs.get(key, []):
+            if message.stamp_ns < run.run_ns or (until_ns is not None and message.stamp_ns >= until_ns) \
+                    or not _from_service(key, message, wiring):
+                continue
+            seen.add(message.seq)
+            again = mine.get(message.seq)
+            if again is None:
+                if not final and message.stamp_ns >= last_ns:
+                    result.after_journal += 1
+                    continue
+                where = (message.stamp_ns, f"{key} seq {message.seq}: recorded, but the re-run did not make it")
+            elif encode(again) != encode(message):
+                where = (message.stamp_ns, f"{key} seq {message.seq}: {_diff(message, again)}")
+            else:
+                count += 1
+                continue
+            if first_diff is None or where[0] < first_diff[0]:
+                first_diff = where
+        result.outputs[key] = count
+        result.lost += sum(1 for seq in mine if seq not in seen)
+    if first_diff is not None:
+        result.verdict, result.detail = "differs", f"first at {first_diff[1]}"
+    else:
+        result.verdict = "identical"
+    return result
+
+
+def verify(path: str | Path) -> list[RunResult]:
+    """Every service run of a recording, re-run and compared; ConfigError when there is nothing to verify."""
+    records, _metadata = read_recording(path)
+    runs = _runs(records)
+    if not runs:
+        raise ConfigError(f"{path}: {NO_JOURNAL}")
+    index: dict[tuple[str, int, int], Any] = {}
+    outputs: dict[str, list[Any]] = defaultdict(list)
+    for r in records:
+        if isinstance(r.message, m.Journal):
+            continue
+        index[(r.key, r.message.seq, r.message.stamp_ns)] = r.message
+        outputs[r.key].append(r.message)
+    results = []
+    by_service: dict[str, list[_Run]] = defaultdict(list)
+    for run in runs:
+        by_service[run.service].append(run)
+    for service_runs in by_service.values():
+        for i, run in enumerate(service_runs):
+            until = service_runs[i + 1].run_ns if i + 1 < len(service_runs) else None
+            results.append(verify_run(run, index, outputs, number=i + 1, runs=len(service_runs), until_ns=until))
+    return results
+
+
+def _run(args: argparse.Namespace) -> int:
+    path = Path(args.file)
+    if path.is_dir():
+        raise ConfigError(f"{path} is a directory: give an MCAP recording (recordings/<session>.mcap)")
+    try:
+        results = verify(path)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path} does not exist") from exc
+    except NwrError:
+        raise
+    except Exception as exc:  # mcap's and the OS's errors on a file that is no (complete) recording
+        raise ConfigError(f"{path} cannot be read as an MCAP recording ({type(exc).__name__}: {exc}); one cut off "
+                          "by a crash can be repaired with `nwr recover`") from exc
+    for result in results:
+        print(result.format())
+    bad = [r for r in results if r.verdict != "identical"]
+    print(f"{len(results) - len(bad)} of {len(results)} service runs re-made their recorded outputs bit for bit")
+    return 0 if not bad else 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "verify", help="re-run each recorded service over its recorded inputs and compare its outputs bit for bit",
+        description="Re-run every service of a recording (gateway, gain, planners, bridge) from its journal over "
+                    "its own recorded inputs, and report per service run whether its outputs equal the recorded "
+                    "ones message for message, and where they first part. Exit status 0 when every run is "
+                    "identical, 1 otherwise.")
+    p.add_argument("file", help="MCAP recording of a live session (nwr demo, nwr up) or of a lockstep run")
+    p.set_defaults(handler=_run)
