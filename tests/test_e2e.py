@@ -20,6 +20,7 @@ from nwr.common.robot import load_description
 from nwr.services import analysis
 from nwr.services.gain.core import GainEstimator
 from nwr.services.recorder.core import read_recording
+from nwr.services.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -118,3 +119,9 @@ def test_scripted_session_end_to_end(tmp_path, reflex, port):
     # The intruder's 3 rad/s never reached the arm: no reflex or task of this
     # script moves wrist 3, which the intruder drives at 3 rad/s.
     assert max(abs(s.dq[5]) for s in states) < 0.5
+
+    # Every service re-runs from its journal to the same outputs, bit for bit,
+    # the intruder's commands (journaled, refused) included.
+    results = verify(output)
+    assert {r.service for r in results} == {"gateway", "gain", "bridge", f"planner-{reflex}"}
+    assert all(r.verdict == "identical" for r in results), [r.format() for r in results]

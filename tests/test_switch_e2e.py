@@ -17,6 +17,7 @@ from nwr.common.config import ZenohSection
 from nwr.common.node import Node
 from nwr.common.robot import load_description
 from nwr.services.recorder.core import read_recording
+from nwr.services.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -101,3 +102,9 @@ def test_switch_during_a_live_session(tmp_path):
     ok = dt > 1e-4
     speed = np.abs(np.diff(q, axis=0)[ok]) / dt[ok, None]
     assert np.all(speed <= desc.v_max * 1.02), speed.max(axis=0)
+
+    # Each planner, active or standby, and the bridge that switched between
+    # them re-run from their journals to the same outputs, bit for bit.
+    results = verify(output)
+    assert {r.service for r in results} == {"gateway", "gain", "bridge", *(f"planner-{p}" for p in ORDER)}
+    assert all(r.verdict == "identical" for r in results), [r.format() for r in results]

@@ -1,0 +1,149 @@
+"""``nwr verify`` on lockstep recordings (no processes): identical runs, and every way a recording can disagree."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.clock import ManualClock
+from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
+from nwr.common.journal import Divergence, Playback, Recording
+from nwr.services import cli
+from nwr.services.recorder.core import McapRecorder, Recorded, read_recording
+from nwr.services.replay import simulate
+from nwr.services.verify import NO_JOURNAL, verify
+
+SCRIPT = str(Path(__file__).parent / "data" / "short.toml")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("verify") / "lockstep.mcap"
+    return simulate(Profile(), SCRIPT, "cartesian", path)[0]
+
+
+def rewrite(records: list[Recorded], path: Path) -> Path:
+    with path.open("wb") as stream:
+        recorder = McapRecorder(stream, "ur10e")
+        for r in records:
+            recorder.write(keys.key("ur10e", r.key), r.message, r.log_time_ns)
+        recorder.finish()
+    return path
+
+
+def by_service(path: Path) -> dict[str, str]:
+    return {r.service: r.verdict for r in verify(path)}
+
+
+def test_a_lockstep_session_re_runs_bit_for_bit(session):
+    results = verify(session)
+    assert {r.service: r.verdict for r in results} == {
+        "gateway": "identical", "gain": "identical", "planner-cartesian": "identical", "bridge": "identical"}
+    planner = next(r for r in results if r.service == "planner-cartesian")
+    assert planner.outputs["robot/command/cartesian"] > 1000
+    assert planner.outputs["reflex/cartesian/decision"] > 200
+    assert all(r.lost == 0 and r.after_journal == 0 for r in results)
+
+
+def test_a_changed_output_is_found_where_it_parts(session, tmp_path):
+    records, _ = read_recording(session)
+    i = next(i for i, r in enumerate(records) if r.key == "robot/command/cartesian" and r.message.seq == 700)
+    msg = records[i].message
+    changed = msgspec.structs.replace(msg, dq=[msg.dq[0] + 1e-12, *msg.dq[1:]]) \
+        if isinstance(msg, m.VelocityCommand) else msgspec.structs.replace(msg, q=[msg.q[0] + 1e-12, *msg.q[1:]])
+    records[i] = Recorded(records[i].key, records[i].log_time_ns, changed)
+    results = {r.service: r for r in verify(rewrite(records, tmp_path / "changed.mcap"))}
+    assert results["planner-cartesian"].verdict == "differs"
+    assert "robot/command/cartesian seq 700" in results["planner-cartesian"].detail
+    # The bridge re-runs on the recorded (changed) command: its states part too; upstream is untouched.
+    assert results["bridge"].verdict == "differs"
+    assert results["gain"].verdict == results["gateway"].verdict == "identical"
+
+
+def test_a_journal_that_disagrees_with_the_recording_is_reported(session, tmp_path):
+    records, _ = read_recording(session)
+    i = next(i for i, r in enumerate(records) if r.key == "journal/gain" and r.message.seq > 20 and r.message.entries)
+    batch = records[i].message
+    entry = batch.entries[0]
+    entries = list(batch.entries)
+    entries[0] = msgspec.structs.replace(entry, now=[entry.now[0] + 1])  # the pain stamped 1 ns later
+    records[i] = Recorded(records[i].key, records[i].log_time_ns, msgspec.structs.replace(batch, entries=entries))
+    result = next(r for r in verify(rewrite(records, tmp_path / "journal.mcap")) if r.service == "gain")
+    assert result.verdict == "differs"
+    assert "skin/pain seq" in result.detail and "stamp_ns" in result.detail
+
+
+def test_a_missing_input_or_batch_makes_a_run_unverifiable(session, tmp_path):
+    records, _ = read_recording(session)
+    pain = next(r for r in records if r.key == "skin/pain" and r.message.seq == 100)
+    without_pain = [r for r in records if r is not pain]
+    result = next(r for r in verify(rewrite(without_pain, tmp_path / "a.mcap")) if r.service == "planner-cartesian")
+    assert result.verdict == "unverifiable"
+    assert "skin/pain seq 100" in result.detail and "not in the recording" in result.detail
+
+    first = next(r for r in records if r.key == "journal/bridge" and r.message.seq == 0)
+    later = next(r for r in records if r.key == "journal/gain" and r.message.seq == 3)
+    trimmed = [r for r in records if r is not first and r is not later]
+    results = {r.service: r for r in verify(rewrite(trimmed, tmp_path / "b.mcap"))}
+    assert results["bridge"].verdict == "unverifiable" and "first batch" in results["bridge"].detail
+    assert results["gain"].verdict == "unverifiable" and "missing" in results["gain"].detail
+    assert results["gateway"].verdict == "identical"
+
+
+def test_a_recording_without_journals_says_why(session, tmp_path, caplog):
+    records, _ = read_recording(session)
+    bare = rewrite([r for r in records if not r.key.startswith("journal/")], tmp_path / "bare.mcap")
+    with pytest.raises(ConfigError, match="no journal"):
+        verify(bare)
+    assert cli.main(["verify", str(bare)]) == 2
+    assert NO_JOURNAL in caplog.text
+
+
+@pytest.mark.parametrize("content", [None, b"", b"not an mcap file at all", b"\x89MCAP0\r\n" + b"\x00" * 40])
+def test_files_that_are_no_recording_get_a_message(tmp_path, caplog, content):
+    path = tmp_path / "x.mcap"
+    if content is None:
+        path = tmp_path  # a directory
+    else:
+        path.write_bytes(content)
+    assert cli.main(["verify", str(path)]) == 2
+    assert "Traceback" not in caplog.text and str(path) in caplog.text
+
+
+def test_the_cli_reports_each_run_and_exits_0_when_identical(session, capsys):
+    assert cli.main(["verify", str(session)]) == 0
+    out = capsys.readouterr().out
+    assert "4 of 4 service runs re-made their recorded outputs bit for bit" in out
+    assert "planner-cartesian" in out and "identical" in out
+
+
+def test_playback_refuses_what_the_live_run_did_not_do():
+    live = Recording(ManualClock(5))
+    live.begin("tick")
+    live.now_ns()
+    live.begin("pain", "skin/pain", m.Trace(3, 4))
+    live.now_ns()
+    live.now_ns()
+    live.begin("tick")
+    live.discard()  # nothing happened: not kept
+    entries = live.take()
+    assert [e.input for e in entries] == ["tick", "pain"]
+    assert (entries[1].key, entries[1].seq, entries[1].stamp_ns, entries[1].now) == ("skin/pain", 3, 4, [5, 5])
+
+    again = Playback(entries)
+    again.begin("tick")
+    assert again.now_ns() == 5
+    with pytest.raises(Divergence, match="more often"):
+        again.now_ns()
+    with pytest.raises(Divergence, match="'state' where the live run handled 'pain'"):
+        Playback(entries[1:]).begin("state")
+    short = Playback(entries[1:])
+    short.begin("pain")
+    short.now_ns()
+    with pytest.raises(Divergence, match="1 times, the live run 2"):
+        short.finish_entry()
