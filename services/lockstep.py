@@ -9,7 +9,7 @@ simulated time:
 - a skin sample is delivered at its own stamp: the bridge (fresh skin) and
   the gain estimator, whose pain message goes to the bridge and the
   planner's event path (a reflex's first command reaches the bridge at once,
-  its retreat check runs at once);
+  its retreat check runs once that has been delivered);
 - every control cycle the planner's loop ticks, then the bridge's: the
   robot state goes back to the planner (and the simulated skin) at
   ``state_rate_hz``, the planner's status at ``status_rate_hz`` and on every
@@ -246,6 +246,7 @@ class Lockstep:
     def drain(self) -> None:
         """Deliver the queued messages, and those they cause, in order (the pipeline's graph)."""
         queue = self.queue
+        assess = False
         while queue:
             key, message = queue.popleft()
             if key == keys.SKIN_PRESSURE:
@@ -254,7 +255,7 @@ class Lockstep:
             elif key == keys.SKIN_PAIN:
                 self.bridge.on_pain(message)
                 if self.planner.on_pain(message, self.clock.t_ns) is not None:
-                    self.planner.assess()  # the retreat check, at once
+                    assess = True
             elif keys.is_command(key):
                 self.bridge.on_command(key, message)
             elif key == keys.ROBOT_STATE:
@@ -264,6 +265,8 @@ class Lockstep:
                     self.gateway.on_state(message)
             elif key == self.planner.status_key:
                 self.planner.on_peer_status(key, message)
+        if assess:  # the retreat check, once what the reflex caused has been delivered (live: its own thread)
+            self.planner.assess()
 
     def run(self, samples: Iterable[m.SkinPressure] | SkinSource, emit: Emit, *,
             settle_s: float = 2.0, start_ns: int | None = None) -> LockstepReport:
