@@ -238,11 +238,6 @@ class Lockstep:
             return self.bridge.backend.get_observation().q, 0
         return m.as_array(self.state.q), self.state.stamp_ns
 
-    def deliver(self, sample: m.SkinPressure) -> None:
-        """A skin sample (recorded, or re-simulated) on the skin's key, then everything it causes."""
-        self.queue.append((keys.SKIN_PRESSURE, sample))
-        self.drain()
-
     def drain(self) -> None:
         """Deliver the queued messages, and those they cause, in order (the pipeline's graph)."""
         queue = self.queue

@@ -79,9 +79,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     realtime(cfg.realtime_priority, "bridge")  # before the session: Zenoh's threads inherit it
     log.info("%s backend; the envelope it enforces:\n%s", backend.name, env.describe())
-    backend.connect()
-    if backend.name != "sim":
-        q0 = backend.get_observation().q
+    backend.connect()  # a real arm's starting pose is read by the wiring
     lock = threading.Lock()  # the handlers, the control loop and the journal's batches
     try:
         with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
