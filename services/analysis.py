@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nwr.common import messages as m
+from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.recorder.core import Recorded
 
 RETURN_WINDOW_NS = 300_000_000
 

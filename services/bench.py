@@ -45,9 +45,9 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import BridgeSection, Profile, load_profile
 from nwr.common.errors import ConfigError, NwrError
+from nwr.common.recordings import SessionRecorder, read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
-from nwr.services.recorder.core import SessionRecorder, read_recording, session_metadata
 
 log = logging.getLogger(__name__)
 

@@ -29,10 +29,10 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.recordings import Recorded
 from nwr.common.robot import Pad
 from nwr.services.gateway.core import Gateway
 from nwr.services.lockstep import Emit, Lockstep, Pose, RecordedSkin
-from nwr.services.recorder.core import Recorded
 
 STAT_NAMES = ("n", "p50", "p90", "p99", "max")
 # Pressure changes of the scripted touches, hPa: above the PL 3 threshold

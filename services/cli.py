@@ -6,17 +6,15 @@ import argparse
 import gc
 import logging
 import os
-import re
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
 from importlib import import_module
 from pathlib import Path
 from typing import Any
 
-from nwr.common.config import STRATEGIES, Profile, load_profile, load_script
+from nwr.common.config import STRATEGIES, Profile, env_overrides, insecure, load_profile, load_script, profile_for
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.node import setup_logging
 
@@ -265,9 +263,9 @@ def run_demo_fast(args: argparse.Namespace) -> int:
 
 
 def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:
+    from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
     from nwr.services import analysis
-    from nwr.services.recorder.core import read_recording
 
     records, metadata = read_recording(path)
     profile = profile or load_profile(None)
@@ -311,61 +309,6 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
     print(f"\nall {len(script.touch)} scripted touches as expected "
           f"({sum(1 for t in touches if t.reflex_seq)} reflexes, none from sub-threshold touches)")
     return 0
-
-
-# Environment variables that override the profile (the compose deployment
-# sets them per host): variable -> what it overrides.
-ENV_OVERRIDES = {
-    "NWR_ROUTER": "[zenoh] router: comma-separated router endpoints, e.g. tcp/10.0.0.2:7447",
-    "NWR_ROBOT": "[robot] name: the key prefix nwr/<name>/",
-    "NWR_TLS_CA": "[zenoh] ca_certificate: the lab CA's ca.crt; any NWR_TLS_* turns secure mode on",
-    "NWR_TLS_CERT": "[zenoh] certificate: this service's NAME.crt (nwr certs issue)",
-    "NWR_TLS_KEY": "[zenoh] private_key: this service's NAME.key",
-    "NWR_INSECURE": "1: secure mode off (no TLS, no access control), whatever the profile and NWR_TLS_* say",
-}
-# Spellings of NWR_INSECURE; anything else is an error rather than a guess.
-_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
-
-
-def env_overrides(environ: Mapping[str, str]) -> dict[str, str]:
-    """The profile overrides set in ``environ`` (empty values are unset)."""
-    return {name: environ[name].strip() for name in ENV_OVERRIDES if environ.get(name, "").strip()}
-
-
-def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profile:
-    """``profile`` with NWR_ROUTER, NWR_ROBOT, NWR_TLS_* and NWR_INSECURE applied; ConfigError naming a bad value."""
-    from nwr.services.router import parse_endpoints
-
-    if "NWR_ROUTER" in overrides:
-        profile.zenoh.router = parse_endpoints(overrides["NWR_ROUTER"], "NWR_ROUTER")
-    if "NWR_ROBOT" in overrides:
-        name = overrides["NWR_ROBOT"]
-        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", name):
-            raise ConfigError(f"NWR_ROBOT={name!r} is not a robot name: lower-case letters, digits, '_' and '-', "
-                              "starting with a letter, at most 32 characters (e.g. ur10e)")
-        profile.robot.name = name
-    for variable, field in (("NWR_TLS_CA", "ca_certificate"), ("NWR_TLS_CERT", "certificate"),
-                            ("NWR_TLS_KEY", "private_key")):
-        if variable in overrides:
-            setattr(profile.zenoh, field, overrides[variable])
-            profile.zenoh.secure = True
-    if insecure(overrides):
-        profile.zenoh.secure = False
-    return profile
-
-
-def insecure(overrides: Mapping[str, str]) -> bool:
-    """Whether NWR_INSECURE asks for secure mode off; ConfigError for a value that is neither yes nor no."""
-    value = overrides.get("NWR_INSECURE", "0").lower()
-    if value not in _TRUE + _FALSE:
-        raise ConfigError(f"NWR_INSECURE={value!r}: set it to 1 to run without TLS and access control, "
-                          "or unset it (0)")
-    return value in _TRUE
-
-
-def profile_for(args: argparse.Namespace) -> Profile:
-    """The profile of ``--profile`` with the environment's overrides that ``main`` read."""
-    return apply_env_overrides(load_profile(args.profile), getattr(args, "env_overrides", {}))
 
 
 def main(argv: list[str] | None = None) -> int:

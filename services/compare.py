@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from nwr.common import keys
+from nwr.common.config import profile_for
+from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services import analysis
-from nwr.services.cli import profile_for
-from nwr.services.recorder.core import Recorded, read_recording
 
 
 @dataclass

@@ -44,13 +44,12 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import STRATEGIES, Profile, load_script
+from nwr.common.config import STRATEGIES, Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.common.recordings import McapRecorder, Recorded, read_recording, session_metadata
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.cli import profile_for
 from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
-from nwr.services.recorder.core import McapRecorder, Recorded, read_recording, session_metadata
 
 if TYPE_CHECKING:
     from nwr.services.lockstep import ResimulatedSkin, SkinSource

@@ -37,27 +37,15 @@ from pathlib import Path
 import zenoh
 
 from nwr.common import keys
-from nwr.common.config import ZenohSection
+from nwr.common.config import ZenohSection, parse_endpoints, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import check_tls_files, tls_config, tls_endpoints
 
 log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
-# <protocol>/<address>[:port], Zenoh's endpoint syntax (tcp/10.0.0.2:7447, tcp/[::]:7447).
 # The rules shipped with the deployment, for a router started from a checkout.
 DEFAULT_ACL = "deploy/acl.json5"
-ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
-
-
-def parse_endpoints(text: str, what: str) -> list[str]:
-    """Comma-separated Zenoh endpoints; ConfigError naming the bad one."""
-    endpoints = [e.strip() for e in text.split(",") if e.strip()]
-    for e in endpoints:
-        if not ENDPOINT.match(e):
-            raise ConfigError(f"{what}: {e!r} is not a Zenoh endpoint; write <protocol>/<host>:<port>, "
-                              "e.g. tcp/0.0.0.0:7447 or tcp/10.0.0.2:7447")
-    return endpoints
 
 
 def router_config(listen: list[str], connect: list[str], *, tls: ZenohSection | None = None,
@@ -172,7 +160,6 @@ def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) 
 
 
 def _handler(args: argparse.Namespace) -> int:
-    from nwr.services.cli import profile_for
 
     profile = profile_for(args)
     return run(profile.robot.name, args, profile.zenoh)

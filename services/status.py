@@ -254,7 +254,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
 
 def _handler(args: argparse.Namespace) -> int:
-    from nwr.services.cli import profile_for
+    from nwr.common.config import profile_for
 
     return run(profile_for(args), args)
 
@@ -272,7 +272,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m nwr.services.status``: ``nwr status`` without importing every service."""
-    from nwr.services.cli import env_overrides, profile_for
+    from nwr.common.config import env_overrides, profile_for
 
     parser = argparse.ArgumentParser(prog="python -m nwr.services.status", description=__doc__.split("\n")[0])
     parser.add_argument("--profile", "-p", default=os.environ.get("NWR_PROFILE", "default"))

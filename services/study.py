@@ -26,10 +26,9 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import Profile, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
-from nwr.services.cli import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -138,9 +137,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
+    from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
     from nwr.services import analysis
-    from nwr.services.recorder.core import read_recording
 
     desc = load_description(profile.robot.description or None)
     print("\nblock  condition  touches  reflexes  onset p50 (ms)  approached  file")

@@ -16,8 +16,8 @@ import time
 
 from nwr.common import keys
 from nwr.common import messages as m
+from nwr.common.config import profile_for
 from nwr.common.node import Node
-from nwr.services.cli import profile_for
 
 CYCLE_S = 0.002
 

@@ -35,11 +35,11 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
+from nwr.common.recordings import Recorded, read_recording
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gain.wiring import GainWiring
 from nwr.services.gateway.wiring import GatewayWiring
 from nwr.services.planner.wiring import PlannerWiring
-from nwr.services.recorder.core import Recorded, read_recording
 from nwr.services.wiring import no_diag
 
 NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded by an older nwr, by another tool, "

@@ -33,8 +33,8 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile, ZenohSection
 from nwr.common.node import zenoh_config
+from nwr.common.recordings import read_recording
 from nwr.services.bridge.main import envelope_for
-from nwr.services.recorder.core import read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

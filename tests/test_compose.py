@@ -28,11 +28,11 @@ import numpy as np
 import pytest
 
 from nwr.common.config import GainSection, load_script
+from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services import analysis
 from nwr.services.cli import print_summary
 from nwr.services.gain.core import GainEstimator
-from nwr.services.recorder.core import read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.docker]
 

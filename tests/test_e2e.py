@@ -16,10 +16,10 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import GainSection, ZenohSection, load_script
 from nwr.common.node import zenoh_config
+from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services import analysis
 from nwr.services.gain.core import GainEstimator
-from nwr.services.recorder.core import read_recording
 from nwr.services.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]

@@ -15,9 +15,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile, load_profile
-from nwr.services import cli
-from nwr.services.recorder import commands, salvage
-from nwr.services.recorder.core import (
+from nwr.common.recordings import (
     GapCounter,
     McapRecorder,
     RecordingError,
@@ -28,6 +26,8 @@ from nwr.services.recorder.core import (
     read_recording,
     session_metadata,
 )
+from nwr.services import cli
+from nwr.services.recorder import commands, salvage
 
 ROBOT = "ur10e"
 MS = 1_000_000

@@ -17,8 +17,8 @@ from nwr.common import keys
 from nwr.common.config import ZenohSection
 from nwr.common.errors import DecodeError
 from nwr.common.node import zenoh_config
+from nwr.common.recordings import publisher_of, read_recording
 from nwr.services.recorder import salvage
-from nwr.services.recorder.core import publisher_of, read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -13,6 +13,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import GatewaySection, Profile, Touch, TouchScript
 from nwr.common.errors import ConfigError
+from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services import analysis, compare
 from nwr.services.gateway.core import (
@@ -24,7 +25,6 @@ from nwr.services.gateway.core import (
     touch_message,
     withdrawal_m,
 )
-from nwr.services.recorder.core import read_recording
 from nwr.services.replay import run_fast, simulate
 
 DATA = Path(__file__).parent / "data"

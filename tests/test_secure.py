@@ -37,10 +37,10 @@ from nwr.common import messages as m
 from nwr.common.config import GainSection, ZenohSection, load_script
 from nwr.common.errors import DecodeError
 from nwr.common.node import zenoh_config
+from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services import analysis, certs, router
 from nwr.services.gain.core import GainEstimator
-from nwr.services.recorder.core import read_recording
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -10,10 +10,9 @@ import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import load_profile
+from nwr.common.config import apply_env_overrides, env_overrides, load_profile
 from nwr.common.errors import ConfigError
 from nwr.services import router, status
-from nwr.services.cli import apply_env_overrides, env_overrides
 
 ROBOT = "ur10e"
 

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from nwr.common.errors import ConfigError
-from nwr.services.recorder.core import read_recording
+from nwr.common.recordings import read_recording
 from nwr.services.study import ORDERS, block_path, order_of
 
 

@@ -15,8 +15,8 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import ZenohSection
 from nwr.common.node import Node
+from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services.recorder.core import read_recording
 from nwr.services.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]

@@ -13,8 +13,8 @@ from nwr.common.clock import ManualClock
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Divergence, Playback, Recording
+from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.services import cli
-from nwr.services.recorder.core import McapRecorder, Recorded, read_recording
 from nwr.services.replay import simulate
 from nwr.services.verify import NO_JOURNAL, verify
 

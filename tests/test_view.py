@@ -15,8 +15,8 @@ from mcap.records import Schema as McapSchema
 from mcap_protobuf.decoder import DecoderFactory
 
 from nwr.common import messages as m
+from nwr.common.recordings import McapRecorder, Recorded
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.recorder.core import McapRecorder, Recorded
 from nwr.services.view import core as c
 from nwr.services.view.export import ExportError, export_foxglove, load_records
 from nwr.services.view.playback import Player

@@ -29,7 +29,7 @@ import websockets
 from test_view import DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
 
 from nwr.common import keys
-from nwr.services.recorder.core import read_recording
+from nwr.common.recordings import read_recording
 from nwr.services.view import core as c
 from nwr.services.view.export import export_foxglove
 

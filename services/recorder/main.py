@@ -25,7 +25,7 @@ from nwr.common import keys
 from nwr.common.config import Profile, encode_profile
 from nwr.common.errors import DecodeError
 from nwr.common.node import Node
-from nwr.services.recorder.core import (
+from nwr.common.recordings import (
     RecordingError,
     SessionRecorder,
     SplitPolicy,

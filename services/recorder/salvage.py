@@ -31,7 +31,7 @@ from mcap.writer import CompressionType, Writer
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.errors import DecodeError
-from nwr.services.recorder.core import (
+from nwr.common.recordings import (
     RECORDING_METADATA,
     SESSION_METADATA,
     GapCounter,

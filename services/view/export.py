@@ -23,8 +23,8 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from nwr.common.errors import NwrError
+from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.recorder.core import Recorded, read_recording
 from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""Recorder core: decoded messages -> MCAP files, and MCAP -> messages.
+"""Recordings: decoded messages -> MCAP files, and MCAP -> messages.
 
 One channel per key (the full key expression is the topic), JSON messages
 with a JSON Schema derived from :mod:`nwr.common.messages` (``"type":
