@@ -1,4 +1,4 @@
-"""The bridge's pure core: the envelope, the command check, the supervisor and the guard."""
+"""The bridge's pure parts: the envelope, the command check, the supervisor, the tracker and the guard."""
 
 from __future__ import annotations
 
@@ -13,15 +13,12 @@ from nwr.common.config import BridgeSection, Profile
 from nwr.common.errors import ConfigError, SafetyError
 from nwr.common.robot import load_description
 from nwr.services.bridge.backend import SimBackend, guard
-from nwr.services.bridge.core import (
-    BridgeCore,
-    CheckContext,
-    Envelope,
-    Setpoint,
-    check_command,
-    make_envelope,
-)
-from nwr.services.bridge.main import envelope_for, make_backend
+from nwr.services.bridge.checks import CheckContext, check_command
+from nwr.services.bridge.core import BridgeCore, Setpoint
+from nwr.services.bridge.envelope import Envelope, make_envelope
+from nwr.services.bridge.main import make_backend
+from nwr.services.bridge.tracking import Tracker
+from nwr.services.bridge.wiring import envelope_for
 
 MS = 1_000_000
 DT = 0.002
@@ -267,10 +264,10 @@ def test_stale_commands_bring_the_arm_to_rest_with_a_jerk_limited_stop():
     assert c.status == "stale_command"
     # At rest within the timeout plus the stopping time it reported.
     rest = next(i for i in range(300, 600) if np.all(np.abs(dqs[i]) < 1e-9))
-    assert (rest - 299) * DT <= 0.02 + c.stop_time_s + 2 * DT
+    assert (rest - 299) * DT <= 0.02 + c.tracker.stop_time_s + 2 * DT
     # The reported stopping distance is the distance it travelled once stopping.
     start = next(i for i in range(300, 600) if r.status[i] == "stale_command")
-    assert qs[-1] - qs[start - 1] == pytest.approx(c.stop_distance, abs=5e-3)
+    assert qs[-1] - qs[start - 1] == pytest.approx(c.tracker.stop_distance, abs=5e-3)
     assert np.all(np.abs(qs[-1] - q_before) > 0)
     events = [e.code for e in c.drain_events()]
     assert "stale_command" in events
@@ -369,7 +366,7 @@ def test_backend_fault_holds_and_waits_for_fresh_commands():
     c = core()
     r = Run(c).cycles(50, lambda s, t: vel([0.3, 0.0], seq=s, stamp=t))
     c.on_fault("protective_stop", "check the cell", np.array([0.2, 0.0]), r.t)
-    assert c.status == "protective_stop" and c.q.tolist() == [0.2, 0.0]
+    assert c.status == "protective_stop" and c.tracker.q.tolist() == [0.2, 0.0]
     verdict = c.on_command(vel([0.3, 0.0], seq=60), r.t)
     assert not verdict.accepted and c.step(r.t + 2 * MS).mode == "hold"
     c.on_fault(None, "", np.array([0.2, 0.0]), r.t + 4 * MS)
@@ -551,7 +548,7 @@ def test_a_plan_is_followed_between_its_commands_and_times_out_after_its_end():
     errors = np.abs(qs - [traj(k) for k in range(1000)])[100:].max()
     assert errors <= np.abs(single - [traj(k) for k in range(1000)])[100:].max() + 1e-6
     assert errors < 2e-3
-    assert c.status == "ok" and c.covered_ns == n * 2 * MS
+    assert c.status == "ok" and c.tracker.covered_ns == n * 2 * MS
     # The planner falls silent: the plan carries the arm to its end, then the timeout stops it.
     r.cycles(60)
     # The last command came on cycle 990: its plan reaches cycle 1000, the 20 ms timeout cycle 1010.
@@ -566,11 +563,11 @@ def test_a_reflex_after_a_plan_starts_from_where_the_plan_is():
     for k in range(1, 6):
         c.step(k * 2 * MS)
     # Ten cycles later the plan is at 0.02 rad: a reflex starting at 0.0195 is no jump ...
-    assert check_command(pos([0.0195, 0.0], seq=2), ENV, ctx(q_ref=c._planned(20 * MS)[0])).events == []
+    assert check_command(pos([0.0195, 0.0], seq=2), ENV, ctx(q_ref=c.tracker.planned(20 * MS)[0])).events == []
     verdict = c.on_command(pos([0.0195, 0.0], seq=2, phase="REFLEX", reflex=1, stamp=20 * MS), 20 * MS)
-    assert verdict.accepted and verdict.onset and c.plan is None and c.covered_ns == 0
+    assert verdict.accepted and verdict.onset and c.tracker.plan is None and c.tracker.covered_ns == 0
     # ... and the stream carries on at the plan's speed (1 rad/s) until its own period is known.
-    assert c.v_ff.tolist() == pytest.approx([1.0, 0.0])
+    assert c.tracker.v_ff.tolist() == pytest.approx([1.0, 0.0])
     # A target far from where the plan is now is refused as a jump.
     c.on_command(plan([0.0, 0.0], [[0.012 * k, 0.0] for k in range(1, 11)], seq=3), 30 * MS)
     c.step(30 * MS + 20 * MS)
@@ -584,7 +581,7 @@ def test_a_plan_faster_than_the_limits_is_followed_at_the_limit():
     verdict = c.on_command(plan([0.0, 0.0], [[0.004 * k, 0.0] for k in range(1, 11)]), 0)  # 2 rad/s, v_max 1
     assert verdict.accepted and c.clipped == 1
     assert "planned to move at 2.000 rad/s, v_max 1.000 rad/s" in c.drain_events()[0].message
-    assert c.plan_v[:, 0].tolist() == pytest.approx([1.0] * 10)
+    assert c.tracker.plan_v[:, 0].tolist() == pytest.approx([1.0] * 10)
 
 
 # --------------------------------------------------------------------------- per-joint arithmetic = numpy's
@@ -620,25 +617,25 @@ def test_the_tracker_and_the_guard_compute_what_numpy_computes():
     rng = np.random.default_rng(11)
     n = len(desc.joints)
     for trial in range(3000):
-        c = BridgeCore(env, desc.home.copy(), 0, active="p", n_pads=3)
-        c.q = rng.uniform(env.q_min, env.q_max)
+        t = Tracker(env, desc.home.copy(), 0)
+        t.q = rng.uniform(env.q_min, env.q_max)
         if trial % 10 == 0:  # at a limit exactly, and at rest
-            c.q[trial % n] = env.q_max[trial % n]
-        c.dq = rng.uniform(-env.v_max, env.v_max) * rng.choice([0.0, 0.1, 1.0])
+            t.q[trial % n] = env.q_max[trial % n]
+        t.dq = rng.uniform(-env.v_max, env.v_max) * rng.choice([0.0, 0.1, 1.0])
         h = float(rng.choice([0.002, 0.0015, 0.05, 1e-6]))
         v_des = rng.uniform(-2 * env.v_max, 2 * env.v_max) * rng.choice([0.0, 0.01, 1.0])
         target = None
         if trial % 2:
-            target = np.clip(c.q + rng.normal(0, 10.0 ** rng.integers(-6, 0), n), env.q_min, env.q_max)
+            target = np.clip(t.q + rng.normal(0, 10.0 ** rng.integers(-6, 0), n), env.q_min, env.q_max)
             if trial % 7 == 0:
-                target = c.q.copy()  # e = 0 exactly
-        expected = _numpy_limit(env, c.q, c.dq, v_des, h, target)
-        c._limit(v_des.tolist(), h, None if target is None else target.tolist())
-        for got, want in zip((c.q, c.dq, c.ddq), expected):
+                target = t.q.copy()  # e = 0 exactly
+        expected = _numpy_limit(env, t.q, t.dq, v_des, h, target)
+        t._limit(v_des.tolist(), h, None if target is None else target.tolist(), "p")
+        for got, want in zip((t.q, t.dq, t.ddq), expected):
             assert got.tolist() == want.tolist()  # bit for bit, not approximately
-        previous = c.q + rng.normal(0, 0.01, n)
-        sp = Setpoint(str(rng.choice(["position", "velocity"])), c.q + rng.normal(0, 0.02, n),
-                      c.dq * rng.choice([1.0, 3.0]), c.ddq, h)
+        previous = t.q + rng.normal(0, 0.01, n)
+        sp = Setpoint(str(rng.choice(["position", "velocity"])), t.q + rng.normal(0, 0.02, n),
+                      t.dq * rng.choice([1.0, 3.0]), t.ddq, h)
         sent, why = guard(env, previous, sp, 0.002)
         q_ref, dq_ref = _numpy_guard(env, previous, sp, 0.002)
         assert sent.q.tolist() == q_ref.tolist() and sent.dq.tolist() == dq_ref.tolist()

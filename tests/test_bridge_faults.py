@@ -34,7 +34,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, ZenohSection
 from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
-from nwr.services.bridge.main import envelope_for
+from nwr.services.bridge.wiring import envelope_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -9,8 +9,8 @@ import pytest
 
 from nwr.common.config import Profile
 from nwr.services.bridge.core import Setpoint
-from nwr.services.bridge.main import envelope_for
 from nwr.services.bridge.ur_rtde import RobotConnectionError, URRtdeBackend
+from nwr.services.bridge.wiring import envelope_for
 
 DT = 0.002
 

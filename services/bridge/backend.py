@@ -27,7 +27,8 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.errors import SafetyError
 from nwr.common.pacing import Rate
-from nwr.services.bridge.core import Envelope, Setpoint
+from nwr.services.bridge.core import Setpoint
+from nwr.services.bridge.envelope import Envelope
 
 log = logging.getLogger(__name__)
 

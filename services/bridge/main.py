@@ -24,7 +24,7 @@ from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
 from nwr.services.bridge.backend import Backend, SimBackend
-from nwr.services.bridge.core import Envelope
+from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.wiring import SERVICE, BridgeWiring, envelope_for
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 bridge.core.release()
                 log.info(pacer.summary())
                 log.info("%d commands rejected, %d clipped; stop distance %s rad", bridge.core.rejected,
-                         bridge.core.clipped, np.round(bridge.core.stop_distance, 4).tolist())
+                         bridge.core.clipped, np.round(bridge.core.tracker.stop_distance, 4).tolist())
     finally:
         backend.disconnect()
     return 0

@@ -37,7 +37,8 @@ import numpy as np
 
 from nwr.common.errors import NwrError
 from nwr.services.bridge.backend import Backend, Observation
-from nwr.services.bridge.core import Envelope, Setpoint
+from nwr.services.bridge.core import Setpoint
+from nwr.services.bridge.envelope import Envelope
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,8 @@ from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import load_description
 from nwr.services.bridge.backend import Backend, SimBackend
-from nwr.services.bridge.core import BridgeCore, Envelope, at_rest, make_envelope
+from nwr.services.bridge.core import BridgeCore, at_rest
+from nwr.services.bridge.envelope import Envelope, make_envelope
 from nwr.services.wiring import Diag, Out
 
 SERVICE = "bridge"
@@ -154,11 +155,11 @@ class BridgeWiring:
         self.journal.begin("stop", text=reason)
         self.core.request_stop(self.journal.now_ns(), reason)
         self._report()
-        return self.core.stop_time_s
+        return self.core.tracker.stop_time_s
 
     def at_rest(self) -> bool:
-        core = self.core
-        return core.stop is None or core.stop.done or at_rest(core.dq)
+        tracker = self.core.tracker
+        return tracker.stop is None or tracker.stop.done or at_rest(tracker.dq)
 
     def _cycle(self, now: int) -> None:
         setpoint = self.core.step(now)

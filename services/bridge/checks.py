@@ -1,0 +1,187 @@
+"""The bridge's command check: every command passes :func:`check_command`, pure.
+
+It *rejects* what cannot be trusted or has no safe nearest value (wrong
+owner, planner not alive, wrong length or mode, non-finite numbers, a
+duplicated or out-of-order seq, a position target that jumps away from the
+arm) and *clips* what has an obvious safe nearest value (a position target
+past a joint limit, a joint velocity above its limit). It returns what it
+accepted and one :class:`Event` per rejection or clip, naming the value, the
+limit and the sender.
+
+Clip or reject, per case (docs/bridge.md explains them for operators; the
+last two rows are the tracker's, :mod:`.tracking`):
+
+==========================================  ========  ===========================================
+case                                        action    why
+==========================================  ========  ===========================================
+owner is not the active planner             reject    only one process may move the arm
+active planner has no liveliness token      reject    a dead planner's name is free to spoof
+wrong kind / phase / number of joints       reject    no meaningful nearest command exists
+NaN or infinity                             reject    (also rejected by the decoder)
+seq duplicated or out of order              reject    a replayed or reordered stream is stale
+position target jumps > position_jump_rad  reject    the sender lost track of the arm
+position target beyond a joint limit        clip      the limit is the nearest safe target
+joint velocity above its limit              clip      scaled uniformly: the direction is kept
+implied speed / acceleration of a stream    clip      the tracker follows at the limit
+approaching a joint limit too fast          clip      speed bounded by the braking distance
+==========================================  ========  ===========================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from nwr.common import messages as m
+from nwr.services.bridge.envelope import Envelope, clip
+
+# Bounds of the estimated period of a planner's position stream, s.
+MIN_PERIOD_S = 0.0005
+MAX_PERIOD_S = 0.05
+# A command planned ahead may cover at most this long, s: the bridge notices a
+# dead planner at most this much later than with one command per cycle.
+MAX_AHEAD_S = 0.1
+
+Level = Literal["info", "warning", "error"]
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the adapter reports on diag/bridge (and logs)."""
+
+    level: Level
+    code: str
+    message: str
+
+
+@dataclass(frozen=True)
+class CheckContext:
+    """What :func:`check_command` needs to know about the bridge."""
+
+    active: str  # the only owner whose commands may move the arm
+    alive: bool  # the active planner's liveliness token is present
+    q_ref: np.ndarray  # the pose the bridge currently commands
+    last_seq: int | None  # seq of the last accepted command, None after a (re)start
+    seq_restart_gap: int = 500
+
+
+@dataclass
+class Checked:
+    """The outcome of :func:`check_command`: the values to use, or a rejection."""
+
+    values: np.ndarray | None  # clipped q (position) or dq (velocity); None if rejected
+    events: list[Event] = field(default_factory=list)
+    rejected: bool = False
+    clipped: bool = False
+    restarted: bool = False  # the sender's seq fell back: a restarted planner
+    ahead: np.ndarray | None = None  # clipped setpoints planned ahead (rows), None if none
+
+
+def command_name(cmd: object) -> str:
+    """The command as events name it: kind, seq and sender."""
+    return f"{type(cmd).__name__} {getattr(cmd, 'seq', '?')} from {getattr(cmd, 'owner', '?')!r}"
+
+
+def check_command(cmd: object, env: Envelope, ctx: CheckContext) -> Checked:
+    """Check one command against the envelope: reject, clip or pass it (pure)."""
+
+    def reject(code: str, why: str) -> Checked:
+        return Checked(None, [Event("warning", code, f"{command_name(cmd)} rejected: {why}")], rejected=True)
+
+    if not isinstance(cmd, (m.PositionCommand, m.VelocityCommand)):
+        return reject("command_invalid", f"a {type(cmd).__name__} is not a joint command")
+    if cmd.owner != ctx.active:
+        return reject(
+            "command_rejected",
+            f"sender {cmd.owner!r} is not the active planner {ctx.active!r} "
+            "(set bridge.active_planner or --active to follow another)",
+        )
+    if not ctx.alive:
+        return reject(
+            "command_rejected",
+            f"the active planner {ctx.active!r} has no liveliness token (not started, or lost): "
+            "start it, the bridge follows once its token is back",
+        )
+    if cmd.phase not in m.MODES:
+        return reject("command_invalid", f"phase {cmd.phase!r} is not one of {m.MODES}")
+    position = isinstance(cmd, m.PositionCommand)
+    raw = cmd.q if position else cmd.dq  # type: ignore[union-attr]
+    if len(raw) != env.n:
+        return reject("command_invalid", f"{len(raw)} joint values, the robot has {env.n} joints")
+    values = np.asarray(raw, dtype=float)
+    if not np.isfinite(values).all():
+        return reject("command_invalid", f"non-finite values {raw}")
+    restarted = False
+    if ctx.last_seq is not None and cmd.seq <= ctx.last_seq:
+        if ctx.last_seq - cmd.seq < ctx.seq_restart_gap:
+            kind = "duplicated" if cmd.seq == ctx.last_seq else "out of order"
+            return reject("command_out_of_order", f"seq {cmd.seq} is {kind} (last accepted {ctx.last_seq})")
+        restarted = True
+
+    out = Checked(values, restarted=restarted)
+    if position:
+        ahead = cmd.ahead  # type: ignore[union-attr]
+        if ahead:
+            period = cmd.period_s  # type: ignore[union-attr]
+            if not MIN_PERIOD_S <= period <= MAX_PERIOD_S:
+                return reject("command_invalid", f"period_s {period} of its setpoints ahead is outside "
+                                                 f"[{MIN_PERIOD_S}, {MAX_PERIOD_S}] s")
+            if len(ahead) * period > MAX_AHEAD_S + 1e-9:
+                return reject("command_invalid", f"{len(ahead)} setpoints ahead at {period} s cover more than "
+                                                 f"{MAX_AHEAD_S} s")
+            if any(len(row) != env.n for row in ahead):
+                return reject("command_invalid", f"a setpoint ahead does not have {env.n} joint values")
+            points = np.asarray(ahead, dtype=float)
+            if not np.isfinite(points).all():
+                return reject("command_invalid", "non-finite values in its setpoints ahead")
+            step = np.abs(np.diff(np.vstack([values, points]), axis=0))
+            if (step > env.position_jump_rad).any():
+                k, i = (int(x) for x in np.unravel_index(int(np.argmax(step)), step.shape))
+                return reject(
+                    "command_jump",
+                    f"joint {env.joints[i]} setpoint {k + 1} ahead moves {step[k, i]:.4f} rad in one step, "
+                    f"limit {env.position_jump_rad} rad",
+                )
+            out.ahead = clip(points, env.q_min, env.q_max)
+            if not (out.ahead == points).all():
+                out.events.append(Event(
+                    "warning", "command_clipped",
+                    f"{command_name(cmd)}: setpoints ahead beyond the joint limits: clipped to them",
+                ))
+                out.clipped = True
+        jump = np.abs(values - ctx.q_ref)
+        if (jump > env.position_jump_rad).any():
+            i = int(np.argmax(jump))
+            return reject(
+                "command_jump",
+                f"joint {env.joints[i]} target {values[i]:.4f} rad is {jump[i]:.4f} rad from the commanded "
+                f"{ctx.q_ref[i]:.4f} rad, limit {env.position_jump_rad} rad "
+                "(resynchronise the planner from robot/state)",
+            )
+        clipped = clip(values, env.q_min, env.q_max)
+        if not (clipped == values).all():
+            i = int(np.argmax(np.abs(clipped - values)))
+            side = "q_max" if values[i] > env.q_max[i] else "q_min"
+            limit = env.q_max[i] if side == "q_max" else env.q_min[i]
+            out.events.append(Event(
+                "warning", "command_clipped",
+                f"{command_name(cmd)}: joint {env.joints[i]} target {values[i]:.4f} rad beyond {side} {limit:.4f} rad: "
+                "clipped to the limit",
+            ))
+            out.clipped = True
+            out.values = clipped
+    else:
+        ratio = np.abs(values) / env.v_max
+        worst = float(np.max(ratio))
+        if worst > 1.0:
+            i = int(np.argmax(ratio))
+            out.events.append(Event(
+                "warning", "command_clipped",
+                f"{command_name(cmd)}: joint {env.joints[i]} speed {values[i]:.4f} rad/s above v_max "
+                f"{env.v_max[i]:.4f} rad/s: all joints scaled by {1 / worst:.3f} (the direction is kept)",
+            ))
+            out.clipped = True
+            out.values = values / worst
+    return out
