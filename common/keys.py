@@ -61,29 +61,48 @@ class Topic:
     express: bool
     drop: bool
     doc: str
+    # Who puts on the key and who subscribes to it: the pipeline's services
+    # (the graph in nwr.services.pipeline.graph), "operator" (nwr switch,
+    # nwr study), "replay" (nwr replay), "status" (nwr status); ANY_SERVICE
+    # for a key every service has its own instance of.
+    producers: tuple[str, ...]
+    consumers: tuple[str, ...]
+
+
+ANY_SERVICE = "*"
 
 
 TOPICS: tuple[Topic, ...] = (
     Topic("skin/pressure", m.SkinPressure, zenoh.Priority.REAL_TIME, True, False,
-          "per-pad absolute pressure, change from baseline, contact flags"),
+          "per-pad absolute pressure, change from baseline, contact flags",
+          ("gateway", "replay"), ("gain", "bridge", "recorder", "view")),
     Topic("skin/touch", m.SkinTouch, zenoh.Priority.DATA, False, False,
-          "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts"),
+          "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts",
+          ("gateway",), ("recorder",)),
     Topic("skin/pain", m.SkinPain, zenoh.Priority.REAL_TIME, True, False,
-          "per-pad gain and pain level, strongest contact"),
+          "per-pad gain and pain level, strongest contact",
+          ("gain",), ("planner", "bridge", "recorder", "view", "status")),
     Topic("robot/command/*", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
-          "a planner's joint position or velocity target, on its own key"),
+          "a planner's joint position or velocity target, on its own key",
+          ("planner",), ("bridge", "recorder")),
     Topic("robot/state", m.RobotState, zenoh.Priority.INTERACTIVE_HIGH, False, True,
-          "joint positions and velocities, status, command owner, reflex onsets"),
+          "joint positions and velocities, status, command owner, reflex onsets",
+          ("bridge",), ("planner", "gateway", "recorder", "view", "operator", "status")),
     Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
-          "a planner's state machine: mode, strategy, saved pose, reflex"),
+          "a planner's state machine: mode, strategy, saved pose, reflex",
+          ("planner",), ("planner", "gateway", "recorder", "view", "status")),
     Topic("reflex/*/decision", m.PlannerDecision, zenoh.Priority.DATA, False, False,
-          "when a planner acted on each pain message (the sample latency's end)"),
+          "when a planner acted on each pain message (the sample latency's end)",
+          ("planner",), ("recorder",)),
     Topic("control/active", m.SwitchRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
-          "which planner should be active (the bridge carries the switch out)"),
+          "which planner should be active (the bridge carries the switch out)",
+          ("operator",), ("bridge", "recorder")),
     Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
-          "warnings and errors with a code and a readable message"),
+          "warnings and errors with a code and a readable message",
+          (ANY_SERVICE,), ("recorder",)),
     Topic("journal/*", m.Journal, zenoh.Priority.DATA, False, False,
-          "what a service received, in order, with its clock readings: enough to re-run it exactly (nwr verify)"),
+          "what a service received, in order, with its clock readings: enough to re-run it exactly (nwr verify)",
+          ("gateway", "gain", "planner", "bridge"), ("recorder",)),
 )
 
 SKIN_PRESSURE = "skin/pressure"

@@ -16,9 +16,9 @@ from nwr.common.config import Profile, load_profile, load_script
 from nwr.common.pacing import Rate
 from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description
-from nwr.services import bench, bench_core
 from nwr.services.gain.core import GainEstimator
 from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.services.tools import bench, bench_core
 
 DESC = load_description()
 MS = 1_000_000

@@ -15,9 +15,9 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from nwr.common.config import ZenohSection, apply_env_overrides, env_overrides, load_profile
 from nwr.common.errors import ConfigError
 from nwr.common.node import check_tls_files, tls_endpoints, zenoh_config
-from nwr.services import certs
 from nwr.services.cli import main
-from nwr.services.router import load_acl
+from nwr.services.tools import certs
+from nwr.services.tools.router import load_acl
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,9 +30,9 @@ import pytest
 from nwr.common.config import GainSection, load_script
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services import analysis
-from nwr.services.cli import print_summary
 from nwr.services.gain.core import GainEstimator
+from nwr.services.tools import analysis
+from nwr.services.tools.summary import print_summary
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.docker]
 
@@ -203,7 +203,7 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
 
     dep.wait_log("gateway", "touch script", timeout_s=60)
     time.sleep(script.duration_s + 2.0)
-    status = _run(["docker", "exec", dep.container("recorder"), "python", "-m", "nwr.services.status"]).stdout
+    status = _run(["docker", "exec", dep.container("recorder"), "python", "-m", "nwr.services.tools.status"]).stdout
     for service in ("bridge", "gain", "gateway", f"planner-{PLANNER}", "recorder", "router"):
         assert service in status, status
     stages.done("scripted session", f"{script.duration_s:g} s script")
@@ -217,7 +217,7 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
     # Docker's first health check comes an interval after the start: ask
     # the router directly (the same check) instead of waiting for it.
     deadline = time.monotonic() + 60
-    while _run(["docker", "exec", dep.container("recorder"), "python", "-m", "nwr.services.status", "--check",
+    while _run(["docker", "exec", dep.container("recorder"), "python", "-m", "nwr.services.tools.status", "--check",
                 f"planner-{PLANNER}", "--timeout", "1"], check=False).returncode != 0:
         assert time.monotonic() < deadline, f"planner did not come back within 60 s\n{dep.logs()}"
     time.sleep(4.0)

@@ -18,9 +18,9 @@ from nwr.common.config import GainSection, ZenohSection, load_script
 from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services import analysis
 from nwr.services.gain.core import GainEstimator
-from nwr.services.verify import verify
+from nwr.services.tools import analysis
+from nwr.services.tools.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -6,7 +6,7 @@ import pytest
 from matplotlib.colors import to_rgb
 
 from nwr.common.robot import RobotModel, load_description
-from nwr.services import figures
+from nwr.services.tools import figures
 
 
 def pixels_of(image: np.ndarray, color: str, tol: float = 0.06) -> int:

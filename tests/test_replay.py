@@ -15,10 +15,10 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, load_script
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services import analysis, compare
 from nwr.services.gateway.core import Gateway, SimSkin
-from nwr.services.lockstep import Lockstep
-from nwr.services.replay import select
+from nwr.services.pipeline.lockstep import Lockstep
+from nwr.services.tools import analysis, compare
+from nwr.services.tools.replay import select
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()

@@ -15,7 +15,6 @@ from nwr.common.config import GatewaySection, Profile, Touch, TouchScript
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services import analysis, compare
 from nwr.services.gateway.core import (
     Gateway,
     Resimulator,
@@ -25,7 +24,8 @@ from nwr.services.gateway.core import (
     touch_message,
     withdrawal_m,
 )
-from nwr.services.replay import run_fast, simulate
+from nwr.services.tools import analysis, compare
+from nwr.services.tools.replay import run_fast, simulate
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()

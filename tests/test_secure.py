@@ -39,8 +39,8 @@ from nwr.common.errors import DecodeError
 from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services import analysis, certs, router
 from nwr.services.gain.core import GainEstimator
+from nwr.services.tools import analysis, certs, router
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

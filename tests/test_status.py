@@ -12,7 +12,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import apply_env_overrides, env_overrides, load_profile
 from nwr.common.errors import ConfigError
-from nwr.services import router, status
+from nwr.services.tools import router, status
 
 ROBOT = "ur10e"
 

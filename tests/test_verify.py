@@ -15,8 +15,8 @@ from nwr.common.errors import ConfigError
 from nwr.common.journal import Divergence, Playback, Recording
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.services import cli
-from nwr.services.replay import simulate
-from nwr.services.verify import NO_JOURNAL, verify
+from nwr.services.tools.replay import simulate
+from nwr.services.tools.verify import NO_JOURNAL, verify
 
 SCRIPT = str(Path(__file__).parent / "data" / "short.toml")
 

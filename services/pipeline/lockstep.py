@@ -15,14 +15,9 @@ simulated time:
   ``state_rate_hz``, the planner's status at ``status_rate_hz`` and on every
   transition.
 
-Where the skin samples come from (a :class:`SkinSource`):
-
-- :class:`RecordedSkin`: a recording's samples, as recorded (open loop);
-- :class:`ResimulatedSkin`: a simulated session's samples with their touches
-  re-simulated against this run's arm (``nwr replay --fast --resimulate``,
-  :class:`nwr.services.gateway.core.Resimulator`);
-- :class:`SimulatedSkin`: the gateway's own wiring on a touch script, open
-  or closed loop against this run's arm (``nwr demo --fast``).
+Where the skin samples come from: a skin source of the gateway
+(:mod:`nwr.services.gateway.sources`): recorded, re-simulated, or the
+gateway's own wiring on a touch script.
 
 Nothing here reads a clock, so a run is deterministic: the same skin samples
 give the same messages, bit for bit. Each wiring keeps its journal as the
@@ -34,129 +29,23 @@ and the lower bound of ``nwr bench``.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import msgspec
-import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import ManualClock
-from nwr.common.config import Profile, TouchScript
+from nwr.common.config import Profile
 from nwr.common.journal import JOURNAL_PERIOD_S, Batcher, Journal, Recording, Untracked, service_config
-from nwr.common.robot import RobotModel
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gain.wiring import GainWiring
-from nwr.services.gateway.core import Resimulator, touch_message
+from nwr.services.gateway.sources import Emit, Pose, RecordedSkin, SkinSource
 from nwr.services.gateway.wiring import GatewayWiring
 from nwr.services.planner.wiring import PlannerWiring, planner_profile
-from nwr.services.wiring import Out, no_diag
-
-Emit = Callable[[str, Any, int], None]  # (relative key, message, simulated time ns)
-Pose = tuple[np.ndarray, int]  # the arm's joint positions as the newest robot state gives them, and its stamp
-
-
-class SkinSource:
-    """The skin samples of a lockstep run, in stamp order."""
-
-    def __len__(self) -> int:
-        raise NotImplementedError
-
-    def stamp(self, i: int) -> int:
-        """Stamp of the ``i``-th sample, ns."""
-        raise NotImplementedError
-
-    def wiring(self, clock: ManualClock, journal: Journal, out: Out) -> GatewayWiring | None:
-        """The gateway's wiring, for a source that is the gateway (its samples go to ``out``)."""
-        return None
-
-    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
-        """The ``i``-th sample, made with the arm at ``pose`` (emits what it makes); None: the wiring published it."""
-        raise NotImplementedError
-
-
-class RecordedSkin(SkinSource):
-    """Recorded samples, delivered as they are (open loop); the caller has them already, nothing is emitted."""
-
-    def __init__(self, samples: Iterable[m.SkinPressure]) -> None:
-        self.samples = sorted(samples, key=lambda s: s.stamp_ns)
-
-    def __len__(self) -> int:
-        return len(self.samples)
-
-    def stamp(self, i: int) -> int:
-        return self.samples[i].stamp_ns
-
-    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
-        return self.samples[i]
-
-
-class ResimulatedSkin(RecordedSkin):
-    """Recorded samples of the simulated skin, their touches re-simulated against the run's arm."""
-
-    def __init__(self, samples: Iterable[m.SkinPressure], resimulator: Resimulator, model: RobotModel) -> None:
-        super().__init__(samples)
-        self.resimulator = resimulator
-        self.model = model
-        self.touch_seq = 0
-
-    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
-        res = self.resimulator
-        q, pose_stamp = pose
-        sample, started = res.apply(self.samples[i], self.model.pad_points(q), self.model.pad_normals(q))
-        for touch in started:  # the ground truth of this run: the touches met the pads where this arm had them
-            emit(keys.SKIN_TOUCH, touch_message(self.touch_seq, sample.stamp_ns, res.origin_ns, touch,
-                                                self.model.desc.pads[touch.pad].name, res.touches, q,
-                                                pose_stamp), sample.stamp_ns)
-            self.touch_seq += 1
-        emit(keys.SKIN_PRESSURE, sample, sample.stamp_ns)
-        return sample
-
-
-class SimulatedSkin(SkinSource):
-    """The simulated skin on a touch script at ``gateway.rate_hz``: the gateway's own wiring.
-
-    Its script clock starts at ``origin_ns``; the samples are stamped every
-    sample period from one period after it until the script's end (the
-    sample at or after ``duration_s`` is the last, as ``--exit-at-end``).
-    Like the live gateway, it sees the arm where the newest robot state puts it.
-    """
-
-    def __init__(self, profile: Profile, script: TouchScript, model: RobotModel | None = None,
-                 origin_ns: int = 10**9) -> None:
-        self.profile = profile
-        self.script = script
-        self.origin_ns = origin_ns
-        period = 1e9 / profile.gateway.rate_hz
-        self.stamps: list[int] = []
-        k = 1
-        while True:
-            self.stamps.append(origin_ns + round(k * period))
-            if (self.stamps[-1] - origin_ns) / 1e9 >= script.duration_s:
-                break
-            k += 1
-        self.gateway: GatewayWiring | None = None
-
-    def __len__(self) -> int:
-        return len(self.stamps)
-
-    def stamp(self, i: int) -> int:
-        return self.stamps[i]
-
-    def wiring(self, clock: ManualClock, journal: Journal, out: Out) -> GatewayWiring:
-        t = clock.t_ns
-        clock.t_ns = self.origin_ns
-        self.gateway = GatewayWiring(self.profile, journal=journal, out=out, diag=no_diag, script=self.script)
-        self.gateway.origin()
-        clock.t_ns = t
-        return self.gateway
-
-    def take(self, i: int, pose: Pose, emit: Emit) -> m.SkinPressure | None:
-        assert self.gateway is not None, "SimulatedSkin.wiring() first"
-        self.gateway.tick()
-        return None
+from nwr.services.wiring import no_diag
 
 
 @dataclass
@@ -219,8 +108,9 @@ class Lockstep:
         self.gateway = source.wiring(self.clock, journal, self._out)
         if self.gateway is not None:
             gw = self.gateway
-            self.journals.append((gw, journal, Batcher(gw.service, source.origin_ns if isinstance(
-                source, SimulatedSkin) else t0, service_config(self.profile, **gw.params()))))
+            origin = t0 if source.origin_ns is None else source.origin_ns
+            batcher = Batcher(gw.service, origin, service_config(self.profile, **gw.params()))
+            self.journals.append((gw, journal, batcher))
         self.bridge.on_token(self.name, True)
 
     def _flush_journals(self, final: bool = False) -> None:

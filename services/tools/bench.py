@@ -5,7 +5,7 @@ exactly as ``nwr up`` connects them (the embedded mesh of peers on loopback,
 or clients of a local ``nwr router``), with the simulated skin and bridge
 and the recorder running. A generated touch script touches every region in
 turn, with sub-threshold touches between the reflex-causing ones. From the
-recording (:mod:`nwr.services.bench_core`): reflex onset, sample latency and
+recording (:mod:`nwr.services.tools.bench_core`): reflex onset, sample latency and
 per-hop latencies; the lower bound (the same cores chained in this process
 on the same skin samples); cost (CPU time and peak RSS per service, from
 /proc, and messages lost per key from sequence gaps); the 500 Hz loops'
@@ -29,9 +29,7 @@ import platform
 import re
 import resource
 import shutil
-import signal
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -47,7 +45,9 @@ from nwr.common.config import BridgeSection, Profile, load_profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.recordings import SessionRecorder, read_recording, session_metadata
 from nwr.common.robot import load_description
-from nwr.services.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
+from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
+from nwr.services.pipeline.supervisor import failed, spawn, stop_all
+from nwr.services.tools.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
 
 log = logging.getLogger(__name__)
 
@@ -147,11 +147,6 @@ def machine() -> dict[str, Any]:
 # ------------------------------------------------------------------------------ one run
 
 
-def _spawn(args: list[str], log_path: Path) -> subprocess.Popen[bytes]:
-    with log_path.open("wb") as out:
-        return subprocess.Popen([sys.executable, "-m", "nwr.services.cli", *args], stdout=out, stderr=subprocess.STDOUT)
-
-
 def _wait_for_line(path: Path, needle: str, procs: dict[str, subprocess.Popen[bytes]], timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -165,16 +160,6 @@ def _wait_for_line(path: Path, needle: str, procs: dict[str, subprocess.Popen[by
                                + "\n  ".join(tail))
         time.sleep(0.05)
     raise RuntimeError(f"the pipeline did not start within {timeout_s:.0f} s (no {needle!r} in {path})")
-
-
-def _terminate(proc: subprocess.Popen[bytes], timeout_s: float = 10.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-    try:
-        return proc.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        return proc.wait()
 
 
 def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Profile) -> dict[str, Any]:
@@ -201,28 +186,19 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
     toml_path = run_dir / "profile.toml"
     toml_path.write_text(_as_toml(msgspec.to_builtins(base)))
     output = run_dir / "session.mcap"
-    common = ["--profile", str(toml_path), "--log-level", "INFO"]
     strategy = config.strategy
-    units: list[tuple[str, list[str]]] = []
-    if config.topology == "router":
-        units.append(("router", ["router", "--listen", f"tcp/127.0.0.1:{router_port}"]))
-    # As `nwr up --reflex STRATEGY` starts them (services.cli.launch), in its order.
-    units += [
-        ("bridge", ["run", "bridge", "--active", strategy]),
-        ("planner", ["run", "planner", "--name", strategy, "--reflex", strategy]),
-        ("gain", ["run", "gain"]),
-        ("recorder", ["run", "recorder", "--session", tag, "--output", str(output), "--strategy", strategy]),
-        ("gateway", ["run", "gateway", "--wait-for", f"planner-{strategy},bridge,gain,recorder",
-                     "--script", str(run_dir / "script.toml"), "--rate", str(config.rate_hz)]),
-    ]
+    # As `nwr up --reflex STRATEGY` starts them, from the pipeline's graph.
+    layout = Layout(active=strategy, recorder=recorder_args(output, tag, strategy),
+                    gateway=["--script", str(run_dir / "script.toml"), "--rate", str(config.rate_hz)],
+                    router=["--listen", f"tcp/127.0.0.1:{router_port}"] if config.topology == "router" else None)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     cpu0: dict[str, float] = {}
     cpu1: dict[str, float] = {}
     rss: dict[str, float] = {}
     try:
-        for name, extra in units:
-            procs[name] = _spawn([*common, *extra], run_dir / f"{name}.log")
-            if name == "router":
+        for unit in units(layout):
+            procs[unit.label] = spawn(unit, str(toml_path), "INFO", run_dir / f"{unit.label}.log")
+            if unit.service == ROUTER:
                 time.sleep(0.3)  # clients connect at start-up
         _wait_for_line(run_dir / "gateway.log", "publishing", procs, STARTUP_TIMEOUT_S)
         t0 = time.monotonic()
@@ -236,20 +212,16 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
                                    f"(log: {run_dir / (name + '.log')})")
             cpu1[name], rss[name] = proc_cost(proc.pid)
     finally:
-        # The gateway first (no new samples), then the planner and the gain
-        # estimator, the bridge, and the recorder last so that it keeps
-        # everything they sent; the router after them all.
-        codes = {}
-        for name in ("gateway", "planner", "gain", "bridge", "recorder", "router"):
-            if name in procs:
-                codes[name] = _terminate(procs[name])
-                if name == "gateway":
-                    time.sleep(0.3)
-    bad = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM)}
+        codes = stop_all(procs)
+    bad = failed(codes)
     if bad:
         raise RuntimeError(f"service(s) stopped with errors: {bad} (logs in {run_dir})")
+    planner = process_name("planner", strategy)
+    cpu0 = {("planner" if n == planner else n): c for n, c in cpu0.items()}
+    cpu1 = {("planner" if n == planner else n): c for n, c in cpu1.items()}
+    rss = {("planner" if n == planner else n): c for n, c in rss.items()}
     loops: dict[str, dict[str, float]] = {}
-    for name in ("planner", "bridge"):
+    for name in (planner, "bridge"):
         loops.update(parse_loops((run_dir / f"{name}.log").read_text(errors="replace")))
 
     records, metadata = read_recording(output)

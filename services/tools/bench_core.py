@@ -1,6 +1,6 @@
 """The pure pieces of ``nwr bench``: statistics, trace matching, the lower-bound chain, the touch script.
 
-Nothing here starts a process or opens a network session; :mod:`nwr.services.bench`
+Nothing here starts a process or opens a network session; :mod:`nwr.services.tools.bench`
 does that and hands the recordings to these functions.
 
 Trace matching, per recording (all stamps on the machine's monotonic clock):
@@ -32,7 +32,8 @@ from nwr.common.config import Profile
 from nwr.common.recordings import Recorded
 from nwr.common.robot import Pad
 from nwr.services.gateway.core import Gateway
-from nwr.services.lockstep import Emit, Lockstep, Pose, RecordedSkin
+from nwr.services.gateway.sources import Emit, Pose, RecordedSkin
+from nwr.services.pipeline.lockstep import Lockstep
 
 STAT_NAMES = ("n", "p50", "p90", "p99", "max")
 # Pressure changes of the scripted touches, hPa: above the PL 3 threshold

@@ -11,7 +11,7 @@ Three ways, all from the recorded skin stream (``skin/pressure``):
   started for the replay and stopped after it; the result is a new recording
   to compare with the first (``nwr compare``);
 - ``--fast``: the same cores chained in this process on simulated time
-  (:mod:`nwr.services.lockstep`), as fast as they go, deterministic: the same
+  (:mod:`nwr.services.pipeline.lockstep`), as fast as they go, deterministic: the same
   file and strategy give the same messages every run.
 
 Replay is open loop by default: a recorded press is replayed as recorded,
@@ -33,7 +33,6 @@ import argparse
 import datetime as dt
 import logging
 import shlex
-import signal
 import subprocess
 import threading
 import time
@@ -50,9 +49,11 @@ from nwr.common.node import Node
 from nwr.common.recordings import McapRecorder, Recorded, read_recording, session_metadata
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
+from nwr.services.pipeline.graph import Layout, process_name, recorder_args, units
+from nwr.services.pipeline.supervisor import failed, spawn, stop_all
 
 if TYPE_CHECKING:
-    from nwr.services.lockstep import ResimulatedSkin, SkinSource
+    from nwr.services.gateway.sources import ResimulatedSkin, SkinSource
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ def play(node: Node, robot_records: list[Recorded], speed: float, loop: bool, st
 
 def resimulated(profile: Profile, records: list[Recorded], chosen: list[Recorded]) -> ResimulatedSkin:
     """The chosen skin samples with the recording's touches re-simulated (ConfigError without ground truth)."""
-    from nwr.services.lockstep import ResimulatedSkin
+    from nwr.services.gateway.sources import ResimulatedSkin
 
     touches = [r.message for r in records if r.key == keys.SKIN_TOUCH]
     skin = [r.message for r in chosen if r.key == keys.SKIN_PRESSURE]
@@ -118,7 +119,8 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
     timeline, with the recorded ``touches`` that go with them; a source
     writes what it makes.
     """
-    from nwr.services.lockstep import Lockstep, SkinSource
+    from nwr.services.gateway.sources import SkinSource
+    from nwr.services.pipeline.lockstep import Lockstep
 
     lockstep = Lockstep(profile, strategy=strategy)
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -186,7 +188,7 @@ def task_start_ns(records: list[Recorded], chosen: list[Recorded]) -> int | None
 def simulate(profile: Profile, script_name: str, strategy: str, output: Path) -> tuple[Path, float, float]:
     """A simulated session in lockstep: the simulated skin on a touch script, the cores and the simulated arm
     (``nwr demo --fast``), open or closed loop as ``gateway.sim.closed_loop`` says."""
-    from nwr.services.lockstep import SimulatedSkin
+    from nwr.services.gateway.sources import SimulatedSkin
 
     desc = load_description(profile.robot.description or None)
     source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))
@@ -198,22 +200,20 @@ def simulate(profile: Profile, script_name: str, strategy: str, output: Path) ->
                            start_time_iso=dt.datetime.now(dt.UTC).isoformat())
 
 
-def _services_for(args: argparse.Namespace, output: Path) -> tuple[list[tuple[str, list[str]]], str]:
-    """The processes a live replay against a reflex service starts, and the planner's name."""
+def _layout_for(args: argparse.Namespace, output: Path) -> tuple[Layout, str]:
+    """What a live replay against a reflex service starts (no gateway: the replay is the skin), and the planner's name.
+
+    With ``--planner-cmd`` the planner is the user's own process: the layout
+    has none, and the bridge follows ``--name``.
+    """
     name = args.name or args.reflex or "replayed"
-    services: list[tuple[str, list[str]]] = [("bridge", ["--active", name])]
-    if not args.planner_cmd:
-        services.append(("planner", ["--name", name, "--reflex", args.reflex]))
-    services += [("gain", []), ("recorder", ["--output", str(output), "--session", output.stem,
-                                             "--strategy", args.reflex or "external",
-                                             "--label", f"replay_of={args.file}"])]
-    return services, name
+    layout = Layout(planners=[] if args.planner_cmd else [name], active=name, gateway=None,
+                    recorder=recorder_args(output, output.stem, args.reflex or "external",
+                                           {"replay_of": str(args.file)}))
+    return layout, name
 
 
 def _run(args: argparse.Namespace) -> int:
-    from nwr.common.keys import planner_service
-    from nwr.services.cli import _spawn, _stop_all
-
     profile = profile_for(args)
     source = Path(args.file)
     records, metadata = read_recording(source)
@@ -253,12 +253,12 @@ def _run(args: argparse.Namespace) -> int:
     try:
         waits: list[str] = []
         if args.reflex or args.planner_cmd:
-            services, name = _services_for(args, output)
-            for service, extra in services:
-                procs[service] = _spawn(args.profile, args.log_level, service, extra)
+            layout, name = _layout_for(args, output)
+            for unit in units(layout):
+                procs[unit.label] = spawn(unit, args.profile, args.log_level)
             if args.planner_cmd:
-                procs["planner"] = subprocess.Popen([*shlex.split(args.planner_cmd)])
-            waits = [s for s, _ in services if s != "planner"] + [planner_service(name)]
+                procs[process_name("planner", name)] = subprocess.Popen([*shlex.split(args.planner_cmd)])
+            waits = [*procs]
         with Node("replay", robot, profile.zenoh, token=False) as node:
             node.install_signal_handlers()
             if waits:
@@ -274,11 +274,11 @@ def _run(args: argparse.Namespace) -> int:
                 node.stop.wait(2.0)  # the last reflex returns, the recorder catches up
     finally:
         if procs:
-            codes = _stop_all(procs)
+            codes = stop_all(procs)
     # Checked after the finally so that an error of the replay itself is never swallowed.
-    failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGTERM, -signal.SIGINT)}
-    if failed:
-        log.error("services stopped with errors: %s", failed)
+    errors = failed(codes)
+    if errors:
+        log.error("services stopped with errors: %s", errors)
         return 1
     if procs:
         print(f"replay against {args.reflex or args.planner_cmd!r} recorded to {output}")

@@ -10,7 +10,7 @@
   alive, through the same router every other service uses. SERVICE may be a
   glob (``'planner-*'``).
 
-``python -m nwr.services.status ...`` is the same command without the rest
+``python -m nwr.services.tools.status ...`` is the same command without the rest
 of the CLI: it does not import the robot model or the services, so a health
 check every few seconds stays cheap (about 0.3 s of CPU instead of 1.3 s).
 
@@ -271,10 +271,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m nwr.services.status``: ``nwr status`` without importing every service."""
+    """``python -m nwr.services.tools.status``: ``nwr status`` without importing every service."""
     from nwr.common.config import env_overrides, profile_for
 
-    parser = argparse.ArgumentParser(prog="python -m nwr.services.status", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.status", description=__doc__.split("\n")[0])
     parser.add_argument("--profile", "-p", default=os.environ.get("NWR_PROFILE", "default"))
     add_arguments(parser)
     args = parser.parse_args(argv)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import subprocess
 import threading
 from pathlib import Path
 
@@ -29,6 +28,8 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
+from nwr.services.pipeline.supervisor import spawn, stop_all
 
 log = logging.getLogger(__name__)
 
@@ -76,9 +77,6 @@ class Switcher:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from nwr.common.keys import planner_service
-    from nwr.services.cli import _spawn, _stop_all
-
     profile = profile_for(args)
     order = order_of(args.order)
     if not args.participant.replace("-", "").replace("_", "").isalnum():
@@ -90,32 +88,29 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{existing[0]} exists: choose another participant ID, or --overwrite")
     paths[0].parent.mkdir(parents=True, exist_ok=True)
 
-    spawn = lambda service, extra: _spawn(args.profile, args.log_level, service, extra)  # noqa: E731
-    procs: dict[str, subprocess.Popen[bytes]] = {"bridge": spawn("bridge", ["--active", order[0]])}
-    for condition in ORDERS[0]:
-        procs[f"planner-{condition}"] = spawn("planner", ["--name", condition, "--reflex", condition])
-    procs["gain"] = spawn("gain", [])
+    # The gateway starts once the others are alive; each block has its own recorder.
+    layout = Layout(planners=list(ORDERS[0]), active=order[0], gateway=None)
+    procs = {u.label: spawn(u, args.profile, args.log_level) for u in units(layout)}
     done: list[tuple[int, str, Path]] = []
     try:
         with Node("study", profile.robot.name, profile.zenoh, token=False) as node:
             node.install_signal_handlers()
-            missing = node.wait_for(["bridge", "gain", *(planner_service(c) for c in ORDERS[0])], timeout_s=30.0)
+            missing = node.wait_for(list(procs), timeout_s=30.0)
             if missing:
                 log.error("services %s did not come up within 30 s", missing)
                 return 1
             gateway = ["--follow-target", str(args.follow_target)] if args.follow_target else []
-            procs["gateway"] = spawn("gateway", gateway)
+            procs["gateway"] = spawn(Unit("gateway", "gateway", tuple(gateway)), args.profile, args.log_level)
             switcher = Switcher(node)
             for block, (condition, path) in enumerate(zip(order, paths), start=1):
                 if not switcher.switch(condition):
                     log.error("the bridge did not switch to %r within 15 s: stopping the study", condition)
                     return 1
                 log.info("block %d of 3: %s, %.0f s, recording to %s", block, condition, args.block_s, path)
-                recorder = spawn("recorder", [
-                    "--output", str(path), "--session", path.stem, "--strategy", condition,
-                    "--label", f"participant={args.participant}", "--label", f"order={args.order}",
-                    "--label", f"block={block}", "--label", f"condition={condition}",
-                ])
+                labels = {"participant": args.participant, "order": str(args.order), "block": str(block),
+                          "condition": condition}
+                recorder = spawn(Unit("recorder", "recorder", tuple(recorder_args(path, path.stem, condition, labels))),
+                                 args.profile, args.log_level)
                 if node.wait_for(["recorder"], timeout_s=15.0):
                     log.error("the recorder of block %d did not start", block)
                     recorder.kill()
@@ -131,7 +126,7 @@ def _run(args: argparse.Namespace) -> int:
                     if "recorder" not in node.alive_services(0.3):
                         break
     finally:
-        _stop_all(procs)
+        stop_all(procs)
     _print_blocks(done, profile)
     return 0 if len(done) == len(order) else 1
 
@@ -139,7 +134,7 @@ def _run(args: argparse.Namespace) -> int:
 def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
     from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
-    from nwr.services import analysis
+    from nwr.services.tools import analysis
 
     desc = load_description(profile.robot.description or None)
     print("\nblock  condition  touches  reflexes  onset p50 (ms)  approached  file")

@@ -1,0 +1,122 @@
+"""``nwr up`` and ``nwr demo``: the whole pipeline, every service its own process (or ``demo --fast``: lockstep).
+
+The processes come from the pipeline's graph (:mod:`nwr.services.pipeline.graph`)
+and run under its supervisor; ``demo`` then prints the recording's per-touch
+table and checks it against the touch script (:mod:`.summary`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from nwr.common.config import STRATEGIES, Profile, load_script, profile_for
+from nwr.common.errors import ConfigError
+from nwr.services.pipeline import supervisor
+from nwr.services.pipeline.graph import Layout, recorder_args
+from nwr.services.recorder.main import session_name
+from nwr.services.tools.summary import print_summary
+
+
+def add_launch_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--script", help="touch script for the simulated skin: packaged name or .toml path")
+    p.add_argument("--session", help="session name of the recording (default: the start time)")
+    p.add_argument("--output", "-o", help="recording file (default: recordings/<session>.mcap)")
+    p.add_argument("--no-record", action="store_true", help="do not start the recorder")
+    p.add_argument("--view", nargs="?", type=int, const=8765, metavar="PORT",
+                   help="also start the Foxglove view (read-only) on ws://127.0.0.1:PORT (default 8765)")
+    p.add_argument("--planners", metavar="R1,R2,...",
+                   help="run one planner per reflex strategy, each named after it, all at once (switch between "
+                        "them with `nwr switch NAME`); the first (or --reflex) is active")
+    p.add_argument("--follow-target", type=float, metavar="SECONDS",
+                   help="simulated participant: press the study's target pad every SECONDS")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
+                        "(gateway.sim.closed_loop; default: as scripted, open loop)")
+    p.add_argument("--reflex", choices=STRATEGIES,
+                   help="reflex strategy; the planner is then named after it and is the active one "
+                        "(default: the profile's planner)")
+
+
+def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
+    """The session's name and recording file (default: recordings/<session>.mcap)."""
+    session = args.session or session_name()
+    return session, Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
+
+
+def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str, Path] | None, *,
+               until_script_end: bool) -> Layout:
+    """The processes ``nwr up`` / ``nwr demo`` start, from their flags; ``recording``: (session, file) or None."""
+    planners = [p for p in (args.planners or "").split(",") if p]
+    unknown = [p for p in planners if p not in STRATEGIES]
+    if unknown:
+        raise ConfigError(f"--planners names {unknown}; the strategies are {list(STRATEGIES)}")
+    layout = Layout(planners=planners, active=args.reflex, planner_name=profile.planner.name, view_port=args.view)
+    if recording is not None:
+        session, output = recording
+        layout.recorder = recorder_args(output, session, layout.active or profile.planner.strategy)
+    gateway = ["--script", args.script] if args.script else []
+    if until_script_end:
+        gateway.append("--exit-at-end")
+    if args.follow_target:
+        gateway += ["--follow-target", str(args.follow_target)]
+    if args.closed_loop:
+        gateway.append("--closed-loop")
+    layout.gateway = gateway
+    return layout
+
+
+def run_up(args: argparse.Namespace) -> int:
+    profile = profile_for(args)  # fails here, not in five processes
+    recording = None if args.no_record else output_path(args, profile)
+    layout = layout_for(args, profile, recording, until_script_end=False)
+    return supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=False)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    if args.fast:
+        return run_demo_fast(args)
+    profile = profile_for(args)
+    load_script(args.script)
+    recording = None if args.no_record else output_path(args, profile)
+    layout = layout_for(args, profile, recording, until_script_end=True)
+    code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True)
+    if code or recording is None:
+        return code or 1
+    return print_summary(recording[1], args.script, profile)
+
+
+def run_demo_fast(args: argparse.Namespace) -> int:
+    """``nwr demo --fast``: the demo session in lockstep, recorded, then its per-touch table."""
+    from nwr.services.tools.replay import simulate
+
+    unsupported = [flag for flag, value in (("--planners", args.planners), ("--follow-target", args.follow_target),
+                                            ("--view", args.view), ("--no-record", args.no_record)) if value]
+    if unsupported:
+        raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")
+    profile = profile_for(args)
+    if args.closed_loop:
+        profile.gateway.sim.closed_loop = True
+    _, output = output_path(args, profile)
+    strategy = args.reflex or profile.planner.strategy
+    path, simulated, wall = simulate(profile, args.script, strategy, output)
+    print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
+          f"{wall:.2f} s{' (closed loop)' if profile.gateway.sim.closed_loop else ''}: {path}")
+    return print_summary(path, args.script, profile)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    up = sub.add_parser("up", help="start every service as its own process (Ctrl-C stops them all)",
+                        description="Start recorder, bridge, planner, gain estimator and skin gateway as separate "
+                                    "processes on this machine and stop them all cleanly on Ctrl-C or SIGTERM.")
+    add_launch_arguments(up)
+    up.set_defaults(handler=run_up)
+
+    demo = sub.add_parser("demo", help="run a scripted ~30 s touch session and print the per-touch table",
+                          description="Run the whole pipeline on a touch script, record it to "
+                                      "recordings/<session>.mcap and print one row per touch.")
+    add_launch_arguments(demo)
+    demo.add_argument("--fast", action="store_true",
+                      help="no processes: the simulated skin, the cores and the simulated arm chained in this process "
+                           "on simulated time (lockstep), as fast as they go; deterministic")
+    demo.set_defaults(script="demo", handler=run_demo)
