@@ -26,6 +26,7 @@ from nwr.services.gateway.core import (
 )
 from nwr.services.tools import analysis, compare
 from nwr.services.tools.replay import run_fast, simulate
+from nwr.services.tools.verify import verify
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()
@@ -335,23 +336,23 @@ def test_live_session_records_ground_truth_and_its_fast_replay_makes_the_same_de
         proc = subprocess.run([*cli, "replay", str(live), "--fast", *extra, "-o", str(outputs[name])],
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stderr
+    # Exact where the design makes it so: every live service re-runs bit for bit from its journal (the live
+    # planner's lost cycles included), and the replay feeds the same samples to the same gain core, so its pain
+    # messages and each touch's decision are those of the live session, to the bit. (The reflex motion itself
+    # follows the live machine's timing, which the journal, not a lockstep replay, reproduces.)
+    results = verify(live)
+    assert {r.service for r in results} == {"gateway", "gain", "planner-uniform", "bridge"}
+    assert all(r.verdict == "identical" for r in results), [r.format() for r in results]
+    replayed, _ = read_recording(outputs["fast"])
+    pain = [(r.message.seq, r.message.level, r.message.gain) for r in records if r.key == "skin/pain"]
+    assert pain == [(r.message.seq, r.message.level, r.message.gain) for r in replayed if r.key == "skin/pain"]
     live_touches = analysis.summarize(records, DESC)
     sessions = [compare.load_session(p, DESC, MODEL) for p in (live, outputs["fast"])]
     rows = compare.line_up(sessions, 0.3)
     assert len(rows) == len(live_touches) == 4
     for a, b in rows:  # the same decision per touch: a reflex or none, with the same gain
         assert a is not None and b is not None
-        assert (a.reflex_seq > 0) == (b.reflex_seq > 0) and b.gain == pytest.approx(a.gain, abs=0.02)
-        if a.reflex_seq:
-            # The reflex motion, aligned at the onsets (the return's timing depends on the live machine's load).
-            oa, ob = compare.onset_ns(sessions[0], a), compare.onset_ns(sessions[1], b)
-            ta, qa = compare.trajectory(sessions[0], oa, oa + 300_000_000)
-            tb, qb = compare.trajectory(sessions[1], ob, ob + 300_000_000)
-            qi = np.column_stack([np.interp(ta, tb, qb[:, j]) for j in range(qb.shape[1])])
-            # Within 50 mrad over 300 ms: a live planner that overruns on a loaded machine loses cycles (its
-            # motion slows, never jumps), and the lag grows over the window (6-23 mrad measured); another
-            # reflex, or the same one in another direction, is off by 0.1-0.5 rad.
-            assert np.abs((qa - qa[0]) - (qi - qb[0])).max() < 0.05
+        assert (a.reflex_seq > 0) == (b.reflex_seq > 0) and b.gain == a.gain
     # A live session was recorded open loop: --resimulate changes what the withdrawn pads felt.
     fast = {r.message.seq: r.message for r in read_recording(outputs["fast"])[0] if r.key == "skin/pressure"}
     resim = {r.message.seq: r.message for r in read_recording(outputs["resim"])[0] if r.key == "skin/pressure"}

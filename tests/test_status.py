@@ -43,6 +43,7 @@ def test_collector_counts_rates_and_keeps_the_latest_state_and_pain() -> None:
     assert report.active_planner == "cartesian"
     text = status.format_report(report)
     assert "alive (2): bridge, planner-cartesian" in text
+    assert "not alive: recorder, gain, gateway" in text  # the graph's services nobody stands for
     assert "planner_lost" in text
     assert "last pain event: forearm_top (forearm) PL 3, gain 0.180, +9.1 hPa, 1.0 s ago" in text
     assert "1 samples did not decode" in text
@@ -53,6 +54,12 @@ def test_collector_counts_rates_and_keeps_the_latest_state_and_pain() -> None:
 def test_report_without_traffic_says_so() -> None:
     text = status.format_report(status.StatusCollector(ROBOT).report([], 2.0, 0, []))
     assert "alive (0): none" in text and "no robot/state" in text and "no message in the window" in text
+
+
+def test_not_alive_names_the_graphs_services_without_a_process() -> None:
+    assert status.not_alive(["recorder", "bridge", "planner-uniform", "gain", "gateway"]) == []
+    assert status.not_alive(["recorder", "bridge", "gain", "gateway", "view"]) == ["planner-*"]
+    assert "view" not in status.not_alive([])  # read-only: optional
 
 
 def test_matching_takes_names_and_globs() -> None:

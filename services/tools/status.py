@@ -36,6 +36,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import DecodeError, NwrError
 from nwr.common.node import zenoh_config
+from nwr.services.pipeline.graph import NOT_WAITED_FOR, SERVICES, START_ORDER, process_name
 
 log = logging.getLogger(__name__)
 
@@ -133,10 +134,25 @@ def matching(alive: list[str], service: str) -> list[str]:
     return [name for name in alive if fnmatch.fnmatchcase(name, service)]
 
 
+def not_alive(alive: list[str]) -> list[str]:
+    """The graph's services (but the read-only ones) that no live process stands for; planners as ``planner-*``."""
+    out = []
+    for service in START_ORDER:
+        if service not in SERVICES or service in NOT_WAITED_FOR:
+            continue
+        name = process_name(service, "*") if service == "planner" else service
+        if not matching(alive, name):
+            out.append(name)
+    return out
+
+
 def format_report(report: StatusReport) -> str:
     where = ", ".join(report.endpoints) if report.endpoints else "the embedded mesh on loopback"
     lines = [f"robot {report.robot} via {where}; rates over {report.window_s:.1f} s"]
     lines.append(f"alive ({len(report.alive)}): {', '.join(report.alive) if report.alive else 'none'}")
+    missing = not_alive(report.alive)
+    if missing:
+        lines.append(f"not alive: {', '.join(missing)}")
     active = report.active_planner
     if report.state is not None:
         s = report.state
