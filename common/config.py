@@ -144,10 +144,6 @@ class TaskSection(_Section):
     ramp_s: NonNegative = 0.5
 
 
-STRATEGIES = ("uniform", "location", "cartesian", "cartesian-smooth")
-Strategy = Literal["uniform", "location", "cartesian", "cartesian-smooth"]
-
-
 def _w(*rows: list[float]) -> dict[str, list[float]]:
     return dict(zip(("shoulder", "upper_arm", "elbow", "forearm", "wrist"), rows))
 
@@ -167,8 +163,10 @@ class PlannerSection(_Section):
     # commands with it; the bridge follows the planner named active_planner.
     name: Name = "cartesian"
     # Reflex: "uniform" (UR), "location" (LR), "cartesian" (CR) or
-    # "cartesian-smooth" (CR with its velocity ramped in and out).
-    strategy: Strategy = "cartesian"
+    # "cartesian-smooth" (CR with its velocity ramped in and out): the name of
+    # one of the planner's strategies (services/planner/strategies/), checked
+    # where the planner starts.
+    strategy: str = "cartesian"
     # Command rate, Hz (the UR e-Series control period is 2 ms).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
     # The task is planned ahead: one command every this many control cycles,

@@ -20,7 +20,6 @@ import pytest
 import yaml
 
 from nwr.common import keys
-from nwr.common.config import STRATEGIES
 from nwr.common.node import SLOTS
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gain.wiring import GainWiring
@@ -37,6 +36,7 @@ from nwr.services.pipeline.graph import (
     units,
     writes,
 )
+from nwr.services.planner import strategies
 
 ROOT = Path(__file__).resolve().parents[1]
 # Parties that put or read keys without being a service of the graph (tools).
@@ -155,7 +155,7 @@ def _instances(service: str, name: str) -> set[str]:
 @pytest.mark.parametrize("service", ["gateway", "gain", "bridge", "recorder", "view", "planner"])
 def test_the_access_control_lets_each_service_put_exactly_what_the_registry_says(service: str) -> None:
     acl = _acl()
-    names = [process_name("planner", s) for s in STRATEGIES] if service == "planner" else [service]
+    names = [process_name("planner", s) for s in strategies.names()] if service == "planner" else [service]
     for name in names:
         allowed = set(acl.get(name, []))
         expected = _instances(service, name)

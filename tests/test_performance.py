@@ -93,8 +93,8 @@ def test_real_time_scheduling_applies_when_permitted(monkeypatch):
 def test_retreat_check_copies_the_stream_it_integrates():
     planner = reflex_started("cartesian")
     check = planner.retreat_check()
-    assert check is not None and check.cartesian is not planner.cartesian
-    twist = planner.cartesian._twist.copy()
+    assert check is not None and check.stream is not planner.strategy
+    twist = planner.strategy._twist.copy()
     check.run(RobotModel(DESC))
-    np.testing.assert_array_equal(planner.cartesian._twist, twist)
-    assert planner.cartesian.model is MODEL
+    np.testing.assert_array_equal(planner.strategy._twist, twist)
+    assert planner.strategy.model is MODEL

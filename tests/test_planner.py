@@ -16,6 +16,11 @@ N_PADS = len(DESC.pads)
 DT_NS = 2_000_000
 
 
+def touch(pad: int, gain: float) -> m.Contact:
+    info = DESC.pads[pad]
+    return m.Contact(pad=pad, name=info.name, region=info.region, change_hpa=25.0, level=4, gain=gain)
+
+
 class Sim:
     """Drives a planner like the pipeline does: commands integrated exactly."""
 
@@ -191,8 +196,8 @@ def test_cartesian_reflex_reproduces_the_pad_velocity():
     sim.until("TASK")
     pad = DESC.pad("wrist_3").id  # six joints behind it: [v_c; 0] is reachable
     q = sim.p.q.copy()
-    v_c = sim.p.cartesian.start(q, pad, 1.0)
-    dq = sim.p.cartesian.joint_velocity(q)
+    v_c = np.array(sim.p.strategy.start(q, touch(pad, 1.0)).direction)
+    dq = sim.p.strategy.velocity(q, 0.0)
     twist = MODEL.pad_jacobian(q, pad) @ dq
     np.testing.assert_allclose(twist[:3], v_c, atol=1e-3)
     np.testing.assert_allclose(twist[3:], 0.0, atol=1e-3)
@@ -216,9 +221,9 @@ def test_every_pad_that_can_withdraw_does(hold):
     for pad in DESC.pads:
         q = DESC.home.copy()
         n0, p0 = MODEL.pad_normal(q, pad.id), MODEL.pad_point(q, pad.id)
-        planner.cartesian.start(q, pad.id, 1.0)
-        for _ in range(250):
-            q = q + planner.cartesian.joint_velocity(q) * 0.002
+        planner.strategy.start(q, touch(pad.id, 1.0))
+        for i in range(250):
+            q = q + planner.strategy.velocity(q, i * 0.002) * 0.002
         withdrawn = -(MODEL.pad_point(q, pad.id) - p0) @ n0
         assert withdrawn >= -1e-9, pad.name
         if pad.region in ("wrist",) or not hold:
@@ -230,8 +235,8 @@ def test_least_squares_solution_for_pads_with_fewer_joints():
     q = DESC.home
     pad = DESC.pad("forearm_top").id
     planner = Planner(PlannerSection(), DESC, MODEL)
-    v_c = planner.cartesian.start(q, pad, 1.0)
-    dq = planner.cartesian.joint_velocity(q)
+    v_c = np.array(planner.strategy.start(q, touch(pad, 1.0)).direction)
+    dq = planner.strategy.velocity(q, 0.0)
     jac = MODEL.pad_jacobian(q, pad)
     expected = np.linalg.pinv(jac) @ np.concatenate([v_c, np.zeros(3)])
     np.testing.assert_allclose(dq, expected, atol=1e-9)

@@ -7,14 +7,19 @@ from nwr.common import messages as m
 from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gain.core import continuous_gain
+from nwr.services.planner import strategies
 from nwr.services.planner.core import Planner
-from nwr.services.planner.reflexes import JointReflex, smooth_profile
+from nwr.services.planner.reflexes import smooth_profile
 from nwr.services.planner.retreat import assess
 
 DESC = load_description()
 MODEL = RobotModel(DESC)
 SIGN = np.array([1, -1, 1, 1, 1, 1])
 T = (2.0, 6.0, 12.0, 20.0)
+
+
+def joint_reflex(name):
+    return strategies.build(PlannerSection(strategy=name), DESC, MODEL, 0.9 * DESC.v_max)
 
 
 def contact(pad_name, p_hpa, level):
@@ -28,7 +33,7 @@ def test_reflex_directions_are_robot_data():
 
 
 def test_uniform_adds_half_q_max_whatever_the_gain():
-    ur = JointReflex("uniform", PlannerSection(), DESC)
+    ur = joint_reflex("uniform")
     q = DESC.home.copy()
     expected = q + SIGN * np.radians([20, 35, 73, 36.5, 0, 0])
     for p, level in ((6.5, 3), (25.0, 4)):
@@ -36,7 +41,7 @@ def test_uniform_adds_half_q_max_whatever_the_gain():
 
 
 def test_uniform_clips_to_the_joint_limits():
-    ur = JointReflex("uniform", PlannerSection(), DESC)
+    ur = joint_reflex("uniform")
     q = np.array([0.0, -1.0, 2.5, -2.0, -1.57, 0.0])  # elbow at 2.5 rad: +73 deg passes pi
     target = ur.target(q, contact("wrist_1", 16.0, 4))
     assert target[2] == pytest.approx(np.pi)  # the URDF's elbow limit
@@ -44,7 +49,7 @@ def test_uniform_clips_to_the_joint_limits():
 
 
 def test_location_pl3_upper_arm_by_hand():
-    lr = JointReflex("location", PlannerSection(), DESC)
+    lr = joint_reflex("location")
     q = DESC.home.copy()
     c = contact("upper_arm_top", 9.0, 3)
     assert c.gain == pytest.approx(0.175)
@@ -68,7 +73,7 @@ def test_location_pl3_upper_arm_by_hand():
     ],
 )
 def test_location_table_ii(pad, level, p, weights):
-    lr = JointReflex("location", PlannerSection(), DESC)
+    lr = joint_reflex("location")
     c = contact(pad, p, level)
     g = 0.175 if level == 3 else 0.675
     assert c.gain == pytest.approx(g)
@@ -78,7 +83,7 @@ def test_location_table_ii(pad, level, p, weights):
 
 
 def test_location_pl1_2_does_not_move():
-    lr = JointReflex("location", PlannerSection(), DESC)
+    lr = joint_reflex("location")
     np.testing.assert_array_equal(lr.displacement(contact("wrist_1", 4.0, 2)), np.zeros(6))
 
 

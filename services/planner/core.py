@@ -4,9 +4,10 @@
   a non-zero gain G(p) saves the current pose (the task's own reference at
   that instant, so the return lands exactly on the task path), pauses the
   task and starts a reflex.
-- REFLEX: the strategy's motion runs: a jerk-limited trajectory (ruckig) to
-  the joint target of a joint-space reflex (uniform, location), ending when
-  the target is reached, or the Cartesian velocity stream for its duration.
+- REFLEX: the strategy's motion runs (:mod:`.strategies`): in position
+  mode a jerk-limited trajectory (ruckig) to its joint target, ending when
+  the target is reached; in velocity mode its joint velocity stream, for
+  ``reflex_duration_s``.
   A *new* contact (a pad that had no gain in the previous pain message) or a
   *stronger* one (gain above the current reflex's by ``update_margin``)
   updates the reflex: new target or direction from the current motion state
@@ -43,8 +44,8 @@ from ruckig import InputParameter, OutputParameter, Result, Ruckig, Trajectory
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner import retreat
-from nwr.services.planner.reflexes import CartesianReflex, JointReflex, smooth_profile
+from nwr.services.planner import retreat, strategies
+from nwr.services.planner.strategies import ReflexStrategy
 from nwr.services.planner.task import FigureEight, TaskClock
 
 log = logging.getLogger(__name__)
@@ -69,19 +70,18 @@ class Reflex:
 class RetreatCheck:
     """The retreat check of one reflex, taken from the planner; :meth:`run` needs nothing else.
 
-    A joint-space reflex's path is sampled from its trajectory when the check
-    is taken (cheap); a Cartesian reflex's stream is integrated in :meth:`run`
-    (the expensive part) from a copy of the stream's state.
+    A position-mode reflex's path is sampled from its trajectory when the
+    check is taken (cheap); a velocity stream is integrated in :meth:`run`
+    (the expensive part) from a snapshot of the strategy's state.
     """
 
     reflex: Reflex
-    path: np.ndarray | None  # joint-space reflexes: the planned positions
+    path: np.ndarray | None  # position mode: the planned positions
     dt: float
-    cartesian: CartesianReflex | None  # Cartesian reflexes: a copy of the stream
+    stream: ReflexStrategy | None  # velocity mode: a snapshot of the strategy
     q0: np.ndarray
     t0: float
     duration_s: float
-    smooth_ramp_s: float | None  # None: not smoothed
     q_min: np.ndarray
     q_max: np.ndarray
 
@@ -89,24 +89,21 @@ class RetreatCheck:
         """The retreat figures, computed on ``model`` (one that no other thread is using)."""
         path, dt = self.path, self.dt
         if path is None:
-            assert self.cartesian is not None
-            self.cartesian.model = model
-            path, dt = integrate_cartesian(self.cartesian, self.q0, self.t0, self.duration_s, self.smooth_ramp_s,
-                                           self.q_min, self.q_max)
+            assert self.stream is not None
+            self.stream.model = model
+            path, dt = integrate_stream(self.stream, self.q0, self.t0, self.duration_s, self.q_min, self.q_max)
         return retreat.assess(model, path, dt, self.reflex.contact.pad)
 
 
-def integrate_cartesian(cartesian: CartesianReflex, q0: np.ndarray, t0: float, duration_s: float,
-                        smooth_ramp_s: float | None, q_min: np.ndarray, q_max: np.ndarray,
-                        samples: int = 40) -> tuple[np.ndarray, float]:
-    """A Cartesian stream from ``t0`` to its end, integrated from ``q0``."""
+def integrate_stream(stream: ReflexStrategy, q0: np.ndarray, t0: float, duration_s: float, q_min: np.ndarray,
+                     q_max: np.ndarray, samples: int = 40) -> tuple[np.ndarray, float]:
+    """A velocity stream from ``t0`` to its end, integrated from ``q0``."""
     dt = duration_s / samples
     q = q0.copy()
     path = [q.copy()]
     t = t0
     for _ in range(samples):
-        scale = smooth_profile(t, duration_s, smooth_ramp_s) if smooth_ramp_s is not None else 1.0
-        q = np.clip(q + scale * cartesian.joint_velocity(q, count=False) * dt, q_min, q_max)
+        q = np.clip(q + stream.velocity(q, t, count=False) * dt, q_min, q_max)
         path.append(q.copy())
         t += dt
     return np.array(path), dt
@@ -124,17 +121,7 @@ class Planner:
         self.task = FigureEight(cfg.task, desc.home)
         self.clock = TaskClock(cfg.task.ramp_s)
         self.model = model
-        self.strategy_name = cfg.strategy
-        self.joint_reflex: JointReflex | None = None
-        self.cartesian: CartesianReflex | None = None
-        if cfg.strategy in ("uniform", "location"):
-            self.joint_reflex = JointReflex(cfg.strategy, cfg, desc)
-        else:
-            self.cartesian = CartesianReflex(
-                model, cfg.v_max_m_s, cfg.reflex_duration_s, cfg.damping_max, cfg.singular_threshold,
-                self.v_limit, hold_orientation=cfg.hold_orientation, guarded=cfg.guarded,
-            )
-        self.smooth = cfg.strategy == "cartesian-smooth"
+        self.strategy = strategies.build(cfg, desc, model, self.v_limit)
         self.targets = self._target_order(cfg, desc)
         self.target_index = 0
         self.mode: m.Mode = "TASK"
@@ -323,21 +310,13 @@ class Planner:
             return
         self.reflex_count += 1
         shadow = Reflex(self.reflex_count, contact, trace, now_ns)
-        if self.joint_reflex is not None:
-            target = self.joint_reflex.target(self.q, contact)
-            if self.cfg.guarded:
-                delta, shadow.corrected = retreat.guard_displacement(
-                    self.model, self.q, target - self.q, contact.pad, self.desc.q_min, self.desc.q_max
-                )
-                target = self.q + delta
-            shadow.target = target
-            path, dt = self._preview_to(target)
+        self._onset(shadow)
+        if shadow.target is not None:
+            path, dt = self._preview_to(shadow.target)
         else:
-            assert self.cartesian is not None
-            shadow.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
-            path, dt = self._integrate_cartesian(self.q, 0.0)
+            path, dt = self._integrate_stream(self.q, 0.0)
         shadow.retreat = retreat.assess(self.model, path, dt, contact.pad).to_message(
-            contact.pad, shadow.corrected or (self.cartesian is not None and self.cartesian.corrections > 0)
+            contact.pad, shadow.corrected or self.strategy.corrections > 0
         )
         self.shadow = shadow
         self.changed = True
@@ -362,21 +341,17 @@ class Planner:
     def _start_reflex(self, contact: m.Contact, trace: m.Trace, now_ns: int) -> None:
         self.reflex_count += 1
         reflex = Reflex(self.reflex_count, contact, trace, now_ns)
-        if self.joint_reflex is not None:
-            target = self.joint_reflex.target(self.q, contact)
-            if self.cfg.guarded:
-                delta, reflex.corrected = retreat.guard_displacement(
-                    self.model, self.q, target - self.q, contact.pad, self.desc.q_min, self.desc.q_max
-                )
-                target = self.q + delta
-            reflex.target = target
-            self._ruckig_to(target)
-        else:
-            assert self.cartesian is not None
-            reflex.direction = self.cartesian.start(self.q, contact.pad, contact.gain).tolist()
+        self._onset(reflex)
+        if reflex.target is not None:
+            self._ruckig_to(reflex.target)
         self.reflex = reflex
         self.mode = "REFLEX"
         self.changed = True
+
+    def _onset(self, reflex: Reflex) -> None:
+        """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction."""
+        onset = self.strategy.start(self.q, reflex.contact)
+        reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
 
     def _ruckig_to(self, target: np.ndarray) -> None:
         """Start a jerk-limited trajectory from the current commanded state to rest at ``target``."""
@@ -477,7 +452,7 @@ class Planner:
         """One cycle of the reflex; None (and RETURNING) once it is over."""
         reflex = self.reflex
         assert reflex is not None
-        if self.joint_reflex is not None:
+        if self.strategy.mode == "position":
             if self._ruckig_step():
                 self._begin_return()
                 return None
@@ -489,11 +464,9 @@ class Planner:
         return self._velocity_command(now_ns)
 
     def _velocity_command(self, now_ns: int) -> m.VelocityCommand:
-        """The Cartesian stream, acceleration-limited from the current velocity."""
-        assert self.cartesian is not None and self.reflex is not None
-        target = self.cartesian.joint_velocity(self.q)
-        if self.smooth:
-            target = target * smooth_profile(self.reflex.elapsed_s, self.cfg.reflex_duration_s, self.cfg.smooth_ramp_s)
+        """The strategy's velocity stream, acceleration-limited from the current velocity."""
+        assert self.reflex is not None
+        target = self.strategy.velocity(self.q, self.reflex.elapsed_s)
         self.reflex.elapsed_s += self.dt
         delta = target - self.dq
         ratio = float(np.max(np.abs(delta) / (self.a_limit * self.dt)))
@@ -527,45 +500,36 @@ class Planner:
         reflex = self.reflex
         if reflex is None or self.mode != "REFLEX":
             return None
-        smooth = self.cfg.smooth_ramp_s if self.smooth else None
-        if self.joint_reflex is not None:
+        if self.strategy.mode == "position":
             path, dt = self.planned_path()
-            return RetreatCheck(reflex, path, dt, None, self.q.copy(), 0.0, self.cfg.reflex_duration_s, smooth,
+            return RetreatCheck(reflex, path, dt, None, self.q.copy(), 0.0, self.cfg.reflex_duration_s,
                                 self.desc.q_min, self.desc.q_max)
-        assert self.cartesian is not None
-        stream = copy.copy(self.cartesian)
-        stream._twist = self.cartesian._twist.copy()
-        stream._normal = self.cartesian._normal.copy()
-        return RetreatCheck(reflex, None, 0.0, stream, self.q.copy(), reflex.elapsed_s, self.cfg.reflex_duration_s,
-                            smooth, self.desc.q_min, self.desc.q_max)
+        return RetreatCheck(reflex, None, 0.0, self.strategy.snapshot(), self.q.copy(), reflex.elapsed_s,
+                            self.cfg.reflex_duration_s, self.desc.q_min, self.desc.q_max)
 
     def apply_retreat(self, check: RetreatCheck, assessment: retreat.Assessment) -> bool:
         """Store a check's figures on its reflex; False if a newer reflex has replaced it meanwhile."""
         reflex = check.reflex
         if reflex is not self.reflex:
             return False
-        reflex.retreat = assessment.to_message(
-            reflex.contact.pad, reflex.corrected or (self.cartesian is not None and self.cartesian.corrections > 0)
-        )
+        reflex.retreat = assessment.to_message(reflex.contact.pad, reflex.corrected or self.strategy.corrections > 0)
         self.changed = True
         return True
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
         """Joint positions over the rest of the current reflex, from its planned motion."""
         assert self.reflex is not None
-        if self.joint_reflex is not None:
+        if self.strategy.mode == "position":
             traj = self._otg_out.trajectory
             duration = max(traj.duration, self.dt)
             times = np.linspace(0.0, duration, samples + 1)
             return np.array([traj.at_time(t)[0] for t in times]), float(times[1] - times[0])
-        return self._integrate_cartesian(self.q, self.reflex.elapsed_s, samples)
+        return self._integrate_stream(self.q, self.reflex.elapsed_s, samples)
 
-    def _integrate_cartesian(self, q0: np.ndarray, t0: float, samples: int = 40) -> tuple[np.ndarray, float]:
-        """The Cartesian stream from ``t0`` to its end, integrated from ``q0``."""
-        assert self.cartesian is not None
-        return integrate_cartesian(self.cartesian, q0, t0, self.cfg.reflex_duration_s,
-                                   self.cfg.smooth_ramp_s if self.smooth else None, self.desc.q_min,
-                                   self.desc.q_max, samples)
+    def _integrate_stream(self, q0: np.ndarray, t0: float, samples: int = 40) -> tuple[np.ndarray, float]:
+        """The strategy's velocity stream from ``t0`` to its end, integrated from ``q0``."""
+        return integrate_stream(self.strategy, q0, t0, self.cfg.reflex_duration_s, self.desc.q_min,
+                                self.desc.q_max, samples)
 
     def _position_command(self, now_ns: int) -> m.PositionCommand:
         msg = m.PositionCommand(
@@ -591,16 +555,16 @@ class Planner:
         reflex = None
         r = self.reflex if self.active else self.shadow
         if r is not None:
-            duration = self.cfg.reflex_duration_s if self.cartesian is not None or not self.active \
+            duration = self.cfg.reflex_duration_s if self.strategy.mode == "velocity" or not self.active \
                 else self._otg_out.trajectory.duration
             reflex = m.ReflexInfo(
-                reflex_seq=r.seq, strategy=self.strategy_name, contact=r.contact, trace=r.trace,
+                reflex_seq=r.seq, strategy=self.strategy.name, contact=r.contact, trace=r.trace,
                 started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
                 target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
                 shadow=not self.active,
             )
         msg = m.PlannerStatus(
-            seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy_name,
+            seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy.name,
             mode=self.mode, task_time_s=self.clock.s,
             saved_pose=self.saved.tolist() if self.saved is not None else None, reflex=reflex,
             target_pad=self.target_pad, active=self.active,

@@ -9,10 +9,11 @@ import threading
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import STRATEGIES, Profile
+from nwr.common.config import Profile
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel
+from nwr.services.planner import strategies
 from nwr.services.planner.wiring import PlannerWiring
 
 log = logging.getLogger(__name__)
@@ -25,7 +26,7 @@ SWITCH_INTERVAL_S = 0.0005
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", help="planner instance name (overrides planner.name)")
-    parser.add_argument("--reflex", choices=STRATEGIES, help="reflex strategy (overrides planner.strategy)")
+    parser.add_argument("--reflex", choices=strategies.names(), help="reflex strategy (overrides planner.strategy)")
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
@@ -34,6 +35,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         cfg.name = args.name
     if args.reflex:
         cfg.strategy = args.reflex
+    strategies.check(cfg.strategy)  # before the session: a profile naming no strategy fails at once
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     realtime(cfg.realtime_priority, "planner")  # before the session: Zenoh's threads inherit it
     lock = threading.Lock()
@@ -107,7 +109,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
         node.subscribe(keys.planner_status("*"), on_peer_status, keyed=True)
         node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
-        log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy_name, cfg.rate_hz)
+        log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.name, cfg.rate_hz)
         try:
             while True:
                 with lock:

@@ -10,10 +10,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nwr.common.config import STRATEGIES, Profile, load_script, profile_for
+from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
 from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
+from nwr.services.planner import strategies
 from nwr.services.recorder.main import session_name
 from nwr.services.tools.summary import print_summary
 
@@ -33,7 +34,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
-    p.add_argument("--reflex", choices=STRATEGIES,
+    p.add_argument("--reflex", choices=strategies.names(),
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
 
@@ -48,9 +49,11 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
                until_script_end: bool) -> Layout:
     """The processes ``nwr up`` / ``nwr demo`` start, from their flags; ``recording``: (session, file) or None."""
     planners = [p for p in (args.planners or "").split(",") if p]
-    unknown = [p for p in planners if p not in STRATEGIES]
+    unknown = [p for p in planners if p not in strategies.names()]
     if unknown:
-        raise ConfigError(f"--planners names {unknown}; the strategies are {list(STRATEGIES)}")
+        raise ConfigError(f"--planners names {unknown}; the strategies are {list(strategies.names())}")
+    if not (args.reflex or planners):
+        strategies.check(profile.planner.strategy)  # here, not in the planner's process once the others run
     layout = Layout(planners=planners, active=args.reflex, planner_name=profile.planner.name, view_port=args.view)
     if recording is not None:
         session, output = recording
@@ -99,6 +102,7 @@ def run_demo_fast(args: argparse.Namespace) -> int:
         profile.gateway.sim.closed_loop = True
     _, output = output_path(args, profile)
     strategy = args.reflex or profile.planner.strategy
+    strategies.check(strategy)  # before the recording is opened
     path, simulated, wall = simulate(profile, args.script, strategy, output)
     print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
           f"{wall:.2f} s{' (closed loop)' if profile.gateway.sim.closed_loop else ''}: {path}")

@@ -19,10 +19,11 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import STRATEGIES, PlannerSection, profile_for
+from nwr.common.config import PlannerSection, profile_for
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services.gain.core import continuous_gain, discrete_gain
 from nwr.services.planner.core import Planner
+from nwr.services.planner.strategies import names as strategy_names
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"
@@ -97,7 +98,8 @@ def _draw_arm(ax: Any, model: RobotModel, q: np.ndarray, color: str, lw: float, 
     ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-o", color=color, lw=lw, ms=3, alpha=alpha)
 
 
-def reflexes_figure(path: Path, strategies: tuple[str, ...] = STRATEGIES, cfg: PlannerSection | None = None) -> Path:
+def reflexes_figure(path: Path, strategies: tuple[str, ...] = strategy_names(),
+                    cfg: PlannerSection | None = None) -> Path:
     desc = load_description()
     model = RobotModel(desc)
     plt = _pyplot()

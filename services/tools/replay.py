@@ -43,7 +43,7 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import STRATEGIES, Profile, load_script, profile_for
+from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.recordings import McapRecorder, Recorded, read_recording, session_metadata
@@ -51,6 +51,7 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
 from nwr.services.pipeline.graph import Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all
+from nwr.services.planner import strategies
 
 if TYPE_CHECKING:
     from nwr.services.gateway.sources import ResimulatedSkin, SkinSource
@@ -237,8 +238,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.planner_cmd:
             raise ConfigError("--fast runs the project's own cores in this process; "
                               "use a live replay to replay against --planner-cmd")
-        if strategy not in STRATEGIES:
-            raise ConfigError(f"strategy {strategy!r} of the recording is not one of {list(STRATEGIES)}: "
+        if strategy not in strategies.names():
+            raise ConfigError(f"strategy {strategy!r} of the recording is not one of {list(strategies.names())}: "
                               "choose one with --reflex")
         path, simulated, wall = run_fast(profile, records, strategy, output, source, metadata, chosen=chosen,
                                          resimulate=args.resimulate)
@@ -298,7 +299,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--loop", action="store_true", help="start again at the end (live replay without a service)")
     p.add_argument("--topics", help=f"comma-separated topics to replay (default and only choice: {REPLAYABLE[0]})")
     p.add_argument("--robot", help="publish under nwr/<ROBOT>/ (default: the recording's robot)")
-    p.add_argument("--reflex", choices=STRATEGIES,
+    p.add_argument("--reflex", choices=strategies.names(),
                    help="replay against a planner of this strategy with the simulated bridge, into a new recording")
     p.add_argument("--planner-cmd", metavar="CMD",
                    help="replay against this command instead of the project's planner (any process speaking the "

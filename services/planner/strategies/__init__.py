@@ -1,0 +1,116 @@
+"""Reflex strategies: the interface the planner core drives, and their registry.
+
+Every module of this package is one strategy: it defines a subclass of
+:class:`ReflexStrategy` and names it ``STRATEGY``. The registry imports the
+modules it finds here (nothing else lists them) and orders the strategies by
+their ``rank``, the order of CLI choices and figures. Adding a strategy is
+adding a module.
+
+The core's state machine asks a strategy for two things. At a contact,
+:meth:`ReflexStrategy.start` gives the reflex's :class:`Onset`. Then, by the
+strategy's command ``mode``:
+
+- ``"position"``: the onset's joint ``target``, which the core reaches with a
+  jerk-limited trajectory (ruckig); the reflex ends on arrival;
+- ``"velocity"``: a joint velocity every control cycle
+  (:meth:`ReflexStrategy.velocity`), streamed for ``planner.reflex_duration_s``.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import importlib
+import pkgutil
+import sys
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import ClassVar, Literal
+
+import numpy as np
+
+from nwr.common import messages as m
+from nwr.common.config import PlannerSection
+from nwr.common.errors import ConfigError
+from nwr.common.robot import RobotDescription, RobotModel
+
+CommandMode = Literal["position", "velocity"]
+
+
+@dataclass(frozen=True)
+class Onset:
+    """How a reflex starts."""
+
+    target: np.ndarray | None = None  # position mode: the joint target, rad
+    direction: list[float] = field(default_factory=list)  # velocity mode: the pad's Cartesian velocity, m/s
+    corrected: bool = False  # guarded mode changed the planned motion
+
+
+class ReflexStrategy(ABC):
+    """One reflex strategy, built once per planner from its profile section."""
+
+    name: ClassVar[str]  # the profile's planner.strategy
+    rank: ClassVar[int]  # place among the strategies (names())
+    mode: ClassVar[CommandMode]
+
+    def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
+        self.model = model
+        # Control cycles of the current reflex whose velocity the guard
+        # corrected (a position target's correction is in its Onset).
+        self.corrections = 0
+
+    @abstractmethod
+    def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
+        """Begin (or update) a reflex on ``contact`` at the commanded pose ``q``."""
+
+    def velocity(self, q: np.ndarray, t: float, *, count: bool = True) -> np.ndarray:
+        """Velocity mode: the joint velocity at pose ``q``, ``t`` s into the reflex.
+
+        ``count``: whether a guard correction counts in :attr:`corrections`
+        (not when the retreat check integrates the stream ahead).
+        """
+        raise NotImplementedError(f"the {self.name} strategy is position-controlled: it has no velocity stream")
+
+    def snapshot(self) -> ReflexStrategy:
+        """A copy of the current reflex's state, for a retreat check on another thread (and model)."""
+        return copy.copy(self)
+
+
+def discover(package: ModuleType) -> dict[str, type[ReflexStrategy]]:
+    """The strategies of ``package``'s modules (each one's ``STRATEGY``), by name in rank order."""
+    found: dict[str, type[ReflexStrategy]] = {}
+    for info in pkgutil.iter_modules(package.__path__):
+        module = importlib.import_module(f"{package.__name__}.{info.name}")
+        strategy = getattr(module, "STRATEGY", None)
+        if not (isinstance(strategy, type) and issubclass(strategy, ReflexStrategy)):
+            raise TypeError(f"{module.__name__} defines no STRATEGY (a ReflexStrategy subclass): every module of "
+                            f"{package.__name__} is one reflex strategy")
+        if strategy.name in found:
+            raise TypeError(f"{module.__name__} and {found[strategy.name].__module__} both define the "
+                            f"strategy {strategy.name!r}")
+        found[strategy.name] = strategy
+    return dict(sorted(found.items(), key=lambda item: item[1].rank))
+
+
+@functools.cache
+def _registry() -> dict[str, type[ReflexStrategy]]:
+    return discover(sys.modules[__name__])
+
+
+def names() -> tuple[str, ...]:
+    """The strategies' names, in rank order: uniform, location, cartesian, cartesian-smooth."""
+    return tuple(_registry())
+
+
+def check(name: str) -> None:
+    """ConfigError unless ``name`` is a strategy."""
+    if name not in _registry():
+        raise ConfigError(f"planner.strategy {name!r} is not a reflex strategy; the strategies are "
+                          f"{', '.join(names())}")
+
+
+def build(cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> ReflexStrategy:
+    """The strategy ``cfg.strategy`` (ConfigError naming the strategies if there is none by that name)."""
+    check(cfg.strategy)
+    return _registry()[cfg.strategy](cfg, desc, model, v_limit)
