@@ -52,7 +52,8 @@ def intruder(stop: threading.Event, counts: dict[str, int], port: int, owner: st
             counts["sent"] += 1
 
 
-@pytest.mark.parametrize(("reflex", "port"), [("cartesian", BASE_PORT), ("uniform", BASE_PORT + 10)])
+@pytest.mark.parametrize(("reflex", "port"), [("cartesian", BASE_PORT), ("uniform", BASE_PORT + 10),
+                                              ("location", BASE_PORT + 20), ("cartesian-smooth", BASE_PORT + 30)])
 def test_scripted_session_end_to_end(tmp_path, reflex, port):
     profile = write_profile(tmp_path, port)
     output = tmp_path / "session.mcap"
@@ -105,7 +106,7 @@ def test_scripted_session_end_to_end(tmp_path, reflex, port):
     skin_seqs = {r.message.seq for r in records if r.key == "skin/pressure"}
     commands = [r.message for r in records if r.key == keys.robot_command(reflex) and r.message.owner == reflex]
     assert {type(c) for c in commands if c.phase == "REFLEX"} == {
-        m.VelocityCommand if reflex == "cartesian" else m.PositionCommand}
+        m.VelocityCommand if reflex.startswith("cartesian") else m.PositionCommand}
     traced = {c.trace.seq for c in commands if c.trace.seq >= 0}
     assert traced and traced <= skin_seqs
 
