@@ -219,6 +219,27 @@ class PlannerSection(_Section):
     task: TaskSection = msgspec.field(default_factory=TaskSection)
 
 
+class CartesianLimits(_Section):
+    # The fastest any point of the arm (each pad's reference point, the elbow,
+    # the flange) may move outside a withdrawal (task, return, rejoining the
+    # task), m/s. 0.25 m/s is the reduced speed of ISO 10218-1 (5.6) for a
+    # person beside the arm; the paper's task peaks at 0.19 m/s.
+    speed_m_s: Annotated[float, msgspec.Meta(gt=0)] = 0.25
+    # The fastest any point may move during a withdrawal (phase REFLEX), m/s:
+    # away from the contact a withdrawal may go faster than it approaches;
+    # its speed toward the contact stays within speed_m_s.
+    withdrawal_speed_m_s: Annotated[float, msgspec.Meta(gt=0)] = 0.5
+    # The arm's momentum: the sum over the moving links of mass (the URDF's)
+    # times the speed of its centre of mass, kg m/s. The UR10e's 29.1 kg of
+    # moving links all at speed_m_s carry 7.3 kg m/s.
+    momentum_kg_m_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
+
+
+def _reduced() -> CartesianLimits:
+    """The reduced mode's default limits (a UR's safety "reduced mode"): each at most the normal one."""
+    return CartesianLimits(speed_m_s=0.15, withdrawal_speed_m_s=0.25, momentum_kg_m_s=5.0)
+
+
 class BridgeSection(_Section):
     # "sim": simulated arm. "ur_rtde": a real UR (or URSim) through ur_rtde;
     # it also needs --robot-ip and --i-am-next-to-the-robot on the command line.
@@ -260,6 +281,12 @@ class BridgeSection(_Section):
     seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500
     # Initial pose, rad; empty = the robot description's home pose.
     initial_q: list[float] = []
+    # Cartesian limits on every point of the arm and on its momentum, in the
+    # normal and the reduced mode (nwr safety reduced|normal switches at
+    # runtime). Tighter than the robot description's max_point_speed, never
+    # looser (a configuration error names the field).
+    limits: CartesianLimits = msgspec.field(default_factory=CartesianLimits)
+    reduced: CartesianLimits = msgspec.field(default_factory=_reduced)
     # ur_rtde backend: servoJ lookahead time, s (UR allows 0.03-0.2; longer is
     # smoother but lags more) and proportional gain (UR allows 100-2000).
     servo_lookahead_s: Annotated[float, msgspec.Meta(ge=0.03, le=0.2)] = 0.1
@@ -381,6 +408,11 @@ def _check_profile(profile: Profile) -> None:
             f"planner.task_ahead_cycles = {planner.task_ahead_cycles} at {planner.rate_hz:g} Hz plans more than "
             "0.1 s ahead, which the bridge refuses: lower it"
         )
+    normal, reduced = profile.bridge.limits, profile.bridge.reduced
+    for field in ("speed_m_s", "withdrawal_speed_m_s", "momentum_kg_m_s"):
+        if getattr(reduced, field) > getattr(normal, field):
+            raise ConfigError(f"bridge.reduced.{field} = {getattr(reduced, field)} is above bridge.limits.{field} = "
+                              f"{getattr(normal, field)}: the reduced mode may only tighten the limits")
     task = profile.planner.task
     if len(task.amplitude_rad) != len(task.double_frequency):
         raise ConfigError("planner.task: amplitude_rad and double_frequency must have one entry per joint")

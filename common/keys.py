@@ -13,6 +13,7 @@ robot/state                  RobotState                             interactive 
 reflex/<name>/status         PlannerStatus                          data        no         drop
 reflex/<name>/decision       PlannerDecision                        data        no         block
 control/active               SwitchRequest                          interactive yes        block
+control/safety               SafetyModeRequest                      interactive yes        block
 diag/<service>               Diagnostic                             data-low    no         drop
 journal/<service>            Journal                                data        no         block
 alive/<service>              (liveliness token, no payload)
@@ -97,6 +98,9 @@ TOPICS: tuple[Topic, ...] = (
     Topic("control/active", m.SwitchRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
           "which planner should be active (the bridge carries the switch out)",
           ("operator",), ("bridge", "recorder")),
+    Topic("control/safety", m.SafetyModeRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
+          "the bridge's Cartesian limits: the normal or the reduced set (the operator's role only)",
+          ("operator",), ("bridge", "recorder")),
     Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
           "warnings and errors with a code and a readable message",
           (ANY_SERVICE,), ("recorder",)),
@@ -111,6 +115,7 @@ SKIN_PAIN = "skin/pain"
 ROBOT_COMMANDS = "robot/command/*"  # every planner's commands (what the bridge and the recorder take)
 ROBOT_STATE = "robot/state"
 CONTROL_ACTIVE = "control/active"
+CONTROL_SAFETY = "control/safety"
 
 
 def prefix(robot: str) -> str:

@@ -180,6 +180,18 @@ class SwitchRequest(msgspec.Struct, tag="switch_request", tag_field="kind", forb
     requested_by: str = ""
 
 
+SafetyMode = Literal["normal", "reduced"]
+
+
+class SafetyModeRequest(msgspec.Struct, tag="safety_mode_request", tag_field="kind", forbid_unknown_fields=True):
+    """Switch the bridge's Cartesian limits to the normal or the reduced set (the operator's role only)."""
+
+    seq: int
+    stamp_ns: int
+    mode: SafetyMode
+    requested_by: str = ""
+
+
 class Handover(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """One switch of the active planner, as the bridge carried it out."""
 
@@ -225,6 +237,11 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     # for the outgoing planner's reflex and return to end), and the last one.
     pending_owner: str = ""
     handover: Handover | None = None
+    # The Cartesian limits in force, and how many control cycles they scaled.
+    safety_mode: SafetyMode = "normal"
+    limited: int = 0
+    # The phase of the command being followed (a withdrawal is REFLEX).
+    phase: Mode = "TASK"
 
 
 class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

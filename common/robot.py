@@ -54,6 +54,7 @@ _ROBOT_KEYS: frozenset[str] = frozenset(
     {"name", "urdf", "skin", "base_frame", "tool_frame", "joints", "max_acceleration", "max_jerk", "home",
      "reflex_direction"}
 )
+_OPTIONAL_ROBOT_KEYS: frozenset[str] = frozenset({"elbow_frame", "max_point_speed"})
 _PAD_KEYS: frozenset[str] = frozenset({"id", "name", "region", "link", "point", "normal"})
 
 
@@ -100,6 +101,8 @@ class RobotDescription:
     home: np.ndarray
     pads: tuple[Pad, ...]
     reflex_direction: np.ndarray
+    elbow_frame: str | None = None  # the frame whose origin is the elbow (a speed-limited point), if named
+    max_point_speed: float = 1.0  # m/s: the fastest any point of the arm moves (a Cartesian limit never exceeds it)
 
     def pad(self, key: int | str) -> Pad:
         """Return a pad by id (int) or by name (str); raise ConfigError otherwise."""
@@ -130,13 +133,17 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
     """
     robot_path = Path(path) if path is not None else DEFAULT_DESCRIPTION
     doc = _read_toml(robot_path)
-    _check_keys(doc, _ROBOT_KEYS, _ROBOT_KEYS, robot_path, "robot description")
+    _check_keys(doc, _ROBOT_KEYS, _ROBOT_KEYS | _OPTIONAL_ROBOT_KEYS, robot_path, "robot description")
 
     name = _string(doc["name"], robot_path, "name")
     urdf_path = (robot_path.parent / _string(doc["urdf"], robot_path, "urdf")).resolve()
     skin_path = (robot_path.parent / _string(doc["skin"], robot_path, "skin")).resolve()
     base_frame = _string(doc["base_frame"], robot_path, "base_frame")
     tool_frame = _string(doc["tool_frame"], robot_path, "tool_frame")
+    elbow_frame = _string(doc["elbow_frame"], robot_path, "elbow_frame") if "elbow_frame" in doc else None
+    max_point_speed = doc.get("max_point_speed", 1.0)
+    if not (_is_number(max_point_speed) and math.isfinite(max_point_speed) and max_point_speed > 0):
+        raise ConfigError(f"{robot_path}: max_point_speed = {max_point_speed!r}; expected a speed > 0 in m/s")
 
     model = _build_model(urdf_path, robot_path)
     urdf_joints = tuple(model.names[1:])
@@ -149,8 +156,8 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
             )
     frames = {frame.name for frame in model.frames}
     links = {frame.name for frame in model.frames if frame.type == pin.FrameType.BODY}
-    for field, frame_name in (("base_frame", base_frame), ("tool_frame", tool_frame)):
-        if frame_name not in frames:
+    for field, frame_name in (("base_frame", base_frame), ("tool_frame", tool_frame), ("elbow_frame", elbow_frame)):
+        if frame_name is not None and frame_name not in frames:
             raise ConfigError(
                 f"{robot_path}: {field} = {frame_name!r} is not a frame of {urdf_path.name}; "
                 f"expected one of its links: {', '.join(sorted(links))}"
@@ -203,6 +210,8 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
         home=home,
         pads=pads,
         reflex_direction=direction,
+        elbow_frame=elbow_frame,
+        max_point_speed=float(max_point_speed),
     )
 
 
@@ -401,8 +410,34 @@ class RobotModel:
             frame = pin.Frame(frame_name, link.parentJoint, link_id, link.placement * on_link, pin.FrameType.OP_FRAME)
             pad_ids.append(model.addFrame(frame))
 
+        # The points a Cartesian speed limit applies to: every pad's reference
+        # point, the elbow and the flange (the tool frame's origin), as a UR's
+        # safety system limits the elbow's and the flange's speed.
+        speed_ids = list(pad_ids)
+        names = [pad.name for pad in desc.pads]
+        if desc.elbow_frame is not None:
+            speed_ids.append(self._existing_frame(model, desc.elbow_frame, desc.urdf_path))
+            names.append("elbow")
+        speed_ids.append(self._tool_id)
+        names.append("flange")
+        # One frame at each moving body's centre of mass, for its momentum.
+        com_ids: list[int] = []
+        masses: list[float] = []
+        for joint in range(1, model.njoints):
+            inertia = model.inertias[joint]
+            if inertia.mass > 0.0:
+                parent = model.getFrameId(model.names[joint])
+                com = pin.Frame(f"com_{model.names[joint]}", joint, parent, pin.SE3(np.eye(3), inertia.lever),
+                                pin.FrameType.OP_FRAME)
+                com_ids.append(model.addFrame(com))
+                masses.append(float(inertia.mass))
+        self.speed_points: tuple[str, ...] = tuple(names)
+        self._speed_ids: tuple[int, ...] = tuple(speed_ids)
+        self._com_ids: tuple[int, ...] = tuple(com_ids)
+        self.link_masses: np.ndarray = _readonly(np.array(masses))
+
         self.model: pin.Model = model
-        # Created after the pad frames were added, so data.oMf has room for them.
+        # Created after the pad and centre-of-mass frames were added, so data.oMf has room for them.
         self.data: pin.Data = model.createData()
         self.nq: int = model.nq
         self._pad_ids: tuple[int, ...] = tuple(pad_ids)
@@ -534,6 +569,28 @@ class RobotModel:
             jacobian[:3] = self._base_rotation_t @ jacobian[:3]
             jacobian[3:] = self._base_rotation_t @ jacobian[3:]
         return jacobian
+
+    def _linear_jacobians(self, q: Any, frame_ids: tuple[int, ...]) -> np.ndarray:
+        q = self._as_q(q)
+        self._update(q)
+        if not self._jacobians_valid:
+            pin.computeJointJacobians(self.model, self.data, q)
+            self._jacobians_valid = True
+        out = np.empty((len(frame_ids), 3, self.nq))
+        for row, frame_id in enumerate(frame_ids):
+            out[row] = pin.getFrameJacobian(self.model, self.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
+        if not self._base_is_root:
+            out = np.einsum("ij,pjk->pik", self._base_rotation_t, out)
+        return out
+
+    def speed_jacobians(self, q: Any) -> np.ndarray:
+        """Linear Jacobians (P, 3, nq) of the speed-limited points (:attr:`speed_points`: pads, elbow, flange):
+        row p times q_dot is point p's velocity (m/s) in base_frame."""
+        return self._linear_jacobians(q, self._speed_ids)
+
+    def com_jacobians(self, q: Any) -> np.ndarray:
+        """Linear Jacobians (L, 3, nq) of the moving links' centres of mass (masses in :attr:`link_masses`)."""
+        return self._linear_jacobians(q, self._com_ids)
 
     def joint_positions(self, q: Any) -> np.ndarray:
         """Origins of every movable joint in chain order, then the tool frame origin,

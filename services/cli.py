@@ -30,6 +30,7 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.tools.figures",
     "nwr.services.view.commands",
     "nwr.services.tools.switch",
+    "nwr.services.tools.safety",
     "nwr.services.tools.status",
     "nwr.services.tools.router",
     "nwr.services.tools.replay",

@@ -46,6 +46,7 @@ EXAMPLES = {
     "journal/fuzz": m.Journal(seq=0, stamp_ns=1, service="s", run_ns=1, config="{}", entries=[
         m.JournalEntry("pain", [1, 2, 3], "skin/pain", 4, 5, 6), m.JournalEntry("token", [7], arg=1, text="p")]),
     "control/active": m.SwitchRequest(seq=0, stamp_ns=1, name="location", requested_by="fuzz"),
+    "control/safety": m.SafetyModeRequest(seq=0, stamp_ns=1, mode="reduced", requested_by="fuzz"),
 }
 
 

@@ -167,9 +167,9 @@ def test_the_access_control_lets_each_service_put_exactly_what_the_registry_says
 
 def test_the_operator_may_switch_and_nothing_else_moves_the_arm() -> None:
     acl = _acl()
-    assert "control/active" in acl["operator"]
+    assert "control/active" in acl["operator"] and "control/safety" in acl["operator"]
     producers = {t.pattern: t.producers for t in keys.TOPICS}
-    assert producers["control/active"] == ("operator",)
+    assert producers["control/active"] == producers["control/safety"] == ("operator",)
     assert not any(fnmatch.fnmatchcase(k, "robot/command/*") for k in acl["operator"])
 
 

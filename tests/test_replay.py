@@ -64,8 +64,11 @@ def test_lockstep_reproduces_the_pipeline_decisions(strategy):
     assert [t.name for t in touches] == ["upper_arm_top", "forearm_top", "wrist_2", "elbow_outer"]
     assert [t.reflex_seq > 0 for t in touches] == [False, True, True, False]
     for t in touches[1:3]:
-        assert t.withdrawal_mm > 1.0 and t.resumed_after_s is not None
-        assert t.return_error_rad < 1e-3
+        assert t.withdrawal_mm > 1.0
+        if strategy == "cartesian":  # back at the saved pose after each reflex
+            assert t.resumed_after_s is not None and t.return_error_rad < 1e-3
+    # The uniform reflex moves far: within the Cartesian limits (0.5 m/s withdrawing, 0.25 m/s returning) its
+    # returns take seconds, and this short script's next touch and end come first (test_limits has the full story).
 
 
 def test_select_by_topic_and_time():

@@ -257,8 +257,12 @@ def test_resimulated_pressure_falls_below_the_open_loop_replay_during_reflexes(d
             gap = [before[s].change_hpa[touch.pad] - after[s].change_hpa[touch.pad] for s in seqs]
             assert min(gap) > -1e-9, touch.name  # never more than the open-loop pressure
             falls[touch.name] = max(gap)
-    # The strong ramp on the forearm and the wrist_3 touch are withdrawn from by both reflexes.
-    assert falls["forearm_top"] > 5.0 and falls["wrist_3"] > 5.0, falls
+    # The strong ramp on the forearm is withdrawn from by both reflexes; the short wrist_3 touch by the
+    # Cartesian one (the uniform reflex, within the bridge's Cartesian limits, is still returning from the
+    # forearm's and moves the wrist ring away too slowly for a 0.3 s touch).
+    assert falls["forearm_top"] > 5.0, falls
+    if strategy == "cartesian":
+        assert falls["wrist_3"] > 5.0, falls
 
 
 def test_two_resimulated_replays_are_identical(demo_sessions):

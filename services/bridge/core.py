@@ -24,6 +24,7 @@ import numpy as np
 
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
+from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.checks import CheckContext, Event, check_command, command_name
 from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.tracking import Tracker
@@ -75,6 +76,8 @@ class BridgeCore:
         skin_timeout_s: float = 0.12,
         seq_restart_gap: int = 500,
         period_s: float = 0.002,
+        limiter: CartesianLimiter | None = None,
+        reduced: Limits | None = None,
     ) -> None:
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
@@ -88,7 +91,12 @@ class BridgeCore:
         self.skin_timeout_ns = round(skin_timeout_s * 1e9)
         self.seq_restart_gap = seq_restart_gap
         # The commanded joint state, the command it follows, the controlled stop.
-        self.tracker = Tracker(env, q0, now_ns, period_s=period_s)
+        self.tracker = Tracker(env, q0, now_ns, period_s=period_s, limiter=limiter)
+        # The Cartesian limits of the normal and the reduced mode.
+        self.normal_limits = limiter.limits if limiter is not None else None
+        self.reduced_limits = reduced
+        self.safety_mode: m.SafetyMode = "normal"
+        self.contact_pad = -1  # the strongest contact of the newest pain message (-1: none)
         self.last_step_ns = now_ns
         # The command being followed: its phase, and the last one accepted.
         self.phase: m.Mode = "TASK"
@@ -168,6 +176,11 @@ class BridgeCore:
                 f"{command_name(cmd)} not sent: the robot is in {self.fault} ({self.fault_detail})",
             ))
             return Verdict(False, False)
+        onset = cmd.phase == "REFLEX" and cmd.reflex_seq != self.reflex_seq
+        if onset:
+            tracker.toward = self._toward()  # into the contact, fixed at the onset
+        tracker.reflex = cmd.phase == "REFLEX"
+        tracker.withdrawal = tracker.withdrawal or tracker.reflex
         if isinstance(cmd, m.PositionCommand):
             clipped = tracker.follow_position(cmd, checked.values, now_ns, checked.ahead, self.last_seq,
                                               self.last_stamp_ns)
@@ -179,7 +192,6 @@ class BridgeCore:
         self.last_seq = cmd.seq
         self.last_stamp_ns = cmd.stamp_ns
         self.last_command_ns = now_ns
-        onset = cmd.phase == "REFLEX" and cmd.reflex_seq != self.reflex_seq
         self.reflex_seq = cmd.reflex_seq
         if onset:
             self.accepted = cmd.trace
@@ -217,7 +229,37 @@ class BridgeCore:
             ))
             return
         self.last_pain_ns = now_ns
+        strongest = pain.strongest
+        self.contact_pad = strongest.pad if strongest is not None and 0 <= strongest.pad < self.n_pads else -1
         self._evaluate(now_ns)
+
+    def _toward(self) -> np.ndarray | None:
+        """The direction into the newest contact (the touched pad's inward normal where the arm is), if any."""
+        limiter = self.tracker.limiter
+        if limiter is None or self.contact_pad < 0:
+            return None
+        return -limiter.model.pad_normal(self.tracker.q, self.contact_pad)
+
+    def set_safety_mode(self, mode: m.SafetyMode, now_ns: int, requested_by: str = "") -> bool:
+        """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch."""
+        limiter = self.tracker.limiter
+        limits = self.reduced_limits if mode == "reduced" else self.normal_limits
+        if limiter is None or limits is None:
+            self.events.append(Event("warning", "safety_mode_rejected",
+                                     f"safety mode {mode!r} refused: this bridge has no Cartesian limits"))
+            return False
+        if mode == self.safety_mode:
+            return False
+        limiter.limits = limits
+        self.safety_mode = mode
+        self.publish_now = True
+        self.events.append(Event(
+            "warning" if mode == "reduced" else "info", "safety_mode",
+            f"safety mode {mode}{f' (requested by {requested_by})' if requested_by else ''}: points at most "
+            f"{limits.speed_m_s} m/s ({limits.withdrawal_speed_m_s} m/s withdrawing), momentum at most "
+            f"{limits.momentum_kg_m_s} kg m/s",
+        ))
+        return True
 
     def on_planner_alive(self, alive: bool, now_ns: int) -> None:
         """The active planner's liveliness token appeared (True) or vanished (False)."""
@@ -381,6 +423,7 @@ class BridgeCore:
                     ))
             elif status == "ok" and tracker.stop is not None:
                 tracker.stop = None  # follow again, from wherever the stop has brought the arm
+                tracker.begin_rejoin()  # ... and never faster than the stream itself: no catch-up
                 if self.status != "idle":
                     self.events.append(Event("info", "resumed", f"following {self.active!r} again after {self.status}"))
         self.status, self.detail = status, detail
@@ -435,6 +478,8 @@ class BridgeCore:
             stopping=tracker.stop is not None and not tracker.stop.done, stop_distance=tracker.stop_distance.tolist(),
             stop_time_s=tracker.stop_time_s, skin_age_s=min(self.skin_age_s(now_ns), 1e9), detail=self.detail,
             pending_owner=self.pending.name if self.pending is not None else "", handover=self.handover,
+            safety_mode=self.safety_mode, limited=tracker.limited,
+            phase="REFLEX" if tracker.withdrawal else self.phase,
         )
 
     def release(self) -> None:

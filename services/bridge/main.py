@@ -104,6 +104,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             node.subscribe(keys.SKIN_PRESSURE, locked(bridge.on_skin), direct=True)
             node.subscribe(keys.SKIN_PAIN, locked(bridge.on_pain), direct=True)
             node.subscribe(keys.CONTROL_ACTIVE, locked(bridge.on_switch), direct=True)
+            node.subscribe(keys.CONTROL_SAFETY, locked(bridge.on_safety), direct=True)
             tokens = keys.key(profile.robot.name, keys.alive(keys.PLANNER_SERVICE_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, on_liveliness, history=True)
             log.info("following planner %r (tokens %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",

@@ -24,6 +24,7 @@ import numpy as np
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
 from nwr.common import messages as m
+from nwr.services.bridge.cartesian import CartesianLimiter
 from nwr.services.bridge.checks import MAX_PERIOD_S, MIN_PERIOD_S, Event, command_name
 from nwr.services.bridge.envelope import Envelope, clip
 
@@ -33,6 +34,11 @@ SPEED_TOLERANCE = 1.01
 # step of up to this many control cycles' worth of acceleration is jitter,
 # not a clip worth reporting (the tracker shapes it all the same).
 ACCEL_JITTER_CYCLES = 2.0
+# Rejoining a position stream after a hold ends once the arm is this close to
+# the stream's target (rad, every joint) with the rejoin speed no longer binding.
+REJOIN_TOLERANCE_RAD = 0.01
+# The slowest a rejoin may be capped at, m/s (a stream that has not moved yet).
+REJOIN_FLOOR_M_S = 0.05
 
 CommandMode = Literal["none", "position", "velocity"]
 
@@ -52,8 +58,23 @@ class Stop:
 class Tracker:
     """The commanded joint state and the command it follows within the envelope."""
 
-    def __init__(self, env: Envelope, q0: np.ndarray, now_ns: int, *, period_s: float = 0.002) -> None:
+    def __init__(self, env: Envelope, q0: np.ndarray, now_ns: int, *, period_s: float = 0.002,
+                 limiter: CartesianLimiter | None = None) -> None:
         self.env = env
+        # The Cartesian limits (None: joint limits only) and what they depend on:
+        # whether the command is a withdrawal, and the direction into the contact.
+        self.limiter = limiter
+        self.reflex = False  # the command followed is a withdrawal's (phase REFLEX)
+        # The withdrawal's limits hold from its first command until the arm,
+        # commanded otherwise, is back within the collaborative speed (it
+        # decelerates within the acceleration limits, not in one cycle).
+        self.withdrawal = False
+        self.toward: np.ndarray | None = None
+        # After a hold, a position stream is rejoined no faster than any point of
+        # the arm moved in the stream itself (its peak so far): no catch-up.
+        self.rejoining = False
+        self.stream_peak = 0.0
+        self.limited = 0  # control cycles the Cartesian limits scaled
         self.period_s = period_s  # the control period, s
         n = env.n
         # The commanded joint state (what the backend was last sent).
@@ -223,6 +244,10 @@ class Tracker:
         bounded = self._limit(v_des.tolist(), h, None, active)
         return clipped or bounded
 
+    def begin_rejoin(self) -> None:
+        """The arm was held: rejoin the stream (when it is a position stream) at no more than its own speed."""
+        self.rejoining = True
+
     def _limit(self, v_des: list[float], h: float, target: list[float] | None, active: str) -> Event | None:
         """Integrate one cycle towards ``v_des`` within the envelope (per joint, in floats); a clip, if any.
 
@@ -230,13 +255,17 @@ class Tracker:
         a correction that can always brake in time: no overshoot on a step, no
         lag on a smooth stream. Then the speed limit; never faster towards a
         joint limit than a jerk-limited stop allows (:meth:`Envelope.braking_speed`,
-        the same formula); the acceleration limit; the joint limits.
+        the same formula); the Cartesian limits (every point's speed, the speed
+        toward a contact, the momentum; while rejoining a stream, its own peak
+        speed), which scale the joint velocity as a whole; the acceleration
+        limit; the joint limits.
         """
         q0, dq0 = self.q.tolist(), self.dq.tolist()
-        q1, v1, a1 = [], [], []
+        bounded_v: list[float] = []
         bound_i, bound_by, bound_v = -1, 1e-9, 0.0  # the joint the braking distance bounds most (reported once)
-        for i, (q_min, q_max, v_max, a_max, k) in enumerate(self.env.per_joint):
-            q, dq = q0[i], dq0[i]
+        per_joint = self.env.per_joint
+        for i, (q_min, q_max, v_max, a_max, k) in enumerate(per_joint):
+            q = q0[i]
             v = v_des[i]
             if target is not None:
                 e = target[i] - q
@@ -251,12 +280,17 @@ class Tracker:
             if abs(bounded - v) > bound_by:
                 bound_i, bound_by, bound_v = i, abs(bounded - v), bounded
             v_des[i] = v
+            bounded_v.append(bounded)
+        limited = self._cartesian(bounded_v, target, active) if self.limiter is not None else None
+        q1, v1, a1 = [], [], []
+        for i, (q_min, q_max, _v_max, a_max, _k) in enumerate(per_joint):
+            q, dq, bounded = q0[i], dq0[i], bounded_v[i]
             v = min(max(bounded, dq - a_max * h), dq + a_max * h)
             q1.append(min(max(q + 0.5 * (dq + v) * h, q_min), q_max))
             v1.append(v)
             a1.append((v - dq) / h)
-        clipped = None
-        if bound_i >= 0 and not self._clip_reported:
+        clipped = limited
+        if clipped is None and bound_i >= 0 and not self._clip_reported:
             env, i = self.env, bound_i
             clipped = self._clip(
                 "joint_limit",
@@ -266,6 +300,36 @@ class Tracker:
             )
         self.q, self.dq, self.ddq = np.array(q1), np.array(v1), np.array(a1)
         return clipped
+
+    def _cartesian(self, v: list[float], target: list[float] | None, active: str) -> Event | None:
+        """Scale the cycle's joint velocity ``v`` (in place) into the Cartesian limits; a scaling to report, if any."""
+        limiter = self.limiter
+        assert limiter is not None
+        cap = None
+        if self.mode == "position":
+            own = float(limiter.speeds(self.q, self.v_ff).max()) if self.v_ff.any() else 0.0
+            self.stream_peak = min(max(self.stream_peak, own), limiter.limits.speed_m_s)
+            if self.rejoining:
+                cap = max(self.stream_peak, REJOIN_FLOOR_M_S)
+        else:
+            self.rejoining = False
+        if self.withdrawal and not self.reflex and \
+                float(limiter.speeds(self.q, self.dq).max()) <= limiter.limits.speed_m_s:
+            self.withdrawal = False
+            self.toward = None
+        dq = np.array(v)
+        scaling = limiter.scale(self.q, dq, withdrawal=self.withdrawal, toward=self.toward, speed_cap=cap)
+        if self.rejoining and (scaling is None or scaling.what != "rejoin speed") and target is not None:
+            if float(np.max(np.abs(np.asarray(target) - self.q))) < REJOIN_TOLERANCE_RAD:
+                self.rejoining = False
+        if scaling is None:
+            return None
+        for i in range(len(v)):
+            v[i] *= scaling.factor
+        self.limited += 1
+        if self._clip_reported:
+            return None
+        return self._clip("cartesian_limit", f"{self.mode} command from {active!r}: {scaling.describe()}")
 
     def _clip(self, code: str, message: str) -> Event:
         """A clip of the tracker, reported once per command (not per cycle)."""

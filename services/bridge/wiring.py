@@ -12,7 +12,8 @@ the arm.
   published at once (not at the next cycle);
 - skin and pain messages keep the skin data fresh;
 - a planner's liveliness token appearing or vanishing, and a switch request,
-  change who moves the arm (a switch is published at once);
+  change who moves the arm (a switch is published at once); a safety-mode
+  request switches the Cartesian limits (published at once);
 - each control cycle: the backend's fault, the arm's measured pose, one
   setpoint, and the robot state every ``state_rate_hz``.
 """
@@ -28,8 +29,9 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
-from nwr.common.robot import load_description
+from nwr.common.robot import RobotModel, load_description
 from nwr.services.bridge.backend import Backend, SimBackend
+from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.core import BridgeCore, at_rest
 from nwr.services.bridge.envelope import Envelope, make_envelope
 from nwr.services.wiring import Diag, Out
@@ -63,6 +65,7 @@ class BridgeWiring:
                  backend: Backend | None = None) -> None:
         cfg = profile.bridge
         env, q0, n_pads = envelope_for(profile)
+        model = RobotModel(load_description(profile.robot.description or None))
         if backend is None:  # the simulated arm, as the profile describes it
             backend = SimBackend(env, 1.0 / cfg.rate_hz, q0)
             backend.connect()
@@ -78,6 +81,8 @@ class BridgeWiring:
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
             command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
             seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
+            limiter=CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits")),
+            reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0
@@ -132,6 +137,14 @@ class BridgeWiring:
         self.core.request_switch(request, now)
         if self.core.publish_now:
             self._publish(now)  # the planners learn who is active at once
+        self._report()
+
+    def on_safety(self, request: m.SafetyModeRequest) -> None:
+        self.journal.begin("safety", keys.CONTROL_SAFETY, request)
+        now = self.journal.now_ns()
+        self.core.set_safety_mode(request.mode, now, request.requested_by)
+        if self.core.publish_now:
+            self._publish(now)  # the operator's tool learns the mode at once
         self._report()
 
     def tick(self, *, publish: bool = False) -> None:
@@ -189,6 +202,8 @@ class BridgeWiring:
                 self.on_token(entry.text, bool(entry.arg))
             case "switch":
                 self.on_switch(message)
+            case "safety":
+                self.on_safety(message)
             case "tick":
                 self.tick(publish=bool(entry.arg))
             case "stop":

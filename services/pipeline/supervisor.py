@@ -23,8 +23,9 @@ log = logging.getLogger("nwr")
 
 # A stop by signal is a clean stop.
 CLEAN_EXITS = (0, -signal.SIGTERM, -signal.SIGINT)
-# After the gateway stops, the last samples' reflexes reach the bridge before it is asked to stop, s.
-GATEWAY_GRACE_S = 0.05
+# After the gateway stops, its last samples (and the reflexes they cause) reach the others before they are asked
+# to stop, s: a loaded machine at 1 kHz lags by tens of ms.
+GATEWAY_GRACE_S = 0.3
 
 
 def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None) -> subprocess.Popen[bytes]:

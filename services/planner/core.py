@@ -39,10 +39,10 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import InputParameter, OutputParameter, Result, Ruckig, Trajectory
+from ruckig import InputParameter, OutputParameter, Result, Ruckig, Synchronization, Trajectory
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection
+from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner import retreat, strategies
 from nwr.services.planner.strategies import ReflexStrategy
@@ -51,6 +51,10 @@ from nwr.services.planner.task import FigureEight, TaskClock
 log = logging.getLogger(__name__)
 
 RESYNC_RAD = 0.2  # commanded vs measured pose disagreement that forces a resync
+# The share of a Cartesian speed limit the planner's own motions plan for (the bridge enforces the whole).
+CARTESIAN_MARGIN = 0.9
+# A joint that need not move still gets this speed limit, rad/s (ruckig needs one > 0).
+MIN_JOINT_SPEED = 1e-3
 
 
 @dataclass
@@ -110,7 +114,11 @@ def integrate_stream(stream: ReflexStrategy, q0: np.ndarray, t0: float, duration
 
 
 class Planner:
-    def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel) -> None:
+    def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, *,
+                 limits: CartesianLimits | None = None) -> None:
+        # The bridge's Cartesian limits, which the planner's own trajectories
+        # (a joint-space reflex, every return) plan within; None: joint limits only.
+        self.limits = limits
         self.cfg = cfg
         self.name = cfg.name
         self.desc = desc
@@ -154,6 +162,8 @@ class Planner:
         self._otg_in.max_velocity = self.v_limit.tolist()
         self._otg_in.max_acceleration = self.a_limit.tolist()
         self._otg_in.max_jerk = (cfg.speed_fraction * desc.j_max).tolist()
+        if limits is not None:  # the way stays on the straight line the Cartesian caps are computed for
+            self._otg_in.synchronization = Synchronization.Phase
 
     @staticmethod
     def _target_order(cfg: PlannerSection, desc: RobotDescription) -> list[int]:
@@ -312,7 +322,7 @@ class Planner:
         shadow = Reflex(self.reflex_count, contact, trace, now_ns)
         self._onset(shadow)
         if shadow.target is not None:
-            path, dt = self._preview_to(shadow.target)
+            path, dt = self._preview_to(shadow.target, contact)
         else:
             path, dt = self._integrate_stream(self.q, 0.0)
         shadow.retreat = retreat.assess(self.model, path, dt, contact.pad).to_message(
@@ -321,13 +331,14 @@ class Planner:
         self.shadow = shadow
         self.changed = True
 
-    def _preview_to(self, target: np.ndarray, samples: int = 40) -> tuple[np.ndarray, float]:
+    def _preview_to(self, target: np.ndarray, contact: m.Contact, samples: int = 40) -> tuple[np.ndarray, float]:
         """The jerk-limited path from the current state to ``target``, computed offline."""
         n = len(self.q)
         inp = InputParameter(n)
-        inp.max_velocity = self._otg_in.max_velocity
+        inp.max_velocity = self._withdrawal_speeds(target, contact).tolist()
         inp.max_acceleration = self._otg_in.max_acceleration
         inp.max_jerk = self._otg_in.max_jerk
+        inp.synchronization = self._otg_in.synchronization
         inp.current_position = self.q.tolist()
         inp.current_velocity = self.dq.tolist()
         inp.current_acceleration = [0.0] * n
@@ -343,7 +354,7 @@ class Planner:
         reflex = Reflex(self.reflex_count, contact, trace, now_ns)
         self._onset(reflex)
         if reflex.target is not None:
-            self._ruckig_to(reflex.target)
+            self._ruckig_to(reflex.target, speeds=self._withdrawal_speeds(reflex.target, contact))
         self.reflex = reflex
         self.mode = "REFLEX"
         self.changed = True
@@ -353,9 +364,24 @@ class Planner:
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
 
-    def _ruckig_to(self, target: np.ndarray) -> None:
-        """Start a jerk-limited trajectory from the current commanded state to rest at ``target``."""
+    def _withdrawal_speeds(self, target: np.ndarray, contact: m.Contact | None) -> np.ndarray:
+        """Joint speed limits of a joint-space withdrawal to ``target``: every point within the withdrawal
+        speed, and within the collaborative speed toward ``contact`` (into the touched pad)."""
+        if self.limits is None:
+            return self.v_limit
+        toward = -self.model.pad_normal(self.q, contact.pad) if contact is not None else None
+        return self._joint_speeds_for(target, self.limits.withdrawal_speed_m_s, toward, self.limits.speed_m_s)
+
+    def _ruckig_to(self, target: np.ndarray, speed_m_s: float | None = None, *,
+                   speeds: np.ndarray | None = None) -> None:
+        """Start a jerk-limited trajectory from the current commanded state to rest at ``target``.
+
+        ``speed_m_s``: no point of the arm (pads, elbow, flange) may move faster
+        (:meth:`_joint_speeds_for`), so that the bridge's Cartesian limits hold
+        the motion as planned instead of slowing it down behind the plan.
+        """
         inp = self._otg_in
+        inp.max_velocity = (self._joint_speeds_for(target, speed_m_s) if speeds is None else speeds).tolist()
         inp.current_position = self.q.tolist()
         inp.current_velocity = self.dq.tolist()
         inp.current_acceleration = self.ddq.tolist()
@@ -363,6 +389,33 @@ class Planner:
         inp.target_velocity = [0.0] * len(self.q)
         inp.target_acceleration = [0.0] * len(self.q)
         self._otg.reset()
+
+    def _joint_speeds_for(self, target: np.ndarray, speed_m_s: float | None, toward: np.ndarray | None = None,
+                          toward_m_s: float = 0.0) -> np.ndarray:
+        """Joint speed limits under which no point moves faster than ``speed_m_s`` on the way to ``target``.
+
+        On a straight line in joint space, at joint velocity ``k * d`` (``d`` the
+        displacement), point p moves at ``k * |J_p d|``: joint speeds capped at
+        ``margin * speed * |d_i| / max_p |J_p d|`` keep every point within
+        ``margin * speed`` (J_p at the start, the middle and the end of the way;
+        margin: the pose between them, and a start at speed off the line).
+        With ``toward``, the component of every point's velocity along it is
+        held to ``toward_m_s`` the same way. The trajectory is
+        phase-synchronised, so it follows that line.
+        """
+        if speed_m_s is None:
+            return self.v_limit
+        d = target - self.q
+        rate = 0.0  # the largest speed over limit ratio per unit of k
+        for q in (self.q, 0.5 * (self.q + target), target):
+            v = self.model.speed_jacobians(q) @ d
+            rate = max(rate, float(np.linalg.norm(v, axis=1).max()) / speed_m_s)
+            if toward is not None:
+                rate = max(rate, float((v @ toward).max()) / toward_m_s)
+        if rate <= 0.0:
+            return self.v_limit
+        caps = CARTESIAN_MARGIN * np.abs(d) / rate
+        return np.minimum(self.v_limit, np.maximum(caps, MIN_JOINT_SPEED))
 
     def _ruckig_step(self) -> bool:
         """Advance the trajectory one cycle; True once it has arrived."""
@@ -381,7 +434,7 @@ class Planner:
 
     def _begin_return(self) -> None:
         assert self.saved is not None
-        self._ruckig_to(self.saved)
+        self._ruckig_to(self.saved, self.limits.speed_m_s if self.limits else None)
         self.mode = "RETURNING"
         self.changed = True
 

@@ -38,7 +38,7 @@ class PlannerWiring:
     def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag) -> None:
         cfg = profile.planner
         desc = load_description(profile.robot.description or None)
-        self.planner = Planner(cfg, desc, RobotModel(desc))
+        self.planner = Planner(cfg, desc, RobotModel(desc), limits=profile.bridge.limits)
         self.name = cfg.name
         self.service = keys.planner_service(cfg.name)
         self.command_key = keys.robot_command(cfg.name)

@@ -1,0 +1,108 @@
+"""The bridge's Cartesian limits: every point's speed, the speed toward a contact, the momentum."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from nwr.common.config import CartesianLimits, Profile, load_profile
+from nwr.common.errors import ConfigError
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.bridge.cartesian import CartesianLimiter, Limits
+
+DESC = load_description()
+MODEL = RobotModel(DESC)
+HOME = np.asarray(DESC.home, dtype=float)
+
+
+def limiter(speed: float = 0.25, withdrawal: float = 0.5, momentum: float = 10.0) -> CartesianLimiter:
+    return CartesianLimiter(MODEL, Limits(speed, withdrawal, momentum))
+
+
+def test_the_speed_points_are_every_pad_the_elbow_and_the_flange() -> None:
+    assert MODEL.speed_points == (*(p.name for p in DESC.pads), "elbow", "flange")
+    assert MODEL.link_masses.sum() == pytest.approx(29.104)
+
+
+def test_point_velocities_are_the_derivative_of_the_points() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        q = HOME + rng.uniform(-0.5, 0.5, 6)
+        dq = rng.uniform(-1, 1, 6)
+        h = 1e-7
+        points = lambda x: np.vstack([MODEL.pad_points(x), MODEL.frame_pose(x, "forearm_link")[:3, 3],  # noqa: E731
+                                      MODEL.tool_position(x)])
+        numeric = (points(q + h * dq) - points(q - h * dq)) / (2 * h)
+        assert MODEL.speed_jacobians(q) @ dq == pytest.approx(numeric, abs=1e-6)
+
+
+def test_within_the_limits_nothing_is_scaled() -> None:
+    assert limiter().scale(HOME, np.zeros(6)) is None
+    assert limiter().scale(HOME, np.array([0.05, 0, 0, 0, 0, 0])) is None
+
+
+@pytest.mark.parametrize("joint", range(4))  # the wrists 2 and 3 move no point that fast at 2 rad/s
+def test_a_fast_joint_is_scaled_to_the_speed_limit_of_its_fastest_point(joint: int) -> None:
+    lim = limiter(momentum=1e3)
+    dq = np.zeros(6)
+    dq[joint] = 2.0
+    scaling = lim.scale(HOME, dq)
+    assert scaling is not None and scaling.what == "speed"
+    speeds = lim.speeds(HOME, dq)
+    assert scaling.value == pytest.approx(speeds.max()) and scaling.point == MODEL.speed_points[int(speeds.argmax())]
+    assert lim.speeds(HOME, scaling.factor * dq).max() == pytest.approx(0.25)
+    assert f"above 0.250 m/s: scaled by {scaling.factor:.3f}" in scaling.describe()
+
+
+def test_a_withdrawal_may_move_away_faster_but_not_toward_the_contact() -> None:
+    lim = limiter(momentum=1e3)
+    pad = DESC.pad("forearm_top").id
+    jac = MODEL.speed_jacobians(HOME)[pad]
+    normal = MODEL.pad_normal(HOME, pad)
+    away = np.linalg.pinv(jac) @ (0.4 * normal)  # the pad moves away from the finger at 0.4 m/s
+    assert lim.scale(HOME, away, withdrawal=True, toward=-normal) is None or \
+        lim.speeds(HOME, away).max() > 0.5  # another point may be faster than the pad itself
+    # The same motion as a task motion is held to the collaborative speed.
+    task = lim.scale(HOME, away)
+    assert task is not None and task.limit == 0.25
+    # Toward the contact: at most the collaborative speed, even in a withdrawal.
+    toward = lim.scale(HOME, -away, withdrawal=True, toward=-normal)
+    assert toward is not None and toward.what == "speed toward the contact" and toward.limit == 0.25
+    velocities = MODEL.speed_jacobians(HOME) @ (toward.factor * -away)
+    assert float((velocities @ -normal).max()) == pytest.approx(0.25)
+
+
+def test_momentum_is_bounded_from_the_link_masses() -> None:
+    lim = limiter(speed=1.0, withdrawal=1.0, momentum=2.0)
+    dq = np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    scaling = lim.scale(HOME, dq)
+    assert scaling is not None and scaling.what == "momentum" and scaling.point == "arm"
+    assert lim.momentum(HOME, scaling.factor * dq) == pytest.approx(2.0)
+    # The momentum of a joint that moves nothing but the last link is small.
+    assert lim.momentum(HOME, np.array([0, 0, 0, 0, 0, 1.0])) < 0.1
+
+
+@pytest.mark.parametrize(("field", "value"), [("speed_m_s", 1.5), ("withdrawal_speed_m_s", 2.0),
+                                              ("momentum_kg_m_s", 100.0)])
+def test_limits_beyond_the_robot_are_configuration_errors_naming_the_field(field: str, value: float) -> None:
+    section = CartesianLimits(**{field: value})
+    with pytest.raises(ConfigError, match=rf"bridge.limits.{field} = {value}"):
+        Limits.of(section, MODEL, "bridge.limits")
+
+
+@pytest.mark.parametrize("value", [math.nan, -1.0, 0.0, math.inf])
+def test_non_finite_or_non_positive_limits_are_refused(tmp_path, value: float) -> None:
+    path = tmp_path / "p.toml"
+    path.write_text(f"[bridge.limits]\nspeed_m_s = {value!r}\n".replace("nan", "nan").replace("inf", "inf"))
+    with pytest.raises(ConfigError):
+        Limits.of(load_profile(str(path)).bridge.limits, MODEL, "bridge.limits")
+
+
+def test_a_reduced_limit_above_the_normal_one_is_a_configuration_error(tmp_path) -> None:
+    path = tmp_path / "p.toml"
+    path.write_text("[bridge.reduced]\nspeed_m_s = 0.3\n")
+    with pytest.raises(ConfigError, match=r"bridge.reduced.speed_m_s = 0.3 is above bridge.limits.speed_m_s"):
+        load_profile(str(path))
+    assert Profile().bridge.reduced.speed_m_s < Profile().bridge.limits.speed_m_s
