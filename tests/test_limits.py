@@ -153,7 +153,7 @@ def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> No
         reflexes += 1
         assert fastest <= limits.withdrawal_speed_m_s + TOLERANCE, (s.stamp_ns, fastest)
         if s.reflex_seq not in toward:
-            toward[s.reflex_seq] = -MODEL.pad_normal(s.q, contacts[s.reflex_seq].pad)
+            toward[s.reflex_seq] = MODEL.pad_normal(s.q, contacts[s.reflex_seq].pad)
         approach = float((v @ toward[s.reflex_seq]).max())
         assert approach <= limits.speed_m_s + TOLERANCE, (s.stamp_ns, approach)
     assert reflexes > 100

@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 SCRIPT = Path(__file__).parent / "data" / "switch.toml"
 PORT = 17850
 ORDER = ["uniform", "cartesian", "location"]  # UR -> CR -> LR
-SWITCH_AT_S = {6.8: "cartesian", 12.8: "location"}
+SWITCH_AT_S = {8.0: "cartesian", 14.0: "location"}
 
 
 def switcher(stop: threading.Event, log: list[str]) -> None:
@@ -84,7 +84,7 @@ def test_switch_during_a_live_session(tmp_path):
         if st.reflex is not None and not st.reflex.shadow:
             reflexes.setdefault((st.name, st.reflex.reflex_seq), st.reflex)
     executed = [(name, r) for (name, _), r in reflexes.items()]
-    assert len(executed) >= 6
+    assert len(executed) >= 5
     by_strategy = {name for name, _ in executed}
     assert by_strategy == set(ORDER)
     for name, reflex in executed:

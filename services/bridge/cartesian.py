@@ -14,7 +14,7 @@ scaled, direction kept, so that:
   speed (``speed_m_s``) for the task, the return and anything that is not a
   withdrawal; ``withdrawal_speed_m_s`` during a withdrawal (phase REFLEX);
 - during a withdrawal, no point moves *toward the contact* (along the
-  touched pad's inward normal at the onset: into the person) faster than the
+  touched pad's outward normal at the onset: toward the finger) faster than the
   collaborative speed: a withdrawal may move away faster than it approaches;
 - the momentum, the sum over the moving links of mass times the speed of the
   link's centre of mass (a bound on the momentum of any part of the arm),
@@ -106,7 +106,7 @@ class CartesianLimiter:
         """The scaling ``dq`` needs at ``q`` (None: within every limit).
 
         ``withdrawal``: the motion is a withdrawal (its own speed limit);
-        ``toward``: the unit direction into the contact, whose component is
+        ``toward``: the unit direction toward the contact, whose component is
         held to the collaborative speed; ``speed_cap``: a lower speed limit
         for now (rejoining a stream after a hold: the stream's own peak).
         """

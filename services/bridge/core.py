@@ -234,11 +234,11 @@ class BridgeCore:
         self._evaluate(now_ns)
 
     def _toward(self) -> np.ndarray | None:
-        """The direction into the newest contact (the touched pad's inward normal where the arm is), if any."""
+        """The direction toward the newest contact (the touched pad's outward normal, toward the finger), if any."""
         limiter = self.tracker.limiter
         if limiter is None or self.contact_pad < 0:
             return None
-        return -limiter.model.pad_normal(self.tracker.q, self.contact_pad)
+        return limiter.model.pad_normal(self.tracker.q, self.contact_pad)
 
     def set_safety_mode(self, mode: m.SafetyMode, now_ns: int, requested_by: str = "") -> bool:
         """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch."""

@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exit-at-end", action="store_true", help="exit when the touch script ends")
     parser.add_argument(
         "--follow-target", type=float, metavar="SECONDS",
-        help="simulated participant: press the planner's current target pad every SECONDS (the study's game)",
+        help="simulated participant: press the planner's current target pad every SECONDS while the arm does "
+             "its task (the study's game)",
     )
     parser.add_argument(
         "--closed-loop", action="store_true",

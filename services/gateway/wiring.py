@@ -7,7 +7,8 @@ runs and ``nwr verify`` run this code.
 - a robot state is kept: where the arm is when a touch meets its pad (the
   ground truth on ``skin/touch``) and, in closed loop, how far a pad has
   withdrawn from the finger;
-- a planner's status names the study's target pad (``--follow-target``);
+- a planner's status names the study's target pad (``--follow-target``), which the
+  simulated participant presses only while the active planner does its task;
 - :meth:`GatewayWiring.origin` starts the touch script's clock;
 - each tick: the follower's touch, the touches that start (forward
   kinematics only when one needs the pose), the sample.
@@ -51,6 +52,7 @@ class GatewayWiring:
         self.diag = diag
         self.pose: m.RobotState | None = None  # the newest robot state
         self.target = -1  # the study's target pad, from the planners' statuses
+        self.arm_busy = False  # the active planner is in a reflex or its return (its status says)
         self.origin_ns = 0
         self.touch_seq = 0
         journal.begin("start")
@@ -75,6 +77,8 @@ class GatewayWiring:
     def on_status(self, key: str, status: m.PlannerStatus) -> None:
         self.journal.begin("status", key, status)
         self.target = status.target_pad
+        if status.active:
+            self.arm_busy = status.mode != "TASK"
 
     def origin(self) -> int:
         """The touch script's clock starts now; its origin, ns."""
@@ -89,7 +93,8 @@ class GatewayWiring:
         t = (now - self.origin_ns) / 1e9
         sim = self.sim
         if self.follower is not None:
-            touch = self.follower.poll(t, self.target)
+            # A participant presses the lit target while the arm does its task, not during a reflex or return.
+            touch = self.follower.poll(t, -1 if self.arm_busy else self.target)
             if touch is not None:
                 sim.add_touch(*touch)
         state = self.pose

@@ -23,8 +23,8 @@ log = logging.getLogger("nwr")
 
 # A stop by signal is a clean stop.
 CLEAN_EXITS = (0, -signal.SIGTERM, -signal.SIGINT)
-# After the gateway stops, its last samples (and the reflexes they cause) reach the others before they are asked
-# to stop, s: a loaded machine at 1 kHz lags by tens of ms.
+# Once the gateway has exited, its last samples (and the reflexes they cause) reach the others before they are
+# asked to stop, s: a loaded machine at 1 kHz lags by tens of ms.
 GATEWAY_GRACE_S = 0.3
 
 
@@ -45,8 +45,6 @@ def stop_all(procs: Mapping[str, subprocess.Popen[bytes]], timeout_s: float = 10
         for name in group:
             if procs[name].poll() is None:
                 procs[name].send_signal(signal.SIGTERM)
-                if name == "gateway":
-                    time.sleep(GATEWAY_GRACE_S)
         for name in group:
             try:
                 codes[name] = procs[name].wait(max(0.1, deadline - time.monotonic()))
@@ -54,6 +52,8 @@ def stop_all(procs: Mapping[str, subprocess.Popen[bytes]], timeout_s: float = 10
                 log.error("%s did not stop within %.0f s: killing it", name, timeout_s)
                 procs[name].kill()
                 codes[name] = procs[name].wait()
+        if "gateway" in group and len(procs) > 1:
+            time.sleep(GATEWAY_GRACE_S)  # what the gateway sent last is still on its way through the others
     return {n: codes[n] for n in procs}
 
 

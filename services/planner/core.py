@@ -366,10 +366,11 @@ class Planner:
 
     def _withdrawal_speeds(self, target: np.ndarray, contact: m.Contact | None) -> np.ndarray:
         """Joint speed limits of a joint-space withdrawal to ``target``: every point within the withdrawal
-        speed, and within the collaborative speed toward ``contact`` (into the touched pad)."""
+        speed, and within the collaborative speed toward ``contact`` (along the touched pad's outward
+        normal, toward the finger)."""
         if self.limits is None:
             return self.v_limit
-        toward = -self.model.pad_normal(self.q, contact.pad) if contact is not None else None
+        toward = self.model.pad_normal(self.q, contact.pad) if contact is not None else None
         return self._joint_speeds_for(target, self.limits.withdrawal_speed_m_s, toward, self.limits.speed_m_s)
 
     def _ruckig_to(self, target: np.ndarray, speed_m_s: float | None = None, *,

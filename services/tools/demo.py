@@ -30,7 +30,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                    help="run one planner per reflex strategy, each named after it, all at once (switch between "
                         "them with `nwr switch NAME`); the first (or --reflex) is active")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
-                   help="simulated participant: press the study's target pad every SECONDS")
+                   help="simulated participant: press the study's target pad every SECONDS while the arm does its task")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
