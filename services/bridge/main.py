@@ -82,7 +82,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     backend.connect()  # a real arm's starting pose is read by the wiring
     lock = threading.Lock()  # the handlers, the control loop and the journal's batches
     try:
-        with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge") as node:
+        with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge", token=False) as node:
             node.install_signal_handlers()
             bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
 
@@ -107,6 +107,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             node.subscribe(keys.CONTROL_SAFETY, locked(bridge.on_safety), direct=True)
             tokens = keys.key(profile.robot.name, keys.alive(keys.PLANNER_SERVICE_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, on_liveliness, history=True)
+            node.declare_token()  # alive once subscribed
             log.info("following planner %r (tokens %s) at %.0f Hz; command timeout %.0f ms, skin timeout %.0f ms",
                      cfg.active_planner, tokens, cfg.rate_hz, cfg.command_timeout_s * 1e3,
                      cfg.skin_timeout_s * 1e3)

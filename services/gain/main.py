@@ -23,7 +23,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.model:
         profile.gain.model = args.model
     lock = threading.Lock()  # the journal's batches are taken under it
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain") as node:
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain", token=False) as node:
         node.install_signal_handlers()
         wiring = node.wire(GainWiring, profile, lock)
 
@@ -34,6 +34,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         # On Zenoh's network thread (direct): the handler never waits, and this
         # process subscribes to nothing it publishes.
         node.subscribe(keys.SKIN_PRESSURE, on_pressure, direct=True)
+        node.declare_token()  # alive once subscribed: the gateway starts on it, and loses no sample
         log.info("%s gain model, thresholds %s hPa, k = %s", profile.gain.model, profile.gain.thresholds_hpa,
                  profile.gain.k)
         node.stop.wait()

@@ -43,7 +43,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     # Each planner instance has its own liveliness token, diagnostics and
     # journal keys, alive/planner-<name> and so on: the bridge watches the
     # token of the active one.
-    with Node(keys.planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner") as node:
+    with Node(keys.planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner",
+              token=False) as node:
         node.install_signal_handlers()
         wiring = node.wire(PlannerWiring, profile, lock)
         planner = wiring.planner
@@ -109,6 +110,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
         node.subscribe(keys.planner_status("*"), on_peer_status, keyed=True)
         node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
+        node.declare_token()  # alive once subscribed: the gateway starts on it, and no pain message is lost
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.name, cfg.rate_hz)
         try:
             while True:
