@@ -238,3 +238,13 @@ def test_the_layering_check_sees_an_upward_import(tmp_path: Path) -> None:
     assert "nwr.services.tools.replay" in _imports(bad, "nwr.common.m")
     assert _layer("nwr.services.tools.replay") == 3 and _layer("nwr.common.keys") == 0
     assert _layer("nwr.services.bridge.core") == 1 and _layer("nwr.services.pipeline.lockstep") == 2
+
+
+def test_every_package_is_installed() -> None:
+    """The image installs the wheel, not the checkout: a package missing from pyproject.toml is missing there."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(["nwr", *p.parent.relative_to(ROOT).parts])
+             for top in ("common", "services") for p in (ROOT / top).rglob("__init__.py")}
+    assert found == listed
