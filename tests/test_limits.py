@@ -16,11 +16,13 @@ from nwr.common import messages as m
 from nwr.common.clock import ManualClock
 from nwr.common.config import Profile, TouchScript, load_profile, load_script
 from nwr.common.journal import Untracked
+from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gateway.sources import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.planner.task import FigureEight
+from nwr.services.tools import analysis
 from nwr.services.wiring import no_diag
 
 DESC = load_description()
@@ -136,8 +138,14 @@ def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> No
     profile = every_cycle()
     limits = profile.bridge.limits
     out: list[tuple[str, object]] = []
-    Lockstep(profile, strategy=strategy, journal=False).run(SimulatedSkin(profile, load_script("demo")),
-                                                            lambda k, msg, t: out.append((k, msg)), settle_s=1.0)
+    records: list[Recorded] = []
+
+    def emit(key: str, msg: object, t: int) -> None:
+        out.append((key, msg))
+        records.append(Recorded(key, t, msg))
+
+    Lockstep(profile, strategy=strategy, journal=False).run(SimulatedSkin(profile, load_script("demo")), emit,
+                                                            settle_s=1.0)
     states = [msg for k, msg in out if k == keys.ROBOT_STATE]
     assert isinstance(states[0], m.RobotState)
     contacts = {msg.reflex.reflex_seq: msg.reflex.contact for k, msg in out
@@ -157,6 +165,12 @@ def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> No
         approach = float((v @ toward[s.reflex_seq]).max())
         assert approach <= limits.speed_m_s + TOLERANCE, (s.stamp_ns, approach)
     assert reflexes > 100
+    # The per-touch table shows what the limits let through, reflex by reflex.
+    touches = [t for t in analysis.summarize(records, DESC, MODEL) if t.reflex_seq]
+    assert len(touches) == 6
+    for t in touches:
+        assert t.peak_speed_m_s is not None and 0 < t.peak_speed_m_s <= limits.withdrawal_speed_m_s + TOLERANCE
+        assert t.peak_toward_m_s is not None and t.peak_toward_m_s <= limits.speed_m_s + TOLERANCE
 
 
 @pytest.mark.e2e

@@ -47,6 +47,10 @@ class TouchSummary:
     strategy: str = ""
     resumed_after_s: float | None = None
     return_error_rad: float | None = None  # closest the arm came to the saved pose within 0.3 s of resuming
+    # The withdrawal's fastest point of the arm (pads, elbow, flange), and its fastest speed toward the contact
+    # (along the touched pad's outward normal at the onset), m/s: what the Cartesian limits let through.
+    peak_speed_m_s: float | None = None
+    peak_toward_m_s: float | None = None
 
 
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None) -> list[TouchSummary]:
@@ -76,6 +80,8 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             onsets[s.reflex_seq] = s
     state_t = np.array([s.stamp_ns for s in states], dtype=np.int64)
     state_q = np.array([s.q for s in states]) if states else np.zeros((0, len(desc.joints)))
+    state_dq = np.array([s.dq for s in states]) if states else np.zeros((0, len(desc.joints)))
+    withdrawing = np.array([s.phase == "REFLEX" for s in states], dtype=bool)
 
     for touch in touches:
         reflex = next(
@@ -93,6 +99,9 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         touch.onset_latency_ms = (t0 - onset.accepted.stamp_ns) / 1e6
         resumed = next((st for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
         end = resumed.stamp_ns if resumed is not None else int(state_t[-1]) if len(state_t) else t0
+        # Up to the next reflex at most: a new touch during the return starts another one.
+        later = [o.accepted_ns for o in onsets.values() if o.accepted_ns > t0]
+        until = min([end, *later]) if later else end
         if resumed is not None:
             touch.resumed_after_s = (resumed.stamp_ns - t0) / 1e9
         window = (state_t >= t0) & (state_t <= end)
@@ -115,6 +124,12 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             worst = int(np.argmax(approach))
             touch.other_approach_mm = 1e3 * float(approach[worst])
             touch.other_pad = desc.pads[worst].name
+            # The withdrawal's states (the bridge says which; older recordings do not: the whole window).
+            own = window & (state_t < until)
+            moving = own & withdrawing if (own & withdrawing).any() else own
+            velocities = [model.speed_jacobians(q) @ dq for q, dq in zip(state_q[moving], state_dq[moving])]
+            touch.peak_speed_m_s = max(float(np.linalg.norm(v, axis=1).max()) for v in velocities)
+            touch.peak_toward_m_s = max(0.0, max(float((v @ n0).max()) for v in velocities))
         planned = next((st.reflex.retreat for st in statuses
                         if st.reflex is not None and st.reflex.reflex_seq == reflex.reflex_seq
                         and st.reflex.retreat is not None), None)
@@ -164,17 +179,18 @@ def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
             "yes" if t.reflex_seq else "no", f(t.onset_latency_ms, ".2f"), f(t.withdrawal_mm, ".1f"),
             f(t.toward_mm, ".1f") + ("*" if t.corrected else ""),
             "-" if t.other_approach_mm is None else f"{t.other_approach_mm:.1f} {t.other_pad}",
-            f(t.resumed_after_s, ".2f"),
+            f(t.peak_speed_m_s, ".3f"), f(t.peak_toward_m_s, ".3f"), f(t.resumed_after_s, ".2f"),
         ]
         for t in touches
     ]
 
 
 HEADER = ["t (s)", "pad", "region", "peak (hPa)", "PL", "gain", "reflex", "onset (ms)", "withdrawal (mm)",
-          "toward (mm)", "other pad closer (mm)", "resumed (s)"]
+          "toward (mm)", "other pad closer (mm)", "peak (m/s)", "toward (m/s)", "resumed (s)"]
 # withdrawal: furthest the touched pad moved away from the contact along its normal;
 # toward: furthest it moved toward the contact (* = guarded mode corrected the reflex);
-# other pad closer: the largest approach of any other pad to the contact point.
+# other pad closer: the largest approach of any other pad to the contact point;
+# peak: the withdrawal's fastest point of the arm; toward (m/s): its fastest speed toward the contact.
 
 
 def format_table(header: list[str], rows: list[list[str]]) -> str:

@@ -135,7 +135,8 @@ def command_streams(a: Session, b: Session) -> str:
 
 def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]) -> str:
     header = ["touch", "t (s)", "pad", "file", "gain", "onset (ms)", "withdrawal (mm)", "toward (mm)",
-              "other pad closer (mm)", "peak speed (rad/s)", "resumed (s)", "dq vs first (mrad)"]
+              "other pad closer (mm)", "peak speed (rad/s)", "peak (m/s)", "toward (m/s)", "resumed (s)",
+              "dq vs first (mrad)"]
 
     def f(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
@@ -144,7 +145,7 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
     for i, row in enumerate(rows, start=1):
         for session, touch in zip(sessions, row):
             if touch is None:
-                out.append([str(i), "-", "-", session.label, "missing", "-", "-", "-", "-", "-", "-", "-"])
+                out.append([str(i), "-", "-", session.label, "missing", *["-"] * (len(header) - 4)])
                 continue
             error = None
             if session is not sessions[0] and row[0] is not None:
@@ -153,7 +154,8 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
                 str(i), f"{(touch.start_ns - session.t0_ns) / 1e9:.2f}", touch.name, session.label, f"{touch.gain:.3f}",
                 f(touch.onset_latency_ms, ".2f"), f(touch.withdrawal_mm, ".1f"), f(touch.toward_mm, ".1f"),
                 f(touch.other_approach_mm, ".1f"), f(peak_joint_speed(session, touch), ".2f"),
-                f(touch.resumed_after_s, ".2f"), f(None if error is None else 1e3 * error, ".3f"),
+                f(touch.peak_speed_m_s, ".3f"), f(touch.peak_toward_m_s, ".3f"), f(touch.resumed_after_s, ".2f"),
+                f(None if error is None else 1e3 * error, ".3f"),
             ])
     return analysis.format_table(header, out)
 
