@@ -455,6 +455,7 @@ class RobotModel:
         self._q = np.zeros(self.nq)
         self._fk_valid = False
         self._jacobians_valid = False
+        self._stacked: dict[tuple[int, ...], np.ndarray] = {}  # speed and COM Jacobians at self._q
 
     @staticmethod
     def _existing_frame(model: pin.Model, name: str, urdf_path: Path) -> int:
@@ -480,6 +481,7 @@ class RobotModel:
         self._q[:] = q  # a copy: callers may reuse and modify their q array
         self._fk_valid = True
         self._jacobians_valid = False
+        self._stacked.clear()
 
     def fk(self, q: Any) -> None:
         """Update joint and frame placements for ``q``; a no-op if ``q`` is unchanged."""
@@ -576,16 +578,21 @@ class RobotModel:
         if not self._jacobians_valid:
             pin.computeJointJacobians(self.model, self.data, q)
             self._jacobians_valid = True
+        cached = self._stacked.get(frame_ids)
+        if cached is not None:  # the bridge asks for them several times per control cycle, at one pose
+            return cached
         out = np.empty((len(frame_ids), 3, self.nq))
         for row, frame_id in enumerate(frame_ids):
             out[row] = pin.getFrameJacobian(self.model, self.data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
         if not self._base_is_root:
             out = np.einsum("ij,pjk->pik", self._base_rotation_t, out)
+        out.setflags(write=False)
+        self._stacked[frame_ids] = out
         return out
 
     def speed_jacobians(self, q: Any) -> np.ndarray:
         """Linear Jacobians (P, 3, nq) of the speed-limited points (:attr:`speed_points`: pads, elbow, flange):
-        row p times q_dot is point p's velocity (m/s) in base_frame."""
+        row p times q_dot is point p's velocity (m/s) in base_frame. Read-only, computed once per pose."""
         return self._linear_jacobians(q, self._speed_ids)
 
     def com_jacobians(self, q: Any) -> np.ndarray:

@@ -9,48 +9,35 @@ The command waits for that. Without a mode it prints the mode in force.
 from __future__ import annotations
 
 import argparse
-import getpass
-import socket
-import threading
-import time
 
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import profile_for
 from nwr.common.node import Node
+from nwr.services.tools.switch import ask_the_bridge, requested_by
 
 
 def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
-    limits = profile.bridge.reduced if args.mode == "reduced" else profile.bridge.limits
-    done = threading.Event()
-    seen: dict[str, m.RobotState] = {}
 
-    def on_state(state: m.RobotState) -> None:
-        seen["last"] = state
-        if state.safety_mode == args.mode:
-            done.set()
-
-    with Node("safety", profile.robot.name, profile.zenoh, token=False) as node:
-        node.subscribe(keys.ROBOT_STATE, on_state)
-        time.sleep(0.5)  # let the session connect and the subscriber see a state
+    def request(last: m.RobotState | None, node: Node) -> m.SafetyModeRequest | None:
         if args.mode is None:
-            last = seen.get("last")
-            if last is None:
-                print("no robot state seen: is the bridge running? (`nwr status`)")
-                return 1
-            print(f"safety mode: {last.safety_mode} ({last.limited} control cycles scaled by the Cartesian limits)")
-            return 0
-        done.clear()
-        node.publisher(keys.CONTROL_SAFETY)(m.SafetyModeRequest(
-            seq=0, stamp_ns=node.clock.now_ns(), mode=args.mode,
-            requested_by=f"{getpass.getuser()}@{socket.gethostname()}"))
-        if not done.wait(args.timeout):
-            state = seen.get("last")
-            mode = state.safety_mode if state is not None else "unknown (no robot state seen)"
-            print(f"the bridge did not switch to {args.mode} within {args.timeout:.0f} s: it is in {mode}; "
-                  "see diag/bridge (may this certificate put on control/safety?)")
+            return None  # only say which mode is in force
+        return m.SafetyModeRequest(seq=0, stamp_ns=node.clock.now_ns(), mode=args.mode, requested_by=requested_by())
+
+    ok, state = ask_the_bridge(args, "safety", keys.CONTROL_SAFETY, request, lambda s: s.safety_mode == args.mode)
+    if args.mode is None:
+        if state is None:
+            print("no robot state seen: is the bridge running? (`nwr status`)")
             return 1
+        print(f"safety mode: {state.safety_mode} ({state.limited} control cycles scaled by the Cartesian limits)")
+        return 0
+    if not ok:
+        mode = state.safety_mode if state is not None else "unknown (no robot state seen)"
+        print(f"the bridge did not switch to {args.mode} within {args.timeout:.0f} s: it is in {mode}; "
+              "see diag/bridge (may this certificate put on control/safety?)")
+        return 1
+    limits = profile.bridge.reduced if args.mode == "reduced" else profile.bridge.limits
     print(f"safety mode: {args.mode}: every point at most {limits.speed_m_s} m/s "
           f"({limits.withdrawal_speed_m_s} m/s withdrawing), momentum at most {limits.momentum_kg_m_s} kg m/s")
     return 0

@@ -13,6 +13,8 @@ import getpass
 import socket
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -20,41 +22,68 @@ from nwr.common.config import profile_for
 from nwr.common.node import Node
 
 CYCLE_S = 0.002
+# Long enough for a new session to connect and its subscriber to see a robot state (50 Hz).
+CONNECT_S = 0.5
+
+
+def ask_the_bridge(args: argparse.Namespace, service: str, key: str,
+                   request: Callable[[m.RobotState | None, Node], Any | None],
+                   done: Callable[[m.RobotState], bool]) -> tuple[bool, m.RobotState | None]:
+    """Watch robot/state, put ``request(last state, node)`` on ``key`` (None: put nothing), wait until ``done``.
+
+    Returns whether ``done`` held within ``args.timeout`` s (at once if nothing was put) and the last state seen.
+    """
+    profile = profile_for(args)
+    finished = threading.Event()
+    seen: list[m.RobotState] = []
+
+    def on_state(state: m.RobotState) -> None:
+        seen[:] = [state]
+        if done(state):
+            finished.set()
+
+    with Node(service, profile.robot.name, profile.zenoh, token=False) as node:
+        node.subscribe(keys.ROBOT_STATE, on_state)
+        time.sleep(CONNECT_S)
+        message = request(seen[0] if seen else None, node)
+        if message is None:
+            return True, seen[0] if seen else None
+        finished.clear()
+        node.publisher(key)(message)
+        ok = finished.wait(args.timeout)
+        return ok, seen[0] if seen else None
+
+
+def requested_by() -> str:
+    return f"{getpass.getuser()}@{socket.gethostname()}"
 
 
 def _run(args: argparse.Namespace) -> int:
-    profile = profile_for(args)
-    done = threading.Event()
-    seen: dict[str, m.RobotState] = {}
+    already = False
 
-    def on_state(state: m.RobotState) -> None:
-        seen["last"] = state
-        if state.handover is not None and state.handover.owner == args.name and state.handover.first_command_ns:
-            done.set()
-
-    with Node("switch", profile.robot.name, profile.zenoh, token=False) as node:
-        node.subscribe(keys.ROBOT_STATE, on_state)
-        publish = node.publisher(keys.CONTROL_ACTIVE)
-        time.sleep(0.5)  # let the session connect and the subscriber see a state
-        last = seen.get("last")
+    def request(last: m.RobotState | None, node: Node) -> m.SwitchRequest | None:
+        nonlocal already
         if last is not None and last.owner == args.name:
-            print(f"planner {args.name!r} is already active")
-            return 0
-        publish(m.SwitchRequest(seq=0, stamp_ns=node.clock.now_ns(), name=args.name,
-                                requested_by=f"{getpass.getuser()}@{socket.gethostname()}"))
-        if not done.wait(args.timeout):
-            state = seen.get("last")
-            pending = f", pending: {state.pending_owner!r}" if state is not None and state.pending_owner else ""
-            owner = state.owner if state is not None else "unknown (no robot state seen)"
-            print(f"switch to {args.name!r} not done within {args.timeout:.0f} s: active is {owner}{pending}; "
-                  f"see diag/bridge (is the planner running? `nwr status`)")
-            return 1
-        h = seen["last"].handover
-        assert h is not None
-        print(f"active planner: {h.owner!r} (was {h.previous!r}); "
-              f"switched {(h.switched_ns - h.requested_ns) / 1e6:.1f} ms after the request, "
-              f"first command {(h.first_command_ns - h.requested_ns) / 1e6:.1f} ms after it "
-              f"({(h.first_command_ns - h.requested_ns) / 1e9 / CYCLE_S:.1f} control cycles)")
+            already = True
+            return None
+        return m.SwitchRequest(seq=0, stamp_ns=node.clock.now_ns(), name=args.name, requested_by=requested_by())
+
+    ok, state = ask_the_bridge(args, "switch", keys.CONTROL_ACTIVE, request, lambda s: (
+        s.handover is not None and s.handover.owner == args.name and s.handover.first_command_ns > 0))
+    if already:
+        print(f"planner {args.name!r} is already active")
+        return 0
+    if not ok or state is None or state.handover is None:
+        pending = f", pending: {state.pending_owner!r}" if state is not None and state.pending_owner else ""
+        owner = state.owner if state is not None else "unknown (no robot state seen)"
+        print(f"switch to {args.name!r} not done within {args.timeout:.0f} s: active is {owner}{pending}; "
+              f"see diag/bridge (is the planner running? `nwr status`)")
+        return 1
+    h = state.handover
+    print(f"active planner: {h.owner!r} (was {h.previous!r}); "
+          f"switched {(h.switched_ns - h.requested_ns) / 1e6:.1f} ms after the request, "
+          f"first command {(h.first_command_ns - h.requested_ns) / 1e6:.1f} ms after it "
+          f"({(h.first_command_ns - h.requested_ns) / 1e9 / CYCLE_S:.1f} control cycles)")
     return 0
 
 
