@@ -10,6 +10,7 @@ profile in each service's ``main``, never at import.
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import tomllib
 from collections.abc import Mapping
@@ -233,11 +234,38 @@ class CartesianLimits(_Section):
     # times the speed of its centre of mass, kg m/s. The UR10e's 29.1 kg of
     # moving links all at speed_m_s carry 7.3 kg m/s.
     momentum_kg_m_s: Annotated[float, msgspec.Meta(gt=0)] = 10.0
+    # The power the joints put into the arm's motion (the rate of change of
+    # its kinetic energy, from the URDF's inertias: dq . (tau - g)), W: how
+    # fast the arm may gather the energy a contact would transfer. The
+    # paper's reflexes within the speed limits need at most 16 W, the task 10 W.
+    power_w: Annotated[float, msgspec.Meta(gt=0)] = 50.0
+    # The jerk-limited stop the bridge would make from the cycle's velocity
+    # (its controlled stop, at the envelope's acceleration and jerk limits)
+    # must end within stopping_time_s, s, and move no point farther than
+    # stopping_distance_m, m (each point's speed times half the stop's time).
+    # The paper's reflexes within the speed limits stop in at most 0.13 s and
+    # 30 mm, the task in 0.09 s and 10 mm.
+    stopping_time_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.25
+    stopping_distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.08
+
+    def describe(self) -> str:
+        return (f"every point at most {self.speed_m_s} m/s ({self.withdrawal_speed_m_s} m/s withdrawing), "
+                f"momentum at most {self.momentum_kg_m_s} kg m/s, power at most {self.power_w} W, a stop within "
+                f"{self.stopping_time_s} s and {self.stopping_distance_m} m")
+
+    def checked(self, where: str) -> CartesianLimits:
+        """Itself; a ConfigError naming the field for a value that is not finite."""
+        for field in self.__struct_fields__:
+            value = getattr(self, field)
+            if not math.isfinite(value):
+                raise ConfigError(f"{where}.{field} = {value}: must be a finite number")
+        return self
 
 
 def _reduced() -> CartesianLimits:
     """The reduced mode's default limits (a UR's safety "reduced mode"): each at most the normal one."""
-    return CartesianLimits(speed_m_s=0.15, withdrawal_speed_m_s=0.25, momentum_kg_m_s=5.0)
+    return CartesianLimits(speed_m_s=0.15, withdrawal_speed_m_s=0.25, momentum_kg_m_s=5.0, power_w=25.0,
+                           stopping_time_s=0.15, stopping_distance_m=0.04)
 
 
 class BridgeSection(_Section):
@@ -408,8 +436,9 @@ def _check_profile(profile: Profile) -> None:
             f"planner.task_ahead_cycles = {planner.task_ahead_cycles} at {planner.rate_hz:g} Hz plans more than "
             "0.1 s ahead, which the bridge refuses: lower it"
         )
-    normal, reduced = profile.bridge.limits, profile.bridge.reduced
-    for field in ("speed_m_s", "withdrawal_speed_m_s", "momentum_kg_m_s"):
+    normal = profile.bridge.limits.checked("bridge.limits")
+    reduced = profile.bridge.reduced.checked("bridge.reduced")
+    for field in normal.__struct_fields__:
         if getattr(reduced, field) > getattr(normal, field):
             raise ConfigError(f"bridge.reduced.{field} = {getattr(reduced, field)} is above bridge.limits.{field} = "
                               f"{getattr(normal, field)}: the reduced mode may only tighten the limits")

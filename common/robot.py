@@ -439,6 +439,7 @@ class RobotModel:
         self.model: pin.Model = model
         # Created after the pad and centre-of-mass frames were added, so data.oMf has room for them.
         self.data: pin.Data = model.createData()
+        self._dynamics: pin.Data = model.createData()  # inverse dynamics, apart from the kinematics cache
         self.nq: int = model.nq
         self._pad_ids: tuple[int, ...] = tuple(pad_ids)
         self._frame_ids: dict[str, int] = {}
@@ -598,6 +599,25 @@ class RobotModel:
     def com_jacobians(self, q: Any) -> np.ndarray:
         """Linear Jacobians (L, 3, nq) of the moving links' centres of mass (masses in :attr:`link_masses`)."""
         return self._linear_jacobians(q, self._com_ids)
+
+    def motion_power(self, q: Any, dq: Any, ddq: Any) -> float:
+        """The power the joints put into the arm's motion at ``q``, ``dq``, ``ddq``, W.
+
+        ``dq . (tau - g(q))`` with ``tau`` the inverse dynamics (RNEA, the
+        URDF's inertias) and ``g`` its gravity part: the rate of change of the
+        arm's kinetic energy (lifting against gravity is not counted; that
+        energy is not in the motion). Negative while braking.
+        """
+        q = self._as_q(q)
+        v = np.asarray(dq, dtype=float)
+        a = np.asarray(ddq, dtype=float)
+        data = self._dynamics
+        tau = pin.rnea(self.model, data, q, v, a) - pin.computeGeneralizedGravity(self.model, data, q)
+        return float(v @ tau)
+
+    def kinetic_energy(self, q: Any, dq: Any) -> float:
+        """The arm's kinetic energy at ``q`` moving at ``dq``, J."""
+        return float(pin.computeKineticEnergy(self.model, self._dynamics, self._as_q(q), np.asarray(dq, dtype=float)))
 
     def joint_positions(self, q: Any) -> np.ndarray:
         """Origins of every movable joint in chain order, then the tool frame origin,

@@ -18,7 +18,16 @@ scaled, direction kept, so that:
   collaborative speed: a withdrawal may move away faster than it approaches;
 - the momentum, the sum over the moving links of mass times the speed of the
   link's centre of mass (a bound on the momentum of any part of the arm),
-  stays within ``momentum_kg_m_s``.
+  stays within ``momentum_kg_m_s``;
+- the stop the bridge would make from this velocity (jerk-limited, at the
+  envelope's acceleration and jerk limits, every joint ending together) ends
+  within ``stopping_time_s`` and moves no point farther than
+  ``stopping_distance_m`` (:meth:`CartesianLimiter.stopping`).
+
+After the acceleration limit, :meth:`CartesianLimiter.power_scale` bounds the
+power the joints put into the motion (``power_w``: the rate of change of the
+kinetic energy, the robot model's inverse dynamics) by easing the cycle's
+acceleration.
 
 Which bound binds is reported (:class:`Scaling`): the point, its speed and
 the limit. The limits themselves (:class:`Limits`) come from the profile's
@@ -29,6 +38,7 @@ the robot description: a profile may tighten them, never loosen them past
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +58,9 @@ class Limits:
     speed_m_s: float
     withdrawal_speed_m_s: float
     momentum_kg_m_s: float
+    power_w: float = 50.0
+    stopping_time_s: float = 0.25
+    stopping_distance_m: float = 0.08
 
     @classmethod
     def of(cls, section: CartesianLimits, model: RobotModel, where: str) -> Limits:
@@ -65,7 +78,11 @@ class Limits:
                     f"({bound:.3g} {unit}: max_point_speed {top} m/s"
                     f"{f' times the moving links {model.link_masses.sum():.3g} kg' if unit == 'kg m/s' else ''})"
                 )
-        return cls(section.speed_m_s, section.withdrawal_speed_m_s, section.momentum_kg_m_s)
+        return cls(section.speed_m_s, section.withdrawal_speed_m_s, section.momentum_kg_m_s, section.power_w,
+                   section.stopping_time_s, section.stopping_distance_m)
+
+    def describe(self) -> str:
+        return CartesianLimits(**dataclasses.asdict(self)).describe()
 
 
 @dataclass(frozen=True)
@@ -73,25 +90,109 @@ class Scaling:
     """What bound a cycle's joint velocity, and by how much."""
 
     factor: float  # the joint velocity is multiplied by this (<= 1)
-    what: str  # "speed", "speed toward the contact" or "momentum"
-    point: str  # the point (or "arm" for the momentum)
-    value: float  # its speed (m/s) or momentum (kg m/s) before scaling
+    what: str  # "speed", "speed toward the contact", "rejoin speed", "momentum", "power", "stopping time",
+    # "stopping distance"
+    point: str  # the point (or "arm" for the momentum, the power and the stopping time)
+    value: float  # its value before scaling, in UNITS[what]
     limit: float
 
     def describe(self) -> str:
-        unit = "kg m/s" if self.what == "momentum" else "m/s"
-        where = "the arm's momentum" if self.what == "momentum" else f"{self.point} {self.what}"
-        return f"{where} {self.value:.3f} {unit} above {self.limit:.3f} {unit}: scaled by {self.factor:.3f}"
+        unit = UNITS.get(self.what, "m/s")
+        where = f"the arm's {self.what}" if self.point == "arm" else f"{self.point} {self.what}"
+        scaled = "acceleration eased" if self.what == "power" else "scaled"
+        return f"{where} {self.value:.3f} {unit} above {self.limit:.3f} {unit}: {scaled} by {self.factor:.3f}"
+
+
+UNITS = {"momentum": "kg m/s", "power": "W", "stopping time": "s", "stopping distance": "m"}
+# Bisection steps for the factors that have no closed form (stopping distance, power): 2^-12 of the range.
+BISECTION_STEPS = 12
 
 
 class CartesianLimiter:
     """The per-cycle check of a joint velocity against a set of :class:`Limits` (see the module docstring)."""
 
-    def __init__(self, model: RobotModel, limits: Limits) -> None:
+    def __init__(self, model: RobotModel, limits: Limits, *, a_max: np.ndarray | None = None,
+                 j_max: np.ndarray | None = None) -> None:
         self.model = model
         self.limits = limits
         self.points = model.speed_points
         self.masses = model.link_masses
+        # The envelope's acceleration and jerk limits, for the stop (None: no stopping limits).
+        self.a_max = None if a_max is None else np.asarray(a_max, dtype=float)
+        self.j_max = None if j_max is None else np.asarray(j_max, dtype=float)
+
+    def stop_time(self, dq: np.ndarray) -> float:
+        """Duration of the jerk-limited stop from ``dq`` (at rest in acceleration), s: the slowest joint's.
+
+        Per joint from speed v: ``v / a + a / j`` when the deceleration reaches
+        ``a`` (``v >= a^2 / j``), else ``2 sqrt(v / j)``; every joint ends together.
+        """
+        assert self.a_max is not None and self.j_max is not None
+        a, j, v = self.a_max, self.j_max, np.abs(dq)
+        t = np.where(v >= a * a / j, v / a + a / j, 2.0 * np.sqrt(v / j))
+        return float(t.max())
+
+    def stopping(self, q: np.ndarray, dq: np.ndarray) -> tuple[float, float, int]:
+        """The stop from ``dq`` at ``q``: its time (s), the farthest any point moves (m), and that point.
+
+        Every joint ends together, so each slows along the same normalised
+        profile, symmetric in time: a point moving at ``s`` covers ``s T / 2``
+        (to first order in the motion).
+        """
+        t = self.stop_time(dq)
+        speeds = self.speeds(q, dq)
+        k = int(np.argmax(speeds))
+        return t, float(speeds[k]) * t / 2.0, k
+
+    def _stopping_scale(self, q: np.ndarray, dq: np.ndarray) -> Scaling | None:
+        """The factor that brings the stop from ``dq`` within the stopping time and distance."""
+        limits = self.limits
+        t, distance, k = self.stopping(q, dq)
+        if t <= limits.stopping_time_s and distance <= limits.stopping_distance_m:
+            return None
+        assert self.a_max is not None and self.j_max is not None
+        a, j = self.a_max, self.j_max
+        # The fastest each joint may move and still stop in time (stop_time inverted), then bisection
+        # for the distance, which grows with the factor.
+        limit_t = limits.stopping_time_s
+        v_top = np.where(limit_t >= 2.0 * a / j, a * (limit_t - a / j), j * (limit_t / 2.0) ** 2)
+        v = np.abs(dq)
+        moving = v > 0.0
+        hi = min(1.0, float(np.min(v_top[moving] / v[moving]))) if moving.any() else 1.0
+        worst: Scaling | None = None
+        if t > limit_t:
+            worst = Scaling(hi, "stopping time", "arm", t, limit_t)
+        if self.stopping(q, hi * dq)[1] > limits.stopping_distance_m:
+            lo = 0.0
+            for _ in range(BISECTION_STEPS):
+                mid = 0.5 * (lo + hi)
+                if self.stopping(q, mid * dq)[1] > limits.stopping_distance_m:
+                    hi = mid
+                else:
+                    lo = mid
+            worst = Scaling(lo, "stopping distance", self.points[k], distance, limits.stopping_distance_m)
+        return worst
+
+    def power_scale(self, q: np.ndarray, dq0: np.ndarray, dq1: np.ndarray, h: float) -> Scaling | None:
+        """How much of the cycle's change of velocity, ``dq0`` to ``dq1`` in ``h`` s, keeps the power within limit.
+
+        The factor ``s`` makes the velocity ``dq0 + s (dq1 - dq0)``: the
+        acceleration eased, never reversed (at ``s = 0`` the arm coasts, whose
+        power is the small Coriolis share). None: within the limit.
+        """
+        limit = self.limits.power_w
+        change = dq1 - dq0
+        power = self.model.motion_power(q, dq1, change / h)
+        if power <= limit:
+            return None
+        lo, hi = 0.0, 1.0
+        for _ in range(BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)
+            if self.model.motion_power(q, dq0 + mid * change, mid * change / h) > limit:
+                hi = mid
+            else:
+                lo = mid
+        return Scaling(lo, "power", "arm", power, limit)
 
     def speeds(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """The speed (m/s) of every speed-limited point at ``q`` moving at ``dq``."""
@@ -134,6 +235,11 @@ class CartesianLimiter:
             factor = limits.momentum_kg_m_s / momentum
             if worst is None or factor < worst.factor:
                 worst = Scaling(factor, "momentum", "arm", momentum, limits.momentum_kg_m_s)
+        if self.a_max is not None:
+            stopping = self._stopping_scale(q, dq if worst is None else worst.factor * dq)
+            if stopping is not None:
+                factor = stopping.factor * (1.0 if worst is None else worst.factor)
+                worst = Scaling(factor, stopping.what, stopping.point, stopping.value, stopping.limit)
         if worst is not None and worst.factor >= 1.0 - SCALE_TOLERANCE:
             return None
         return worst

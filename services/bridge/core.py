@@ -255,9 +255,7 @@ class BridgeCore:
         self.publish_now = True
         self.events.append(Event(
             "warning" if mode == "reduced" else "info", "safety_mode",
-            f"safety mode {mode}{f' (requested by {requested_by})' if requested_by else ''}: points at most "
-            f"{limits.speed_m_s} m/s ({limits.withdrawal_speed_m_s} m/s withdrawing), momentum at most "
-            f"{limits.momentum_kg_m_s} kg m/s",
+            f"safety mode {mode}{f' (requested by {requested_by})' if requested_by else ''}: {limits.describe()}",
         ))
         return True
 

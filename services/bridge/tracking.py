@@ -281,13 +281,19 @@ class Tracker:
                 bound_i, bound_by, bound_v = i, abs(bounded - v), bounded
             v_des[i] = v
             bounded_v.append(bounded)
+        scaled_before = self.limited
         limited = self._cartesian(bounded_v, target, active) if self.limiter is not None else None
-        q1, v1, a1 = [], [], []
-        for i, (q_min, q_max, _v_max, a_max, _k) in enumerate(per_joint):
-            q, dq, bounded = q0[i], dq0[i], bounded_v[i]
-            v = min(max(bounded, dq - a_max * h), dq + a_max * h)
+        v1 = []
+        for i, (_q_min, _q_max, _v_max, a_max, _k) in enumerate(per_joint):
+            dq, bounded = dq0[i], bounded_v[i]
+            v1.append(min(max(bounded, dq - a_max * h), dq + a_max * h))
+        if self.limiter is not None:
+            limited = self._power(v1, h, active) or limited
+            self.limited = min(self.limited, scaled_before + 1)  # cycles scaled, not scalings
+        q1, a1 = [], []
+        for i, (q_min, q_max, _v_max, _a_max, _k) in enumerate(per_joint):
+            q, dq, v = q0[i], dq0[i], v1[i]
             q1.append(min(max(q + 0.5 * (dq + v) * h, q_min), q_max))
-            v1.append(v)
             a1.append((v - dq) / h)
         clipped = limited
         if clipped is None and bound_i >= 0 and not self._clip_reported:
@@ -326,6 +332,23 @@ class Tracker:
             return None
         for i in range(len(v)):
             v[i] *= scaling.factor
+        self.limited += 1
+        if self._clip_reported:
+            return None
+        return self._clip("cartesian_limit", f"{self.mode} command from {active!r}: {scaling.describe()}")
+
+    def _power(self, v: list[float], h: float, active: str) -> Event | None:
+        """Ease the cycle's acceleration (``v``, in place) into the power limit; a scaling to report, if any."""
+        limiter = self.limiter
+        assert limiter is not None
+        if not any(v) and not self.dq.any():
+            return None
+        scaling = limiter.power_scale(self.q, self.dq, np.array(v), h)
+        if scaling is None:
+            return None
+        s, dq0 = scaling.factor, self.dq.tolist()
+        for i in range(len(v)):
+            v[i] = dq0[i] + s * (v[i] - dq0[i])
         self.limited += 1
         if self._clip_reported:
             return None

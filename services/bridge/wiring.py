@@ -81,7 +81,8 @@ class BridgeWiring:
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
             command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
             seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
-            limiter=CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits")),
+            limiter=CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits"), a_max=env.a_max,
+                                     j_max=env.j_max),
             reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))

@@ -38,8 +38,7 @@ def _run(args: argparse.Namespace) -> int:
               "see diag/bridge (may this certificate put on control/safety?)")
         return 1
     limits = profile.bridge.reduced if args.mode == "reduced" else profile.bridge.limits
-    print(f"safety mode: {args.mode}: every point at most {limits.speed_m_s} m/s "
-          f"({limits.withdrawal_speed_m_s} m/s withdrawing), momentum at most {limits.momentum_kg_m_s} kg m/s")
+    print(f"safety mode: {args.mode}: {limits.describe()}")
     return 0
 
 
