@@ -30,6 +30,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import Clock, MonotonicClock
 from nwr.common.config import ZenohSection
+from nwr.common.door import Door
 from nwr.common.errors import ConfigError, DecodeError
 from nwr.common.journal import JOURNAL_PERIOD_S, Batcher, Recording, service_config
 
@@ -189,8 +190,13 @@ class Node:
         clock: Clock | None = None,
         listen_slot: str | None = None,
         token: bool = True,
+        door: Door | None = None,
     ) -> None:
         self.service = service
+        self.door = door  # the semantic checks of every message subscribed to (None: decoding only)
+        self.refused = 0
+        self.handler_errors = 0
+        self._failed_before: set[tuple[str, str]] = set()  # (key, exception type) already logged with a traceback
         self.robot = robot
         self.clock = clock or MonotonicClock()
         self.stop = threading.Event()
@@ -226,6 +232,12 @@ class Node:
         """Announce this service (``alive/<service>``); a Node declares it at once unless ``token=False``."""
         if self._token is None:
             self._token = self.session.liveliness().declare_token(keys.key(self.robot, keys.alive(self.service)))
+
+    def withdraw_token(self) -> None:
+        """No longer announce this service: to the others it is gone (a planner that keeps failing)."""
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
 
     # -- the service's wiring and its journal -------------------------------
     def wire(self, factory: Callable[..., Any], profile: Any, lock: threading.Lock, **kwargs: Any) -> Any:
@@ -306,6 +318,7 @@ class Node:
         """
         codec = keys.codec(relative)
         full = keys.key(self.robot, relative)
+        door = self.door
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
@@ -314,13 +327,24 @@ class Node:
                 self.decode_errors += 1
                 self.diag("warning", "decode_error", f"dropped a malformed sample on {sample.key_expr}: {exc}")
                 return
+            if door is not None:
+                refusal = door.refuse(message)
+                if refusal is not None:
+                    self.refused += 1
+                    self.diag("warning", "refused_" + refusal.cause.replace(" ", "_"),
+                              f"refused a {type(message).__name__} on {sample.key_expr}: {refusal}")
+                    return
             try:
                 if keyed:
                     handler(keys.relative_key(self.robot, str(sample.key_expr)), message)
                 else:
                     handler(message)
             except Exception as exc:  # a bad message must never kill the subscription
-                log.exception("handler for %s failed", full)
+                self.handler_errors += 1
+                first = (full, type(exc).__name__)
+                if first not in self._failed_before:  # one traceback per kind of failure, then counts
+                    self._failed_before.add(first)
+                    log.exception("handler for %s failed (later failures like it: diag/%s only)", full, self.service)
                 self.diag("error", "handler_error", f"handling a message on {full} failed: {exc!r}")
 
         callback = zenoh.handlers.Callback(on_sample, indirect=False) if direct else on_sample

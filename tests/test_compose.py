@@ -272,7 +272,17 @@ def _check_secure(dep: Deployment, tmp_path: Path) -> None:
     # The operator's tools, with the lab's operator certificate.
     status = dep("run", "--rm", "operator", "status", "--check", "bridge", "--timeout", "5", timeout=120, check=False)
     assert status.returncode == 0, status
-    print(f"intruders refused: plain TCP ({plain.returncode}), another CA ({foreign.returncode}); operator ok")
+    # The reduced mode: the operator's alone. The view's certificate (a service of the lab's own) may not.
+    view = _run(["docker", "run", "--rm", "--network", network, "-v", f"{root / 'view'}:/certs:ro",
+                 "-e", "NWR_ROUTER=tls/router:7447", "-e", "NWR_TLS_CA=/certs/ca.crt",
+                 "-e", "NWR_TLS_CERT=/certs/view.crt", "-e", "NWR_TLS_KEY=/certs/view.key",
+                 image, "safety", "reduced", "--timeout", "3"], check=False, timeout=120)
+    assert view.returncode != 0 and "it is in normal" in view.stdout, view
+    for mode in ("reduced", "normal"):
+        switched = dep("run", "--rm", "operator", "safety", mode, "--timeout", "10", timeout=120, check=False)
+        assert switched.returncode == 0 and f"safety mode: {mode}" in switched.stdout, switched
+    print(f"intruders refused: plain TCP ({plain.returncode}), another CA ({foreign.returncode}); "
+          "operator ok, its reduced mode too (refused to the view's certificate)")
 
 
 def _check_session(records: list, script) -> None:  # type: ignore[no-untyped-def]

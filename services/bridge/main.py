@@ -20,6 +20,7 @@ import zenoh
 
 from nwr.common import keys
 from nwr.common.config import BridgeSection, Profile
+from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
@@ -82,7 +83,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     backend.connect()  # a real arm's starting pose is read by the wiring
     lock = threading.Lock()  # the handlers, the control loop and the journal's batches
     try:
-        with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge", token=False) as node:
+        with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge", token=False,
+                  door=Door.of(profile)) as node:
             node.install_signal_handlers()
             bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
 

@@ -9,6 +9,7 @@ import threading
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.services.gain.wiring import SERVICE, GainWiring
 
@@ -23,7 +24,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.model:
         profile.gain.model = args.model
     lock = threading.Lock()  # the journal's batches are taken under it
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain", token=False) as node:
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain", token=False,
+              door=Door.of(profile)) as node:
         node.install_signal_handlers()
         wiring = node.wire(GainWiring, profile, lock)
 

@@ -15,6 +15,7 @@ import threading
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile, load_script
+from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
@@ -50,7 +51,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     script_name = args.script or cfg.sim.script
     script = load_script(script_name) if script_name else None
     lock = threading.Lock()  # the state handler, the loop and the journal's batches
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway") as node:
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway",
+              door=Door.of(profile)) as node:
         node.install_signal_handlers()
         wiring = node.wire(GatewayWiring, profile, lock, script=script, follow_target_s=args.follow_target)
 

@@ -68,6 +68,16 @@ class Unit:
     service: str
     args: tuple[str, ...] = ()
 
+    def restarted(self, n: int) -> Unit:
+        """This unit as its ``n``-th restart runs it: a recorder writes a file of its own, never over the first."""
+        if self.service != "recorder" or "--output" not in self.args:
+            return self
+        args = list(self.args)
+        i = args.index("--output") + 1
+        first = Path(args[i])
+        args[i] = str(first.with_name(f"{first.stem}-restart{n}{first.suffix}"))
+        return Unit(self.label, self.service, tuple(args))
+
     def command(self) -> list[str]:
         """The arguments after ``nwr [--profile ...]``."""
         if self.service == ROUTER:

@@ -62,10 +62,48 @@ def failed(codes: Mapping[str, int]) -> dict[str, int]:
     return {n: c for n, c in codes.items() if c not in CLEAN_EXITS}
 
 
+# A service that exits unexpectedly is restarted after this long, doubling per restart up to the cap, s.
+RESTART_DELAY_S = 0.5
+RESTART_DELAY_MAX_S = 30.0
+# A service that has run this long since its last start restarts after RESTART_DELAY_S again, s.
+STABLE_S = 60.0
+
+
+class Restarts:
+    """When each unit that exited may start again: exponential backoff, reset once it ran a while."""
+
+    def __init__(self) -> None:
+        self.count: dict[str, int] = {}
+        self.delay: dict[str, float] = {}
+        self.due: dict[str, float] = {}
+
+    def schedule(self, label: str, started_at: float, now: float) -> float:
+        if now - started_at >= STABLE_S:
+            self.delay.pop(label, None)
+        delay = self.delay.get(label, RESTART_DELAY_S / 2) * 2
+        self.delay[label] = min(delay, RESTART_DELAY_MAX_S)
+        self.due[label] = now + self.delay[label]
+        self.count[label] = self.count.get(label, 0) + 1
+        return self.delay[label]
+
+    def ready(self, now: float) -> list[str]:
+        ready = [label for label, at in self.due.items() if at <= now]
+        for label in ready:
+            del self.due[label]
+        return ready
+
+
 def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *, until_script_end: bool,
-           settle_s: float = 2.0) -> int:
-    """Start every unit; wait for Ctrl-C/SIGTERM (or the gateway's end of script); stop them all; 0 if all went well."""
+           settle_s: float = 2.0, restart: bool = True) -> int:
+    """Start every unit; wait for Ctrl-C/SIGTERM (or the gateway's end of script); stop them all; 0 if all went well.
+
+    A unit that exits unexpectedly is restarted with backoff (:class:`Restarts`) while the others keep running
+    (the bridge holds the arm meanwhile); with ``restart=False`` every unit is stopped instead, and 1 returned.
+    """
     procs: dict[str, subprocess.Popen[bytes]] = {}
+    by_label = {unit.label: unit for unit in units(layout)}
+    started: dict[str, float] = {}
+    restarts = Restarts()
     stop = False
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -74,27 +112,40 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        for unit in units(layout):
+        for unit in by_label.values():
             procs[unit.label] = spawn(unit, profile_arg, log_level)
+            started[unit.label] = time.monotonic()
             if unit.label == "recorder":
                 wait_for_recorder(profile)
             elif unit.service == ROUTER:
                 time.sleep(0.3)  # clients connect at start-up
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
         while not stop:
-            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
-            if until_script_end and dead.get("gateway") == 0 and len(dead) == 1:
+            now = time.monotonic()
+            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None and n not in restarts.due}
+            if until_script_end and dead.get("gateway") == 0:
                 time.sleep(settle_s)  # let the last reflex return and the recorder catch up
                 break
-            if dead:
-                log.error("service(s) exited unexpectedly: %s", dead)
+            if dead and not restart:
+                log.error("service(s) exited unexpectedly: %s (stopping every service: --stop-on-exit)", dead)
                 stop_all(procs)
                 return 1
+            for label, code in dead.items():
+                delay = restarts.schedule(label, started[label], now)
+                log.error("%s exited unexpectedly (code %s): restarting it in %.1f s (restart %d); the others "
+                          "keep running", label, code, delay, restarts.count[label])
+            for label in restarts.ready(now):
+                unit = by_label[label].restarted(restarts.count[label])
+                procs[label] = spawn(unit, profile_arg, log_level)
+                started[label] = now
+                log.warning("restarted %s (pid %d)", label, procs[label].pid)
             time.sleep(0.1)
     finally:
-        codes = stop_all(procs)
+        codes = stop_all({n: p for n, p in procs.items() if n not in restarts.due})
         for s, handler in old.items():
             signal.signal(s, handler)
+    if restarts.count:
+        log.warning("restarts: %s", ", ".join(f"{n} {k}x" for n, k in restarts.count.items()))
     bad = failed(codes)
     if bad:
         log.error("service(s) stopped with errors: %s", bad)

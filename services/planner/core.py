@@ -39,7 +39,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import InputParameter, OutputParameter, Result, Ruckig, Synchronization, Trajectory
+from ruckig import InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization, Trajectory
 
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
@@ -266,6 +266,16 @@ class Planner:
         self.saved = np.asarray(peer.saved_pose) if peer.saved_pose else self.task.position(self.clock.s)
         self._begin_return()
 
+    def restart(self) -> None:
+        """After a failed cycle: forget the motion, start again from the arm's next measured state."""
+        self.initialized = False
+        self.reflex = None
+        self.shadow = None
+        self._planned_ahead = 0
+        self._advanced_early = False
+        self.mode = "RETURNING"
+        self.changed = True
+
     def _start_from(self, q: np.ndarray) -> None:
         """First contact with the arm: return to the task's start, then run it."""
         self.initialized = True
@@ -420,7 +430,13 @@ class Planner:
 
     def _ruckig_step(self) -> bool:
         """Advance the trajectory one cycle; True once it has arrived."""
-        result = self._otg.update(self._otg_in, self._otg_out)
+        try:
+            result = self._otg.update(self._otg_in, self._otg_out)
+        except RuckigError as exc:  # an input ruckig cannot work from: stop this motion where it is
+            log.error("trajectory generation failed (%s): stopping this motion where it is", exc)
+            self.dq[:] = 0.0
+            self.ddq[:] = 0.0
+            return True
         out = self._otg_out
         self.q = np.asarray(out.new_position)
         self.dq = np.asarray(out.new_velocity)

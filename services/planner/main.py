@@ -10,6 +10,7 @@ import threading
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel
@@ -29,6 +30,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reflex", choices=strategies.names(), help="reflex strategy (overrides planner.strategy)")
 
 
+# Consecutive failed cycles after which the planner withdraws its liveliness token: the bridge
+# then holds the arm (planner_lost) until a cycle succeeds again and the token is back.
+FAULT_AFTER_CYCLES = 25
+
+
+class Failing:
+    """The planner's failed control cycles: reported once per kind, escalated when they repeat."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.consecutive = 0
+        self.total = 0
+        self.kinds: set[str] = set()
+        self.faulted = False
+
+    def failed(self, exc: Exception) -> None:
+        self.consecutive += 1
+        self.total += 1
+        kind = type(exc).__name__
+        if kind not in self.kinds:  # one traceback per kind, then counts on diag/planner-<name>
+            self.kinds.add(kind)
+            log.error("a control cycle failed: no command this cycle, starting again from the arm's state",
+                      exc_info=exc)
+        self.node.diag("error", "cycle_failed", f"a control cycle failed ({self.total} so far): {exc!r}")
+        if self.consecutive >= FAULT_AFTER_CYCLES and not self.faulted:
+            self.faulted = True
+            self.node.withdraw_token()
+            self.node.diag("error", "planner_fault", f"{self.consecutive} control cycles in a row failed: "
+                           "liveliness withdrawn, the bridge holds the arm until a cycle succeeds", every_s=0.0)
+
+    def ok(self) -> None:
+        self.consecutive = 0
+        if self.faulted:
+            self.faulted = False
+            self.node.declare_token()
+            self.node.diag("info", "planner_recovered", "control cycles succeed again: liveliness back", every_s=0.0)
+
+
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.planner
     if args.name:
@@ -44,7 +83,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     # journal keys, alive/planner-<name> and so on: the bridge watches the
     # token of the active one.
     with Node(keys.planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner",
-              token=False) as node:
+              token=False, door=Door.of(profile)) as node:
         node.install_signal_handlers()
         wiring = node.wire(PlannerWiring, profile, lock)
         planner = wiring.planner
@@ -112,6 +151,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
         node.declare_token()  # alive once subscribed: the gateway starts on it, and no pain message is lost
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.name, cfg.rate_hz)
+        failing = Failing(node)
         try:
             while True:
                 with lock:
@@ -120,6 +160,11 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     break
                 with lock:
                     wiring.tick()
+                    failure = wiring.failure
+                if failure is not None:
+                    failing.failed(failure)
+                else:
+                    failing.ok()
         finally:
             node.stop.set()
             checker.join(1.0)

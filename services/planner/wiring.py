@@ -51,6 +51,7 @@ class PlannerWiring:
         self.rate = Rate(cfg.rate_hz, "planner")
         self.status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
         self.status_tick = 0
+        self.failure: Exception | None = None
         self.check_model = RobotModel(desc)  # the retreat check's own, when it runs in the caller's thread
         self.check: RetreatCheck | None = None
         journal.begin("start")
@@ -111,6 +112,7 @@ class PlannerWiring:
 
     def tick(self) -> None:
         """The control loop woke: step the cycles due, publish the status when it is due."""
+        self.failure = None  # a failed cycle, for the adapter to report
         self.journal.begin("tick")
         now = self.journal.now_ns()
         planner = self.planner
@@ -120,7 +122,12 @@ class PlannerWiring:
             return
         self.rate.skip(now)  # cycles beyond those are lost to a late loop (motion slows, never jumps)
         for _ in range(due):
-            command = planner.step(now)
+            try:
+                command = planner.step(now)
+            except Exception as exc:  # noqa: BLE001  one cycle's failure, never the service's end
+                self.failure = exc
+                planner.restart()  # no command: the bridge holds the arm; start again from its measured state
+                break
             if command is not None:
                 self.out(self.command_key, command)
         if planner.changed or self.rate.ticks - self.status_tick >= self.status_every:

@@ -34,6 +34,9 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
+    p.add_argument("--stop-on-exit", action="store_true",
+                   help="stop every service when one exits unexpectedly (default: restart it with backoff, "
+                        "the others keep running; a restarted recorder writes <stem>-restartN.mcap)")
     p.add_argument("--reflex", choices=strategies.names(),
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
@@ -73,7 +76,8 @@ def run_up(args: argparse.Namespace) -> int:
     profile = profile_for(args)  # fails here, not in five processes
     recording = None if args.no_record else output_path(args, profile)
     layout = layout_for(args, profile, recording, until_script_end=False)
-    return supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=False)
+    return supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=False,
+                             restart=not args.stop_on_exit)
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -83,7 +87,8 @@ def run_demo(args: argparse.Namespace) -> int:
     load_script(args.script)
     recording = None if args.no_record else output_path(args, profile)
     layout = layout_for(args, profile, recording, until_script_end=True)
-    code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True)
+    code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True,
+                             restart=not args.stop_on_exit)
     if code or recording is None:
         return code or 1
     return print_summary(recording[1], args.script, profile)

@@ -15,6 +15,7 @@ import time
 
 from nwr.common import keys
 from nwr.common.config import Profile
+from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
@@ -49,7 +50,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     core = ViewCore(desc, RobotModel(desc))
     view = ViewServer(args.host, args.port, name=f"nwr view {profile.robot.name}")
     try:
-        with Node("view", profile.robot.name, profile.zenoh) as node:
+        with Node("view", profile.robot.name, profile.zenoh, door=Door.of(profile)) as node:
             node.install_signal_handlers()
             for relative in (keys.ROBOT_STATE, keys.SKIN_PRESSURE, keys.SKIN_PAIN, keys.planner_status("*")):
                 node.subscribe(relative, core.apply)  # stores the newest message, nothing more
