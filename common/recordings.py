@@ -18,19 +18,28 @@ A session may be split into parts by size or duration
 (:class:`SessionRecorder`): every part is a complete MCAP file with its own
 schemas, channels and session metadata (plus its part number).
 
+Reading: every command that takes a recording opens it through
+:func:`open_recording_file` (the checks that leave nothing to read) and,
+unless it reads damaged files on purpose (``nwr info``, ``nwr recover``),
+:class:`RecordingReader` (a finished, undamaged file), so that each kind of
+bad file gets the same one-line :class:`RecordingError` everywhere.
+
 Nothing here imports Zenoh or reads a clock: times come in as arguments.
 """
 
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import msgspec
 from mcap.reader import make_reader
+from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from nwr.common import keys
@@ -42,11 +51,25 @@ SCHEMA_NAMES = {"robot/command/*": "nwr.Command"}
 # Name of the metadata record with the session's description (written first,
 # so that it survives a crash) and of the one with the counts (written last).
 SESSION_METADATA = "session"
+MCAP_SEQUENCE = 2**32  # a message record's sequence is a uint32
+MCAP_TIME = 2**64  # its log and publish times are uint64 nanoseconds
 RECORDING_METADATA = "recording"
+_T = TypeVar("_T")
 
 
 class RecordingError(NwrError):
-    """A recording cannot be written, read or recovered."""
+    """A recording cannot be written, read or recovered.
+
+    ``problem`` classifies a file that cannot be read: ``missing``,
+    ``directory``, ``unreadable``, ``empty``, ``not_mcap``, ``header`` (ends
+    inside its MCAP header), ``unfinished`` (no footer: ``nwr recover`` it),
+    ``damaged`` (a CRC or decompression error: ``nwr recover`` it); empty
+    for every other error.
+    """
+
+    def __init__(self, message: str, *, problem: str = "") -> None:
+        super().__init__(message)
+        self.problem = problem
 
 
 def publisher_of(message: Any) -> str:
@@ -157,6 +180,7 @@ class McapRecorder:
         self.writer.start(profile="nwr", library=f"nwr {software_version()}")
         self.chunk_interval_ns = chunk_interval_ns
         self.gap_counter = gaps if gaps is not None else GapCounter()
+        self.unfit = 0  # messages whose seq or stamp MCAP's record could not hold as they were (folded into it)
         self._encoder = msgspec.json.Encoder()
         self._schemas: dict[str, int] = {}
         self.channels: dict[str, ChannelStats] = {}
@@ -193,7 +217,13 @@ class McapRecorder:
             stats.first_log_ns = log_time_ns
         stats.count += 1
         stats.last_log_ns = max(stats.last_log_ns, log_time_ns)
-        self.writer.add_message(stats.channel_id, log_time_ns, self._encoder.encode(message), message.stamp_ns, seq)
+        # MCAP's sequence is a uint32 and its publish time a uint64: a value beyond them (a peer's bug) is
+        # folded into them here; the message itself, in the record's data, keeps it as it travelled.
+        stamp = message.stamp_ns
+        if not fits_mcap(message):
+            self.unfit += 1
+        self.writer.add_message(stats.channel_id, log_time_ns, self._encoder.encode(message),
+                                min(max(stamp, 0), MCAP_TIME - 1), seq % MCAP_SEQUENCE)
         if self._chunk_opened_ns is None:
             self._chunk_opened_ns = log_time_ns
         if isinstance(message, m.PlannerStatus):
@@ -400,6 +430,11 @@ class SessionRecorder:
         return SessionReport(self.parts, dict(self.messages), self.gaps.gaps(), self.gaps.restarts())
 
 
+def fits_mcap(message: Any) -> bool:
+    """Do the message's seq and stamp fit MCAP's record (else they are folded into it, the data keeps them)?"""
+    return 0 <= message.seq < MCAP_SEQUENCE and 0 <= message.stamp_ns < MCAP_TIME
+
+
 def session_metadata(
     *,
     robot: str,
@@ -455,32 +490,228 @@ class Recorded:
     message: Any
 
 
-def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
-    """Every message of a recording, decoded strictly, and the file's metadata."""
+# -- reading ---------------------------------------------------------------------
+# Every command that takes a recording opens it here, so that each kind of
+# bad file (a missing path, a directory, an unreadable or empty file, another
+# format, a file cut off by a crash or a full disk, a damaged one) gets the
+# same one-line RecordingError naming the file, the problem and what to do.
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEADER = struct.Struct("<BQ")  # opcode, length
+# The footer record (opcode, length, summary start, summary offset start, summary CRC) and the closing magic.
+_FOOTER = struct.Struct("<BQQQI")
+_FOOTER_OPCODE, _FOOTER_LENGTH, _HEADER_OPCODE = 0x02, 20, 0x01
+_TAIL_SIZE = _FOOTER.size + len(MCAP_MAGIC)
+
+
+def recovered_path(path: Path) -> Path:
+    """Where ``nwr recover FILE`` writes by default: ``<stem>-recovered.mcap`` beside the file."""
+    return path.with_name(f"{path.stem}-recovered{path.suffix or '.mcap'}")
+
+
+def recover_hint(path: Path) -> str:
+    return f"`nwr recover {path}` saves its readable messages into {recovered_path(path).name} and says what was lost"
+
+
+def _looks_like(head: bytes) -> str:
+    """What a file that is not MCAP seems to be, from its first bytes."""
+    signatures = [
+        (b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"), (b"%PDF", "a PDF document"),
+        (b"PK\x03\x04", "a ZIP archive"), (b"\x1f\x8b", "gzip-compressed data (decompress it first)"),
+        (b"\x28\xb5\x2f\xfd", "zstd-compressed data (decompress it first)"),
+        (b"#ROSBAG", "a ROS 1 bag"), (b"SQLite format 3\x00", "an SQLite database (a ROS 2 .db3 bag?)"),
+    ]
+    for signature, kind in signatures:
+        if head.startswith(signature):
+            return kind
+    text = head.decode("utf-8", errors="ignore")
+    printable = sum(c.isprintable() or c in "\r\n\t" for c in text)
+    if text and printable >= 0.9 * len(head):
+        stripped = text.lstrip("\ufeff \r\n\t")
+        if stripped[:1] in ("{", "["):
+            return "a JSON file"
+        return "a text file"
+    return "binary data of another format"
+
+
+def open_recording_file(path: str | Path) -> IO[bytes]:
+    """Open a file given as a recording; RecordingError for the problems that leave nothing to read.
+
+    Checked here, in this order: the path exists, is a file, can be read, is
+    not empty, starts with the MCAP magic (else: what it looks like) and holds
+    a whole MCAP header. Damage after the header is for the caller:
+    :class:`RecordingReader` refuses it, ``nwr info`` and ``nwr recover``
+    read up to it.
+    """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"recording {path} does not exist")
+    try:
+        if path.is_dir():
+            inside = sorted(p.name for p in path.glob("*.mcap"))
+            which = ("it holds no .mcap file" if not inside else f"give the file in it, {path / inside[0]}"
+                     if len(inside) == 1 else f"give one of its {len(inside)} .mcap files, e.g. {path / inside[0]}")
+            raise RecordingError(f"{path} is a directory, not a recording: {which}", problem="directory")
+        stream = path.open("rb")
+    except FileNotFoundError:
+        raise RecordingError(f"recording {path} does not exist", problem="missing") from None
+    except PermissionError:
+        raise RecordingError(f"{path} cannot be read: permission denied (its owner can make it readable: "
+                             f"`chmod +r {path}`)", problem="unreadable") from None
+    except OSError as exc:
+        raise RecordingError(f"{path} cannot be read: {exc.strerror or exc}", problem="unreadable") from None
+    try:
+        head = stream.read(4096)
+        if not head:
+            raise RecordingError(f"{path} is empty (0 bytes): the recorder wrote nothing to it (it was stopped "
+                                 "before its first write, or the disk was full); there is nothing to read or recover",
+                                 problem="empty")
+        if not head.startswith(MCAP_MAGIC):
+            if MCAP_MAGIC.startswith(head):
+                raise RecordingError(f"{path} ({len(head)} bytes) ends inside the MCAP magic bytes: the recorder "
+                                     "stopped before writing anything; there is nothing to read or recover",
+                                     problem="header")
+            raise RecordingError(f"{path} is not an MCAP recording: it looks like {_looks_like(head)}; give a "
+                                 ".mcap file written by nwr (recordings/<session>.mcap)", problem="not_mcap")
+        record = head[len(MCAP_MAGIC):len(MCAP_MAGIC) + _RECORD_HEADER.size]
+        size = path.stat().st_size
+        opcode, length = _RECORD_HEADER.unpack(record) if len(record) == _RECORD_HEADER.size else (None, 0)
+        if opcode is not None and opcode != _HEADER_OPCODE:
+            raise RecordingError(f"{path} is damaged: no MCAP header after its magic bytes (opcode 0x{opcode:02x}); "
+                                 "there is nothing to read or recover", problem="header")
+        if opcode is None or len(MCAP_MAGIC) + _RECORD_HEADER.size + length > size:
+            raise RecordingError(f"{path} ({size} bytes) ends inside its MCAP header: the recorder stopped before "
+                                 "writing any message; there is nothing to read or recover", problem="header")
+        stream.seek(0)
+    except OSError as exc:
+        stream.close()
+        raise RecordingError(f"{path} cannot be read: {exc.strerror or exc}", problem="unreadable") from None
+    except BaseException:
+        stream.close()
+        raise
+    return stream
+
+
+class RecordingReader:
+    """A finished recording opened for reading, every problem a one-line RecordingError.
+
+    Opening checks what :func:`open_recording_file` checks, then the end of the
+    file: a recording the recorder did not finish (killed, crashed, out of
+    disk space) has no footer, and its summary is what a seeking reader needs.
+    Such a file, and one whose summary or a chunk fails its CRC or does not
+    decompress, is refused with a pointer to ``nwr recover``, which saves the
+    readable part into a valid file. The reader does not read a damaged file
+    up to the damage: a table or a replay of part of a session must not pass
+    for one of all of it.
+
+    mcap's own errors, and anything else that breaks while reading past the
+    checks, are turned into RecordingError here and nowhere else.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.stream = open_recording_file(self.path)
+        try:
+            self._check_end()
+            self.reader = make_reader(self.stream, validate_crcs=True)
+            self._guard("its summary (the index at the end of the file) cannot be read", self.reader.get_summary)
+        except BaseException:
+            self.stream.close()
+            raise
+
+    def __enter__(self) -> RecordingReader:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.stream.close()
+
+    def _damaged(self, what: str) -> RecordingError:
+        return RecordingError(f"{self.path} is damaged: {what}; {recover_hint(self.path)}", problem="damaged")
+
+    def _check_end(self) -> None:
+        stream = self.stream
+        size = stream.seek(0, 2)
+        tail = b""
+        if size >= len(MCAP_MAGIC) + _TAIL_SIZE:
+            stream.seek(size - _TAIL_SIZE)
+            tail = stream.read(_TAIL_SIZE)
+        if not tail.endswith(MCAP_MAGIC):
+            raise RecordingError(
+                f"{self.path} is not finished: no summary or footer (the recorder was killed, crashed or ran "
+                f"out of disk space before closing it); {recover_hint(self.path)}", problem="unfinished")
+        opcode, length, summary_start, _offsets, crc = _FOOTER.unpack_from(tail)
+        if opcode != _FOOTER_OPCODE or length != _FOOTER_LENGTH or summary_start > size - _TAIL_SIZE:
+            raise self._damaged("its footer (the last record) is unreadable")
+        if crc:
+            start = summary_start or size - _TAIL_SIZE
+            stream.seek(start)
+            covered = stream.read(size - 4 - len(MCAP_MAGIC) - start)  # up to the CRC field itself
+            if zlib.crc32(covered) != crc:
+                raise self._damaged("its summary (the index at the end of the file) fails its CRC check")
+        stream.seek(0)
+
+    def _guard(self, what: str, call: Callable[[], _T]) -> _T:
+        try:
+            return call()
+        except NwrError:
+            raise
+        except OSError as exc:
+            raise RecordingError(f"{self.path} cannot be read: {exc.strerror or exc}", problem="unreadable") from None
+        except Exception as exc:  # noqa: BLE001 - whatever breaks mcap's reader past the checks is damage
+            raise self._damaged(f"{what} ({type(exc).__name__}: {exc})") from exc
+
+    def metadata_records(self) -> list[tuple[str, dict[str, str]]]:
+        """The file's metadata records, name and data, in file order."""
+        return self._guard("a metadata record cannot be read",
+                           lambda: [(rec.name, dict(rec.metadata)) for rec in self.reader.iter_metadata()])
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """The file's metadata records by name (the last of a name wins)."""
+        return dict(self.metadata_records())
+
+    def messages(self) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        """Every message in log-time order, with its schema and channel, as mcap reads them."""
+        iterator = self._guard("its messages cannot be read",
+                               lambda: iter(self.reader.iter_messages(log_time_order=True)))
+        while True:
+            item = self._guard("a chunk of messages cannot be read", lambda: next(iterator, None))
+            if item is None:
+                return
+            yield item
+
+
+def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
+    """Every message of a recording, decoded strictly, and the file's metadata.
+
+    RecordingError (one line: the file, the problem, what to do) for a file
+    that is no finished recording (:class:`RecordingReader`); DecodeError for a
+    message that does not decode into its key's type.
+    """
+    path = Path(path)
     decoders: dict[str, msgspec.json.Decoder] = {}
     out: list[Recorded] = []
-    with path.open("rb") as f:
-        reader = make_reader(f)
-        metadata = {rec.name: dict(rec.metadata) for rec in reader.iter_metadata()}
+    with RecordingReader(path) as reader:
+        metadata = reader.metadata()
         if robot is None:
             robot = metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
-        f.seek(0)
-        reader = make_reader(f)
         head = keys.prefix(robot) + "/"
-        for _schema, channel, msg in reader.iter_messages(log_time_order=True):
+        for _schema, channel, msg in reader.messages():
             if not channel.topic.startswith(head):
                 continue  # not the pipeline's (the view's channels of an exported file, say)
             relative = keys.relative_key(robot, channel.topic)
             dec = decoders.get(relative)
             if dec is None:
-                dec = decoders[relative] = msgspec.json.Decoder(keys.topic_for(relative).type)
+                try:
+                    dec = decoders[relative] = msgspec.json.Decoder(keys.topic_for(relative).type)
+                except DecodeError as exc:
+                    raise DecodeError(f"{path}: channel {channel.topic}: {exc}") from None
             try:
                 out.append(Recorded(relative, msg.log_time, dec.decode(msg.data)))
-            except msgspec.ValidationError as exc:
-                raise DecodeError(f"{path}: message on {channel.topic} at {msg.log_time}: {exc}") from exc
+            except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+                raise DecodeError(f"{path}: the message on {channel.topic} at log time {msg.log_time} does not "
+                                  f"decode ({exc}): the file is damaged or was written by another version of nwr"
+                                  ) from exc
     return out, metadata
 
 

@@ -124,7 +124,8 @@ def catalogue(desc: RobotDescription, *, active: str = "cartesian", seq: int = 1
         # reflex/<name>/status
         Wrong("status saved pose of 3 joints", "reflex/intruder/status",
               replace(status, mode="REFLEX", saved_pose=[0.0] * 3)),
-        Wrong("status saved pose 1e12", "reflex/intruder/status", replace(status, mode="REFLEX", saved_pose=[1e12] * n)),
+        Wrong("status saved pose 1e12", "reflex/intruder/status",
+              replace(status, mode="REFLEX", saved_pose=[1e12] * n)),
         Wrong("status target pad 99", "reflex/intruder/status", replace(status, target_pad=99)),
         Wrong("status task time -5", "reflex/intruder/status", replace(status, task_time_s=-5.0)),
         Wrong("status task time 1e11", "reflex/intruder/status", replace(status, task_time_s=1e11)),

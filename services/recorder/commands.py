@@ -25,8 +25,9 @@ def register(subparsers: Any) -> None:
 
     info = subparsers.add_parser(
         "info", help="print a recording's channels, counts, rates, duration, gaps and metadata",
-        description="Describe an MCAP recording. Works on unfinished (crashed) files too, reading up to the "
-                    "first damaged record.",
+        description="Describe an MCAP recording. Works on unfinished (crashed) and damaged files too, reading "
+                    "up to the first unreadable record. Exit status 0 for an intact file, 1 for an unfinished or "
+                    "damaged one (`nwr recover` it), 2 for a file with nothing to describe.",
     )
     info.add_argument("file", help="MCAP recording")
     info.add_argument("--full", action="store_true", help="print long metadata values (the profile) in full")
@@ -49,7 +50,7 @@ def _record(args: argparse.Namespace) -> int:
 def _info(args: argparse.Namespace) -> int:
     report = salvage.info_file(Path(args.file))
     print(salvage.format_info(report, full=args.full))
-    return 0
+    return 0 if report.intact else 1
 
 
 def _recover(args: argparse.Namespace) -> int:

@@ -29,6 +29,7 @@ from nwr.common.recordings import (
     RecordingError,
     SessionRecorder,
     SplitPolicy,
+    fits_mcap,
     parse_labels,
     part_path,
     session_metadata,
@@ -144,7 +145,15 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 bad += 1
                 node.diag("warning", "decode_error", f"not recorded: {exc}")
                 return
-            recorder.write(full_key, message, received)
+            if not fits_mcap(message):
+                node.diag("warning", "unfit_for_mcap",
+                          f"{full_key}: seq {message.seq} or stamp_ns {message.stamp_ns} beyond what an MCAP record "
+                          "holds (uint32, uint64): recorded with them folded into its range, the data keeps them")
+            try:
+                recorder.write(full_key, message, received)
+            except Exception as exc:  # noqa: BLE001  no message may stop the recorder
+                bad += 1
+                node.diag("error", "record_error", f"not recorded: a {type(message).__name__} on {full_key}: {exc!r}")
 
         def drain() -> None:
             while inbox:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import struct
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,9 @@ from nwr.common.recordings import (
     SESSION_METADATA,
     GapCounter,
     RecordingError,
+    open_recording_file,
     publisher_of,
+    recovered_path,
     software_version,
 )
 
@@ -45,6 +48,8 @@ from nwr.common.recordings import (
 # which time span was lost.
 _RECORD_HEADER = struct.Struct("<BQ")
 _CHUNK_TIMES = struct.Struct("<QQ")
+# The footer's fields that its summary CRC covers (with the summary before it): opcode, length and two offsets.
+_FOOTER_COVERED = 1 + 8 + 8 + 8
 # Recovery refuses records larger than this (a corrupt length field would
 # otherwise ask for gigabytes); the recorder's chunks are far smaller.
 RECORD_SIZE_LIMIT = 1 << 30
@@ -99,13 +104,19 @@ class ScanReport:
     attachments: int = 0
     orphans: int = 0  # messages whose channel was never defined (lost in a bad chunk)
     bad_chunks: list[LostSpan] = field(default_factory=list)
+    bad_summary: LostSpan | None = None  # the summary fails its CRC check (index only: the messages are in chunks)
     tail: LostSpan | None = None  # the unreadable end of the file
     gaps: GapCounter = field(default_factory=GapCounter)
     planners: dict[str, list[str]] = field(default_factory=dict)  # name -> strategies in its status
 
     @property
     def intact(self) -> bool:
-        return self.footer and self.tail is None and not self.bad_chunks
+        return self.footer and self.tail is None and not self.bad_chunks and self.bad_summary is None
+
+    @property
+    def lost(self) -> list[LostSpan]:
+        """Every unreadable part of the file, in the order it is reported."""
+        return ([self.tail] if self.tail else []) + self.bad_chunks + ([self.bad_summary] if self.bad_summary else [])
 
     @property
     def messages(self) -> int:
@@ -214,7 +225,23 @@ def scan(stream: IO[bytes], name: str, sink: Sink | None = None) -> ScanReport:
             emit(record)
         elif isinstance(record, Footer):
             report.footer = True
+            report.bad_summary = _check_summary(stream, start, record)
     return report
+
+
+def _check_summary(stream: IO[bytes], footer_offset: int, footer: Footer) -> LostSpan | None:
+    """The summary and the footer's offsets against the footer's CRC (None: they match, or there is no CRC)."""
+    if not footer.summary_crc:
+        return None
+    resume = stream.tell()
+    start = footer.summary_start or footer_offset
+    stream.seek(start)
+    covered = stream.read(footer_offset + _FOOTER_COVERED - start) if start <= footer_offset else b""
+    stream.seek(resume)
+    if zlib.crc32(covered) == footer.summary_crc:
+        return None
+    return LostSpan(start, footer_offset - start, "the summary (the index at the end of the file) fails its CRC "
+                    "check: index data only, the messages are in the chunks", "SUMMARY")
 
 
 def _read_chunk(chunk: Chunk, offset: int, size: int, report: ScanReport, gaps: _Gaps, emit: Sink) -> None:
@@ -341,7 +368,7 @@ def recover_stream(src: IO[bytes], out: IO[bytes], name: str, output_name: str) 
         "restarts": json.dumps({k: v for k, v in report.gaps.restarts().items()}),
         "planners": json.dumps(report.planners),
     })
-    lost = [s for s in ([report.tail] if report.tail else []) + report.bad_chunks]
+    lost = report.lost
     rewriter.writer.add_metadata(RECOVERY_METADATA, {
         "source": name,
         "source_bytes": str(report.size),
@@ -356,20 +383,33 @@ def recover_stream(src: IO[bytes], out: IO[bytes], name: str, output_name: str) 
 
 
 def recover_file(path: Path, output: Path) -> RecoveryReport:
-    if not path.exists():
-        raise FileNotFoundError(f"recording {path} does not exist")
+    """Recover ``path`` into ``output``; RecordingError (one line) for a file with nothing to recover, or an
+    output that cannot be written."""
     if output.resolve() == path.resolve():
         raise RecordingError(f"recover writes a new file: give an output other than {path} with -o")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".part")
-    with path.open("rb") as src, tmp.open("wb") as out:
-        report = recover_stream(src, out, str(path), str(output))
-    tmp.replace(output)  # never leave a half-written "recovered" file behind
+    with open_recording_file(path) as src:
+        tmp = output.with_name(output.name + ".part")
+        try:
+            output.parent.mkdir(parents=True, exist_ok=True)
+            out = tmp.open("wb")
+        except OSError as exc:
+            raise RecordingError(f"cannot write the recovered file {output}: {exc.strerror or exc}; choose "
+                                 "another one with -o") from None
+        try:
+            with out:
+                report = recover_stream(src, out, str(path), str(output))
+            tmp.replace(output)  # never leave a half-written "recovered" file behind
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise RecordingError(f"recovering {path} into {output} failed: {exc.strerror or exc}") from None
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     return report
 
 
 def default_recovery_path(path: Path) -> Path:
-    return path.with_name(f"{path.stem}-recovered{path.suffix or '.mcap'}")
+    return recovered_path(path)
 
 
 # -- formatting ----------------------------------------------------------------
@@ -413,6 +453,8 @@ def format_recovery(result: RecoveryReport) -> str:
     if report.tail is not None and report.tail.size:
         lost.append(_span_text(report.tail, session))
     lost += [_span_text(span, session) for span in report.bad_chunks]
+    if report.bad_summary is not None:
+        lost.append(_span_text(report.bad_summary, session) + " (recomputed in the recovered file)")
     if report.orphans:
         lost.append(f"{report.orphans} messages whose channel was defined in a lost chunk")
     lines.append("lost: nothing (the file was intact)" if not lost else "lost:\n  - " + "\n  - ".join(lost))
@@ -432,7 +474,7 @@ def format_info(report: ScanReport, *, full: bool = False) -> str:
     if report.intact:
         state = "intact"
     elif report.footer:
-        state = "damaged (readable to the end, but see below)"
+        state = f"damaged (readable to the end, but see below): run `nwr recover {report.path}`"
     else:
         state = f"NOT finished (no summary or footer): run `nwr recover {report.path}`"
     lines = [f"file      {report.path} ({_size(report.size)}), {state}"]
@@ -476,8 +518,7 @@ def format_info(report: ScanReport, *, full: bool = False) -> str:
     undecodable = sum(c.undecodable for c in report.channels.values())
     if undecodable:
         lines.append(f"messages that do not decode against their key's type: {undecodable}")
-    lost = ([report.tail] if report.tail else []) + report.bad_chunks
-    for span_ in lost:
+    for span_ in report.lost:
         if span_.size:
             lines.append(f"unreadable: {_span_text(span_, session)}")
 
@@ -516,9 +557,8 @@ def _size(n: int) -> str:
 
 
 def info_file(path: Path) -> ScanReport:
-    if not path.exists():
-        raise FileNotFoundError(f"recording {path} does not exist")
-    with path.open("rb") as f:
+    """Scan the file at ``path``; RecordingError (one line) for one that holds nothing to describe."""
+    with open_recording_file(path) as f:
         return scan(f, str(path))
 
 

@@ -124,9 +124,14 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
     from nwr.services.pipeline.lockstep import Lockstep
 
     lockstep = Lockstep(profile, strategy=strategy)
-    output.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        stream = output.open("wb")
+    except OSError as exc:
+        raise ConfigError(f"cannot write the recording {output}: {exc.strerror or exc}; choose another file "
+                          "with -o") from None
     robot = profile.robot.name
-    with output.open("wb") as stream:
+    with stream:
         recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
                                 chunk_size=profile.recorder.chunk_size)
         first = (skin.stamp(0) if len(skin) else 0) if isinstance(skin, SkinSource) else \
@@ -217,6 +222,7 @@ def _layout_for(args: argparse.Namespace, output: Path) -> tuple[Layout, str]:
 def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
     source = Path(args.file)
+    # Read (and checked) before anything is started: a bad file ends the replay with one line.
     records, metadata = read_recording(source)
     topics = [t for t in (args.topics.split(",") if args.topics else REPLAYABLE) if t]
     bad = [t for t in topics if t not in REPLAYABLE]
@@ -229,6 +235,8 @@ def _run(args: argparse.Namespace) -> int:
     strategy = args.reflex or metadata.get("session", {}).get("strategy") or profile.planner.strategy
     default_out = Path(profile.recorder.directory) / f"{source.stem}-replay-{args.reflex or 'external'}.mcap"
     output = Path(args.output) if args.output else default_out
+    if output.resolve() == source.resolve():
+        raise ConfigError(f"-o {output} is the recording being replayed: write the replay to another file")
     span = (chosen[-1].log_time_ns - chosen[0].log_time_ns) / 1e9
 
     if args.resimulate and not args.fast:

@@ -17,13 +17,12 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
-from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from nwr.common.errors import NwrError
-from nwr.common.recordings import Recorded, read_recording
+from nwr.common.recordings import Recorded, RecordingReader, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
 
@@ -37,7 +36,10 @@ class ExportError(NwrError):
 
 
 def load_records(path: Path) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
-    """The pipeline's messages of a recording (an exported one too: the view's channels are skipped)."""
+    """The pipeline's messages of a recording (an exported one too: the view's channels are skipped).
+
+    RecordingError (one line, naming the file and what to do) for a file that is no finished recording.
+    """
     return read_recording(path)
 
 
@@ -63,7 +65,10 @@ class ExportReport:
 
 def export_foxglove(src: Path, dst: Path, *, rate_hz: float = DEFAULT_RATE_HZ,
                     description: str | None = None) -> ExportReport:
-    """Write ``dst``: ``src`` plus the view's channels (see the module docstring)."""
+    """Write ``dst``: ``src`` plus the view's channels (see the module docstring).
+
+    ``dst`` appears only once it is complete (it is written to ``<dst>.part`` first).
+    """
     if src.resolve() == dst.resolve():
         raise ExportError(f"output {dst} is the input: write the export to another file")
     records, metadata = load_records(src)
@@ -73,52 +78,71 @@ def export_foxglove(src: Path, dst: Path, *, rate_hz: float = DEFAULT_RATE_HZ,
     if not records:
         raise ExportError(f"{src} holds no message of the pipeline: nothing to draw")
     outputs = recording_timeline(records, rate_hz, description)
+    del records
+    tmp = dst.with_name(dst.name + ".part")
+    try:
+        fout = tmp.open("wb")
+    except OSError as exc:
+        raise ExportError(f"cannot write {dst}: {exc.strerror or exc}; choose another output file") from None
+    try:
+        with fout, RecordingReader(src) as reader:
+            report = _write_export(reader, fout, outputs, src, rate_hz)
+        tmp.replace(dst)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ExportError(f"cannot write {dst}: {exc.strerror or exc}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    log.info("exported %s -> %s", src, dst)
+    return report
+
+
+def _write_export(reader: RecordingReader, fout: IO[bytes], outputs: list[Output], src: Path,
+                  rate_hz: float) -> ExportReport:
+    """Every record of ``reader`` and the view's ``outputs``, merged in log-time order, into ``fout``."""
     added: dict[str, int] = {}
     copied = 0
-    with src.open("rb") as fin, dst.open("wb") as fout:
-        writer = Writer(fout, compression=CompressionType.ZSTD)
-        writer.start(profile="nwr", library="nwr view export")
-        reader = make_reader(fin)
-        for record in reader.iter_metadata():
-            writer.add_metadata(record.name, dict(record.metadata))
-        fin.seek(0)
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        view_ids: dict[str, int] = {}
-        for spec in CHANNELS:
-            sid = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema)
-            view_ids[spec.topic] = writer.register_channel(spec.topic, spec.message_encoding, sid)
+    writer = Writer(fout, compression=CompressionType.ZSTD)
+    writer.start(profile="nwr", library="nwr view export")
+    for name, data in reader.metadata_records():
+        writer.add_metadata(name, data)
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    view_ids: dict[str, int] = {}
+    for spec in CHANNELS:
+        sid = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema)
+        view_ids[spec.topic] = writer.register_channel(spec.topic, spec.message_encoding, sid)
 
-        def originals() -> Iterator[tuple[int, int, Any]]:
-            for schema, channel, msg in make_reader(fin).iter_messages(log_time_order=True):
-                if channel.topic in CHANNEL_BY_TOPIC:
-                    raise ExportError(f"{src} already has a channel {channel.topic!r}: export the original recording")
-                if channel.id not in channel_ids:
-                    sid = 0
-                    if schema is not None:
-                        if schema.id not in schema_ids:
-                            schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                        sid = schema_ids[schema.id]
-                    channel_ids[channel.id] = writer.register_channel(
-                        channel.topic, channel.message_encoding, sid, dict(channel.metadata))
-                yield msg.log_time, 0, msg
+    def originals() -> Iterator[tuple[int, int, Any]]:
+        for schema, channel, msg in reader.messages():
+            if channel.topic in CHANNEL_BY_TOPIC:
+                raise ExportError(f"{src} already has a channel {channel.topic!r}: export the original recording")
+            if channel.id not in channel_ids:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schema_ids:
+                        schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schema_ids[schema.id]
+                channel_ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+            yield msg.log_time, 0, msg
 
-        def views() -> Iterator[tuple[int, int, Any]]:
-            for out in outputs:
-                yield out.log_time_ns, 1, out
+    def views() -> Iterator[tuple[int, int, Any]]:
+        for out in outputs:
+            yield out.log_time_ns, 1, out
 
-        for _t, kind, item in heapq.merge(originals(), views(), key=lambda x: (x[0], x[1])):
-            if kind == 0:
-                writer.add_message(channel_ids[item.channel_id], item.log_time, item.data, item.publish_time,
-                                   item.sequence)
-                copied += 1
-            else:
-                writer.add_message(view_ids[item.topic], item.log_time_ns, item.data, item.log_time_ns)
-                added[item.topic] = added.get(item.topic, 0) + 1
-        writer.add_metadata(EXPORT_METADATA, {
-            "source": src.name, "scene_rate_hz": f"{rate_hz:g}",
-            "channels": json.dumps({spec.topic: spec.schema_name for spec in CHANNELS}),
-        })
-        writer.finish()
-    log.info("exported %s -> %s", src, dst)
+    for _t, kind, item in heapq.merge(originals(), views(), key=lambda x: (x[0], x[1])):
+        if kind == 0:
+            writer.add_message(channel_ids[item.channel_id], item.log_time, item.data, item.publish_time,
+                               item.sequence)
+            copied += 1
+        else:
+            writer.add_message(view_ids[item.topic], item.log_time_ns, item.data, item.log_time_ns)
+            added[item.topic] = added.get(item.topic, 0) + 1
+    writer.add_metadata(EXPORT_METADATA, {
+        "source": src.name, "scene_rate_hz": f"{rate_hz:g}",
+        "channels": json.dumps({spec.topic: spec.schema_name for spec in CHANNELS}),
+    })
+    writer.finish()
     return ExportReport(copied, added)
