@@ -277,7 +277,8 @@ def test_services_survive_hostile_input_and_report_it(session, records, capsys):
     codes = {(d.service, d.code) for d in diags}
     # A command of 100,000 joints and absurd pressures decode, and the door refuses them (common/door.py).
     for expected in [("bridge", "decode_error"), ("bridge", "command_rejected"),
-                     ("bridge", "refused_wrong_joint_count"), ("bridge", "command_out_of_order"), ("bridge", "command_jump"), ("bridge", "command_clipped"),
+                     ("bridge", "refused_wrong_joint_count"), ("bridge", "command_out_of_order"),
+                     ("bridge", "command_jump"), ("bridge", "command_clipped"),
                      ("gain", "decode_error"), ("gain", "refused_pressure_out_of_range")]:
         assert expected in codes, (expected, sorted(codes))
     states = states_between(records, session.hostile_start_ns, session.kill_ns)
