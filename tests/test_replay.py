@@ -71,6 +71,32 @@ def test_lockstep_reproduces_the_pipeline_decisions(strategy):
     # returns take seconds, and this short script's next touch and end come first (test_limits has the full story).
 
 
+@pytest.mark.parametrize("strategy", ["uniform", "cartesian"])
+def test_a_standby_planner_s_statuses_do_not_change_the_summary(strategy):
+    """A session with a standby planner (nwr up --planners, every study block) is summarised as one without.
+
+    The standby planner mirrors the active one's mode a status period late and
+    plans shadow reflexes: its statuses, mixed in, made every reflex look
+    resumed 10 ms after its onset, with no withdrawal.
+    """
+    samples = skin_samples()
+    records = as_records(samples, run_lockstep(strategy, samples))
+    alone = analysis.summarize(records, DESC)
+    standby: list[Recorded] = []
+    mode = "TASK"
+    for r in records:
+        if r.key.startswith("reflex/") and r.key.endswith("/status"):
+            st = r.message
+            shadow = None if st.reflex is None else msgspec.structs.replace(st.reflex, shadow=True)
+            standby.append(Recorded("reflex/standby/status", r.log_time_ns + 5_000_000, msgspec.structs.replace(
+                st, name="standby", strategy="location", active=False, mode=mode, saved_pose=None, reflex=shadow,
+                stamp_ns=st.stamp_ns + 5_000_000)))
+            mode = st.mode  # one status late
+    both = sorted(records + standby, key=lambda r: r.log_time_ns)
+    assert analysis.summarize(both, DESC) == alone
+    assert any(t.withdrawal_mm and t.withdrawal_mm > 1.0 for t in alone)
+
+
 def test_select_by_topic_and_time():
     records = [Recorded("skin/pressure", 10**9 + i * 10**8, i) for i in range(50)]
     records.insert(3, Recorded("robot/state", 10**9 + 3 * 10**8, "x"))

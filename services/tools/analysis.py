@@ -58,7 +58,10 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
     pressure = [r.message for r in records if r.key == "skin/pressure"]
     pain = [r.message for r in records if r.key == "skin/pain"]
     states = [r.message for r in records if r.key == "robot/state"]
-    statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")]
+    # The active planner's statuses only: a standby planner mirrors the active one a status period late (its
+    # mode, its task time) and plans shadow reflexes that never moved the arm.
+    statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
+                and r.message.active and (r.message.reflex is None or not r.message.reflex.shadow)]
 
     touches = _segment(pressure, desc)
     by_seq = {p.trace.seq: p for p in pain}
