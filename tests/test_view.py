@@ -248,6 +248,9 @@ def test_onset_latency_is_published_once_per_reflex():
     assert len(onset) == 1 and onset[0]["latency_ms"] == pytest.approx(2.5) and onset[0]["reflex_seq"] == 3
     core.apply(state(DESC.home, seq=1, reflex_seq=3, accepted=m.Trace(11, 1_000_000), accepted_ns=3_500_000))
     assert not [s for t, s in core.frame(1).signals if t == "/nwr/onset"]
+    # Back in the task, the bridge's states still name the last onset (with reflex_seq 0): not another one.
+    core.apply(state(DESC.home, seq=2, reflex_seq=0, accepted=m.Trace(11, 1_000_000), accepted_ns=3_500_000))
+    assert not [s for t, s in core.frame(2).signals if t == "/nwr/onset"]
 
 
 def test_ghost_of_a_joint_reflex_and_of_a_cartesian_one():

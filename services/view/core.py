@@ -431,7 +431,7 @@ class ViewCore:
         # What was already published, so that event-like signals go out once.
         self._skin_sent: tuple[int, int] | None = None
         self._status_sent: dict[str, int] = {}
-        self._onset_sent: tuple[int, int] | None = None
+        self._onset_sent: int | None = None
 
     def apply(self, message: Any) -> None:
         """Keep ``message`` as the newest of its kind (other kinds are ignored)."""
@@ -488,7 +488,9 @@ class ViewCore:
                 "stamp_ns": state.stamp_ns, "seq": state.seq, "q": list(state.q), "status": state.status,
                 "active_planner": state.owner, "command_mode": state.command_mode, "reflex_seq": state.reflex_seq,
             }))
-            onset = (state.reflex_seq, state.accepted_ns)
+            # One per onset the bridge accepted: its states name the last one until the next (with reflex_seq 0
+            # once the arm is back in its task), so the onset is its acceptance time, not the state's reflex.
+            onset = state.accepted_ns
             if state.accepted is not None and state.accepted_ns > 0 and onset != self._onset_sent:
                 self._onset_sent = onset
                 reflex = status.reflex if status is not None else None
