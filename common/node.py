@@ -40,13 +40,22 @@ log = logging.getLogger(__name__)
 SLOTS = {"gateway": 0, "gain": 1, "planner": 2, "bridge": 3, "recorder": 4}
 
 
+LOG_FORMAT = "%(asctime)s {service:>8s} %(levelname)-7s %(name)s: %(message)s"
+
+
 def setup_logging(level: str = "INFO", service: str = "nwr") -> None:
     """Configure logging once per process."""
     logging.basicConfig(
         level=getattr(logging, level.upper(), logging.INFO),
-        format=f"%(asctime)s {service:>8s} %(levelname)-7s %(name)s: %(message)s",
+        format=LOG_FORMAT.format(service=service),
         datefmt="%H:%M:%S",
     )
+
+
+def relabel_logging(service: str) -> None:
+    """Label this process's log lines with ``service`` (a planner's name is known once its profile is)."""
+    for handler in logging.getLogger().handlers:
+        handler.setFormatter(logging.Formatter(LOG_FORMAT.format(service=service), datefmt="%H:%M:%S"))
 
 
 def endpoints(cfg: ZenohSection) -> list[str]:

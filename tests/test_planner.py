@@ -154,6 +154,8 @@ def test_stronger_and_new_contacts_update_the_reflex_weaker_ones_do_not():
     other = DESC.pad("forearm_bottom").id
     cmd = sim.pain(other, 0.2)  # a new pad, weaker, still updates
     assert cmd is not None and cmd.reflex_seq == 3 and sim.p.reflex.contact.pad == other
+    # What the exit line counts: one reflex started from the task, two restarts, none in shadow.
+    assert (sim.p.started, sim.p.restarted, sim.p.shadowed) == (1, 2, 0)
 
 
 def test_touch_during_returning_keeps_the_saved_pose():

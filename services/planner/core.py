@@ -139,7 +139,10 @@ class Planner:
         self.initialized = False
         self.saved: np.ndarray | None = None
         self.reflex: Reflex | None = None
-        self.reflex_count = 0
+        self.reflex_count = 0  # reflex numbers given: started, restarted and shadow ones
+        self.started = 0  # reflexes started from the task
+        self.restarted = 0  # a reflex started again by a new or stronger contact during a reflex or its return
+        self.shadowed = 0  # reflexes planned in shadow, while another planner was active
         self.last_gain = np.zeros(len(desc.pads))
         self.last_level = [1] * len(desc.pads)
         self.trace = m.Trace(-1, 0)
@@ -310,6 +313,10 @@ class Planner:
             stronger = contact.gain > current + self.cfg.update_margin
             if not (new_pad or stronger):
                 return None
+        if self.mode == "TASK":
+            self.started += 1
+        else:
+            self.restarted += 1
         self._start_reflex(contact, pain.trace, now_ns)
         # This command is the reflex's first cycle: the control loop skips its
         # next tick rather than advancing the motion twice in one period.
@@ -329,6 +336,7 @@ class Planner:
         if not (previous[contact.pad] <= 0.0 or contact.gain > current + self.cfg.update_margin):
             return
         self.reflex_count += 1
+        self.shadowed += 1
         shadow = Reflex(self.reflex_count, contact, trace, now_ns)
         self._onset(shadow)
         if shadow.target is not None:

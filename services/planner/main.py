@@ -11,7 +11,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.door import Door
-from nwr.common.node import Node
+from nwr.common.node import Node, relabel_logging
 from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel
 from nwr.services.planner import strategies
@@ -82,6 +82,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     # Each planner instance has its own liveliness token, diagnostics and
     # journal keys, alive/planner-<name> and so on: the bridge watches the
     # token of the active one.
+    relabel_logging(keys.planner_service(cfg.name))  # several planners run at once: each line says which
     with Node(keys.planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner",
               token=False, door=Door.of(profile)) as node:
         node.install_signal_handlers()
@@ -169,5 +170,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             node.stop.set()
             checker.join(1.0)
             log.info(rate.summary())
-            log.info("%d reflexes, %d resynchronisations", planner.reflex_count, planner.resyncs)
+            log.info("%d reflexes started from the task, %d restarted by a new or stronger contact, %d planned in "
+                     "shadow while standby; %d resynchronisations", planner.started, planner.restarted,
+                     planner.shadowed, planner.resyncs)
     return 0
