@@ -33,6 +33,7 @@ import json
 import struct
 import zlib
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, TypeVar
@@ -502,6 +503,31 @@ _RECORD_HEADER = struct.Struct("<BQ")  # opcode, length
 _FOOTER = struct.Struct("<BQQQI")
 _FOOTER_OPCODE, _FOOTER_LENGTH, _HEADER_OPCODE = 0x02, 20, 0x01
 _TAIL_SIZE = _FOOTER.size + len(MCAP_MAGIC)
+
+
+@contextmanager
+def new_file(output: Path, what: str) -> Iterator[IO[bytes]]:
+    """Write ``output`` (``what`` names it in errors) through ``<output>.part``: it appears whole or not at all.
+
+    A file that cannot be created or written is a one-line RecordingError, and leaves nothing behind.
+    """
+    tmp = output.with_name(output.name + ".part")
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        stream = tmp.open("wb")
+    except OSError as exc:
+        raise RecordingError(f"cannot write {what} {output}: {exc.strerror or exc}; choose another file with -o") \
+            from None
+    try:
+        with stream:
+            yield stream
+        tmp.replace(output)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise RecordingError(f"writing {what} {output} failed: {exc.strerror or exc}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def recovered_path(path: Path) -> Path:

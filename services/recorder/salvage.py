@@ -37,6 +37,7 @@ from nwr.common.recordings import (
     SESSION_METADATA,
     GapCounter,
     RecordingError,
+    new_file,
     open_recording_file,
     publisher_of,
     recovered_path,
@@ -387,25 +388,8 @@ def recover_file(path: Path, output: Path) -> RecoveryReport:
     output that cannot be written."""
     if output.resolve() == path.resolve():
         raise RecordingError(f"recover writes a new file: give an output other than {path} with -o")
-    with open_recording_file(path) as src:
-        tmp = output.with_name(output.name + ".part")
-        try:
-            output.parent.mkdir(parents=True, exist_ok=True)
-            out = tmp.open("wb")
-        except OSError as exc:
-            raise RecordingError(f"cannot write the recovered file {output}: {exc.strerror or exc}; choose "
-                                 "another one with -o") from None
-        try:
-            with out:
-                report = recover_stream(src, out, str(path), str(output))
-            tmp.replace(output)  # never leave a half-written "recovered" file behind
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            raise RecordingError(f"recovering {path} into {output} failed: {exc.strerror or exc}") from None
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-    return report
+    with open_recording_file(path) as src, new_file(output, "the recovered file") as out:
+        return recover_stream(src, out, str(path), str(output))
 
 
 def default_recovery_path(path: Path) -> Path:

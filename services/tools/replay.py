@@ -46,7 +46,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
-from nwr.common.recordings import McapRecorder, Recorded, read_recording, session_metadata
+from nwr.common.recordings import McapRecorder, Recorded, new_file, read_recording, session_metadata
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
 from nwr.services.pipeline.graph import Layout, process_name, recorder_args, units
@@ -124,14 +124,8 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
     from nwr.services.pipeline.lockstep import Lockstep
 
     lockstep = Lockstep(profile, strategy=strategy)
-    try:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        stream = output.open("wb")
-    except OSError as exc:
-        raise ConfigError(f"cannot write the recording {output}: {exc.strerror or exc}; choose another file "
-                          "with -o") from None
     robot = profile.robot.name
-    with stream:
+    with new_file(output, "the recording") as stream:
         recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
                                 chunk_size=profile.recorder.chunk_size)
         first = (skin.stamp(0) if len(skin) else 0) if isinstance(skin, SkinSource) else \

@@ -22,7 +22,7 @@ from typing import IO, Any
 from mcap.writer import CompressionType, Writer
 
 from nwr.common.errors import NwrError
-from nwr.common.recordings import Recorded, RecordingReader, read_recording
+from nwr.common.recordings import Recorded, RecordingReader, new_file, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
 
@@ -79,21 +79,8 @@ def export_foxglove(src: Path, dst: Path, *, rate_hz: float = DEFAULT_RATE_HZ,
         raise ExportError(f"{src} holds no message of the pipeline: nothing to draw")
     outputs = recording_timeline(records, rate_hz, description)
     del records
-    tmp = dst.with_name(dst.name + ".part")
-    try:
-        fout = tmp.open("wb")
-    except OSError as exc:
-        raise ExportError(f"cannot write {dst}: {exc.strerror or exc}; choose another output file") from None
-    try:
-        with fout, RecordingReader(src) as reader:
-            report = _write_export(reader, fout, outputs, src, rate_hz)
-        tmp.replace(dst)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise ExportError(f"cannot write {dst}: {exc.strerror or exc}") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with new_file(dst, "the export") as fout, RecordingReader(src) as reader:
+        report = _write_export(reader, fout, outputs, src, rate_hz)
     log.info("exported %s -> %s", src, dst)
     return report
 
