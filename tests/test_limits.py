@@ -18,10 +18,10 @@ from nwr.common.config import Profile, TouchScript, load_profile, load_script
 from nwr.common.journal import Untracked
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
+from nwr.common.task import FigureEight
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gateway.sources import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
-from nwr.services.planner.task import FigureEight
 from nwr.services.tools import analysis
 from nwr.services.wiring import no_diag
 

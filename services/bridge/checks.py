@@ -185,3 +185,44 @@ def check_command(cmd: object, env: Envelope, ctx: CheckContext) -> Checked:
             out.clipped = True
             out.values = values / worst
     return out
+
+
+class Reach:
+    """The range each joint covered in this session, and the task path's: where a handover's first motion may go.
+
+    After a switch, the incoming planner's motion (other than a withdrawal)
+    must stay within the range each joint was commanded to in the session
+    so far, widened by the task's own range (its amplitudes around home)
+    and ``margin``: a planner misled into a pose the arm was never at is
+    refused before it moves. The range is per joint (a box, which holds the
+    straight line between any two poses in it): the planners check the poses
+    themselves against what they measured (:mod:`nwr.services.planner.claims`).
+    """
+
+    def __init__(self, q0: np.ndarray, joints: tuple[str, ...], task: tuple[np.ndarray, np.ndarray] | None = None,
+                 margin: float = 0.1) -> None:
+        self.joints = joints
+        self.lo = np.array(q0, dtype=float)
+        self.hi = np.array(q0, dtype=float)
+        self.task = task
+        self.margin = margin
+        if task is not None:
+            self.add(task[0])
+            self.add(task[1])
+
+    def add(self, q: np.ndarray) -> None:
+        np.minimum(self.lo, q, out=self.lo)
+        np.maximum(self.hi, q, out=self.hi)
+
+    def outside(self, poses: np.ndarray) -> str | None:
+        """Why a pose of ``poses`` (one, or rows) lies outside the range, or None."""
+        rows = np.atleast_2d(poses)
+        beyond = np.maximum(self.lo - self.margin - rows, rows - self.hi - self.margin)
+        if not (beyond > 0.0).any():
+            return None
+        k, i = (int(x) for x in np.unravel_index(int(np.argmax(beyond)), beyond.shape))
+        value = float(rows[k, i])
+        return (f"joint {self.joints[i]} to {value:.4f} rad, outside [{self.lo[i]:.3f}, {self.hi[i]:.3f}] "
+                f"(the range it covered in this session{' and the task' if self.task is not None else ''}) by more "
+                f"than {self.margin} rad")
+

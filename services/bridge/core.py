@@ -25,9 +25,9 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
-from nwr.services.bridge.checks import CheckContext, Event, check_command, command_name
+from nwr.services.bridge.checks import CheckContext, Event, Reach, check_command, command_name
 from nwr.services.bridge.envelope import Envelope
-from nwr.services.bridge.tracking import Tracker
+from nwr.services.bridge.tracking import REJOIN_FLOOR_M_S, Tracker
 
 # A control step never integrates more than this, s: after a stall of the
 # bridge's loop the arm is not teleported along a long step.
@@ -37,6 +37,10 @@ REST_SPEED = 1e-6
 # After a switch, the outgoing planner's commands are dropped quietly this long
 # (it learns of the switch from the next robot state), ns.
 PREVIOUS_OWNER_GRACE_NS = 200_000_000
+# A handover's first motion, s: the incoming planner's stream is followed no
+# faster than the outgoing one moved the arm, and only within the range the arm
+# covered in the session, for at least this long and until the arm has joined it.
+HANDOVER_S = 1.0
 
 SetpointMode = Literal["position", "velocity", "hold"]
 # Statuses during which the bridge brings the arm to rest and holds it.
@@ -78,6 +82,7 @@ class BridgeCore:
         period_s: float = 0.002,
         limiter: CartesianLimiter | None = None,
         reduced: Limits | None = None,
+        task_range: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
@@ -128,6 +133,12 @@ class BridgeCore:
         self.handover: m.Handover | None = None
         self.previous_owner = ""
         self.previous_until_ns = 0
+        # Where a handover's first motion may go, and whether it is under way:
+        # from the switch until the arm has joined the incoming planner's stream
+        # (no faster than the outgoing stream moved: no catch-up, no lunge).
+        self.reach = Reach(q0, env.joints, task_range)
+        self.joining = False
+        self.joining_cap = REJOIN_FLOOR_M_S
         self.publish_now = False  # something others must learn at once (a switch)
 
     # -- inputs -----------------------------------------------------------------
@@ -169,6 +180,17 @@ class BridgeCore:
         if checked.restarted:
             self.events.append(Event("info", "command_seq_restart",
                                      f"{command_name(cmd)}: seq fell back from {self.last_seq}: a restarted planner"))
+        if self.joining and cmd.phase != "REFLEX" and isinstance(cmd, m.PositionCommand):
+            poses = checked.values if checked.ahead is None else np.vstack([checked.values, checked.ahead])
+            outside = self.reach.outside(poses)
+            if outside is not None:
+                self.rejected += 1
+                self.events.append(Event(
+                    "error", "handover_refused",
+                    f"{command_name(cmd)} rejected: the first motion after the switch to {cmd.owner!r} moves "
+                    f"{outside}: a pose the arm was never at, off the task's path",
+                ))
+                return Verdict(False, False)
         if self.fault is not None:
             # The controller stopped the arm; nothing moves until the fault is cleared.
             self.events.append(Event(
@@ -198,6 +220,8 @@ class BridgeCore:
             self.accepted_ns = now_ns
         if self.handover is not None and self.handover.first_command_ns == 0 and cmd.owner == self.handover.owner:
             self.handover = msgspec.structs.replace(self.handover, first_command_ns=now_ns)
+            # The incoming stream, joined no faster than the outgoing one moved, for HANDOVER_S at least.
+            tracker.begin_rejoin(cap=self.joining_cap, cycles=round(HANDOVER_S / tracker.period_s))
             self.events.append(Event(
                 "info", "handover_done",
                 f"planner {self.handover.owner!r} moves the arm: "
@@ -336,6 +360,8 @@ class BridgeCore:
         self.last_seq = None
         self.planner_alive = True
         self.planner_seen = True
+        self.joining = True
+        self.joining_cap = max(self.tracker.stream_peak, REJOIN_FLOOR_M_S)
         self.events.append(Event("info", "switched", f"active planner is now {request.name!r} (was {previous!r})"))
         self.publish_now = True
         return True
@@ -444,8 +470,12 @@ class BridgeCore:
             clipped = tracker.track(h, self.last_step_ns, self.active)
             if clipped is not None:
                 self._report_clip(clipped)
+            if self.joining and self.handover is not None and self.handover.first_command_ns and not tracker.rejoining:
+                self.joining = False  # the arm follows the incoming planner's stream
         else:
             tracker.hold()
+        if not self.joining:  # the first motion of a handover does not widen where it may go
+            self.reach.add(tracker.q)
         return self._setpoint(h)
 
     def _setpoint(self, h: float) -> Setpoint:

@@ -73,6 +73,8 @@ class Tracker:
         # After a hold, a position stream is rejoined no faster than any point of
         # the arm moved in the stream itself (its peak so far): no catch-up.
         self.rejoining = False
+        self.rejoin_cap: float | None = None  # a fixed cap for the rejoin (a handover's), m/s
+        self.rejoin_cycles = 0  # control cycles the rejoin lasts at least
         self.stream_peak = 0.0
         self.limited = 0  # control cycles the Cartesian limits scaled
         self.period_s = period_s  # the control period, s
@@ -244,9 +246,16 @@ class Tracker:
         bounded = self._limit(v_des.tolist(), h, None, active)
         return clipped or bounded
 
-    def begin_rejoin(self) -> None:
-        """The arm was held: rejoin the stream (when it is a position stream) at no more than its own speed."""
+    def begin_rejoin(self, cap: float | None = None, cycles: int = 0) -> None:
+        """Rejoin the stream (when it is a position stream) at no more than its own peak speed, or ``cap`` (m/s).
+
+        After a hold, the stream's own peak so far; after a switch, the
+        outgoing stream's (the incoming one's speed is its claim) for at
+        least ``cycles`` control cycles, joined or not.
+        """
         self.rejoining = True
+        self.rejoin_cap = cap
+        self.rejoin_cycles = cycles
 
     def _limit(self, v_des: list[float], h: float, target: list[float] | None, active: str) -> Event | None:
         """Integrate one cycle towards ``v_des`` within the envelope (per joint, in floats); a clip, if any.
@@ -316,7 +325,7 @@ class Tracker:
             own = float(limiter.speeds(self.q, self.v_ff).max()) if self.v_ff.any() else 0.0
             self.stream_peak = min(max(self.stream_peak, own), limiter.limits.speed_m_s)
             if self.rejoining:
-                cap = max(self.stream_peak, REJOIN_FLOOR_M_S)
+                cap = self.rejoin_cap if self.rejoin_cap is not None else max(self.stream_peak, REJOIN_FLOOR_M_S)
         else:
             self.rejoining = False
         if self.withdrawal and not self.reflex and \
@@ -325,7 +334,9 @@ class Tracker:
             self.toward = None
         dq = np.array(v)
         scaling = limiter.scale(self.q, dq, withdrawal=self.withdrawal, toward=self.toward, speed_cap=cap)
-        if self.rejoining and (scaling is None or scaling.what != "rejoin speed") and target is not None:
+        self.rejoin_cycles -= 1
+        if self.rejoining and self.rejoin_cycles <= 0 and (scaling is None or scaling.what != "rejoin speed") \
+                and target is not None:
             if float(np.max(np.abs(np.asarray(target) - self.q))) < REJOIN_TOLERANCE_RAD:
                 self.rejoining = False
         if scaling is None:

@@ -30,6 +30,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
+from nwr.common.task import FigureEight
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.core import BridgeCore, at_rest
@@ -65,7 +66,8 @@ class BridgeWiring:
                  backend: Backend | None = None) -> None:
         cfg = profile.bridge
         env, q0, n_pads = envelope_for(profile)
-        model = RobotModel(load_description(profile.robot.description or None))
+        desc = load_description(profile.robot.description or None)
+        model = RobotModel(desc)
         if backend is None:  # the simulated arm, as the profile describes it
             backend = SimBackend(env, 1.0 / cfg.rate_hz, q0)
             backend.connect()
@@ -84,6 +86,7 @@ class BridgeWiring:
             limiter=CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits"), a_max=env.a_max,
                                      j_max=env.j_max),
             reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
+            task_range=FigureEight(profile.planner.task, desc.home).range(),
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0

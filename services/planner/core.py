@@ -44,13 +44,15 @@ from ruckig import InputParameter, OutputParameter, Result, Ruckig, RuckigError,
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner import retreat, strategies
+from nwr.common.task import FigureEight, TaskClock, nearest_time
+from nwr.services.planner import claims, retreat, strategies
 from nwr.services.planner.strategies import ReflexStrategy
-from nwr.services.planner.task import FigureEight, TaskClock
 
 log = logging.getLogger(__name__)
 
 RESYNC_RAD = 0.2  # commanded vs measured pose disagreement that forces a resync
+# A refused or contradicting claim of one planner is reported at most this often (per kind), ns.
+NOTE_EVERY_NS = 5_000_000_000
 # The share of a Cartesian speed limit the planner's own motions plan for (the bridge enforces the whole).
 CARTESIAN_MARGIN = 0.9
 # A joint that need not move still gets this speed limit, rad/s (ruckig needs one > 0).
@@ -159,6 +161,10 @@ class Planner:
         self.peer: m.PlannerStatus | None = None  # the active planner's status, when another one is
         self.peer_ns = 0
         self.shadow: Reflex | None = None  # what this planner would do, while inactive
+        self.seen = claims.Seen(n)  # the arm as measured: what a peer's claims are checked against
+        # Diagnostics for the adapter to publish (level, code, message), and when each (code, claimant) last was.
+        self.notes: list[tuple[str, str, str]] = []
+        self._noted: dict[tuple[str, str], int] = {}
         self._otg = Ruckig(n, self.dt)
         self._otg_in = InputParameter(n)
         self._otg_out = OutputParameter(n)
@@ -180,8 +186,9 @@ class Planner:
 
     # -- inputs -------------------------------------------------------------
     def on_state(self, q: np.ndarray, following: bool, *, dq: np.ndarray | None = None,
-                 owner: str | None = None, now_ns: int = 0) -> None:
-        """Measured joints from the bridge, whether it follows this planner, and whom it follows."""
+                 owner: str | None = None, now_ns: int = 0, phase: m.Mode = "TASK", ok: bool = True) -> None:
+        """Measured joints from the bridge, whether it follows this planner, whom it follows, in which phase."""
+        self.seen.observe(q, phase, ok, self.name if owner is None else owner, now_ns)
         if owner is not None and owner != self.name:
             self._mirror(q, dq, now_ns)
             return
@@ -214,15 +221,74 @@ class Planner:
 
     # -- inactive: mirror the arm and the active planner, ready to take over -------
     def on_peer_status(self, status: m.PlannerStatus, now_ns: int) -> None:
-        """Another planner's status; the active one's is mirrored while this one is inactive."""
-        if status.name != self.name and status.active:
-            self.peer = status
-            self.peer_ns = now_ns
-            if not self.active:
-                if status.target_pad in self.targets:  # one study target, whoever is active
-                    self.target_index = self.targets.index(status.target_pad)
-                self.mode = status.mode
-                self.clock.s = self._peer_task_time(now_ns)
+        """Another planner's status: mirrored while this one is inactive, if the bridge does follow that planner.
+
+        A status is a claim: one that contradicts the bridge's measured state
+        (active while the bridge follows another planner, a phase or a task
+        pose other than the arm's, a saved pose outside every pose measured in
+        the session) is reported, naming the claimant, and never mirrored.
+        """
+        if status.name == self.name:
+            return
+        seen = self.seen
+        settled = seen.settled(now_ns)
+        if status.name != seen.owner:
+            if status.active and settled:
+                self._note("claim_contradicted", status.name, now_ns,
+                           f"planner {status.name!r} claims to be the active planner; the bridge follows "
+                           f"{seen.owner!r}: its status is ignored")
+            return
+        if not status.active:
+            return
+        problem = self._contradiction(status, now_ns) if settled else None
+        if problem is not None:
+            self._note("claim_contradicted", status.name, now_ns,
+                       f"planner {status.name!r}'s status contradicts the bridge's measured state: {problem}; "
+                       "it is not mirrored")
+            return
+        self.peer = status
+        self.peer_ns = now_ns
+        if not self.active:
+            if status.target_pad in self.targets:  # one study target, whoever is active
+                self.target_index = self.targets.index(status.target_pad)
+            self.mode = status.mode
+            self.clock.s = self._peer_task_time(now_ns)
+
+    def _contradiction(self, status: m.PlannerStatus, now_ns: int) -> str | None:
+        """What in the active planner's status disagrees with the arm as measured, if anything."""
+        seen = self.seen
+        assert seen.q is not None
+        if status.saved_pose is not None:
+            saved = np.asarray(status.saved_pose, dtype=float)
+            if saved.shape != seen.q.shape:
+                return f"a saved pose of {saved.size} joints"
+            outside = seen.outside_range(saved)
+            if outside is not None:
+                i, by = outside
+                return (f"its saved pose puts joint {self.desc.joints[i]} {by:.3f} rad outside the range measured "
+                        "in this session")
+        if status.mode != seen.phase:
+            return (f"mode {status.mode} while the bridge has followed its {seen.phase} commands for over "
+                    f"{claims.SETTLE_S} s")
+        if status.mode == "TASK":
+            claimed = status.task_time_s  # as of just now: it was published on receipt
+            off = claims.distance(self.task.position(claimed), seen.q)
+            if off > claims.TASK_TIME_RAD:
+                return f"task time {claimed:.3f} s puts the task {off:.3f} rad from the measured arm"
+        return None
+
+    def _note(self, code: str, claimant: str, now_ns: int, message: str) -> None:
+        """A diagnostic about a claimant; a contradiction at most every NOTE_EVERY_NS per claimant."""
+        last = self._noted.get((code, claimant))
+        if code == "claim_contradicted" and last is not None and now_ns - last < NOTE_EVERY_NS:
+            return
+        self._noted[(code, claimant)] = now_ns
+        log.warning("%s", message)
+        self.notes.append(("warning", code, message))
+
+    def drain_notes(self) -> list[tuple[str, str, str]]:
+        notes, self.notes = self.notes, []
+        return notes
 
     def _peer_task_time(self, now_ns: int) -> float:
         peer = self.peer
@@ -248,26 +314,75 @@ class Planner:
             self.clock.s = self._peer_task_time(now_ns)
 
     def _take_over(self, q: np.ndarray, dq: np.ndarray | None, now_ns: int) -> None:
-        """Become the active planner, continuing the motion of the outgoing one."""
+        """Become the active planner, continuing the motion of the outgoing one from what this planner verified.
+
+        The bridge switches between two task commands, so if it was following
+        a task the arm is on the task's path: the task continues at the time
+        whose pose is the arm's (the outgoing planner's claimed time if it
+        fits). If the outgoing planner died mid-reflex, the arm goes back to
+        where this planner saw it leave the task (the outgoing planner's
+        claimed saved pose only if it is that pose), else to the task's path.
+        """
         self.q = q.copy()
         self.dq = np.zeros_like(q) if dq is None else dq.copy()
         self.ddq[:] = 0.0
         self.shadow = None
         self._planned_ahead = 0
-        self.clock.s = self._peer_task_time(now_ns)
-        peer = self.peer
-        log.info("planner %r takes over at task time %.3f s (outgoing planner in %s)", self.name, self.clock.s,
-                 peer.mode if peer is not None else "unknown mode")
         self.changed = True
-        if peer is None or peer.mode == "TASK":
-            # The arm is on the task path at this task time: carry on at full speed.
-            self.mode = "TASK"
-            self.clock.since_resume = self.clock.ramp_s
-            self.saved = None
+        peer, seen = self.peer, self.seen
+        claimant = peer.name if peer is not None else ""
+        claimed_s = self._peer_task_time(now_ns)
+        if seen.phase == "TASK":
+            if peer is not None and peer.mode != "TASK":
+                self._note("claim_refused", claimant, now_ns,
+                           f"planner {claimant!r} claimed mode {peer.mode}, but the bridge was following its task: "
+                           f"planner {self.name!r} continues the task from the measured arm")
+            s, off = self._task_time_at(q, self.dq, claimed_s, claimant, now_ns)
+            self.clock.s = s
+            log.info("planner %r takes over at task time %.3f s (outgoing planner %r in %s)", self.name, s,
+                     claimant, peer.mode if peer is not None else "unknown mode")
+            if off <= claims.TASK_TIME_RAD:
+                self.mode = "TASK"  # the arm is on the task path at this task time: carry on at full speed
+                self.clock.since_resume = self.clock.ramp_s
+                self.saved = None
+                return
+            self.saved = self.task.position(s)  # off the path: back to its nearest point first
+            self._begin_return()
             return
-        # Taken over mid-reflex (the outgoing planner died): go back where it paused.
-        self.saved = np.asarray(peer.saved_pose) if peer.saved_pose else self.task.position(self.clock.s)
+        # Taken over mid-reflex (the outgoing planner died): go back where the arm left its task.
+        saved = seen.left_task
+        if peer is not None and peer.saved_pose:
+            claim = np.asarray(peer.saved_pose, dtype=float)
+            if saved is not None and claim.shape == saved.shape and claims.distance(claim, saved) <= claims.CONFIRM_RAD:
+                saved = claim
+            else:
+                where = ("this planner never saw the arm leave its task" if saved is None else
+                         f"it is {claims.distance(claim, saved):.3f} rad from where this planner saw the arm leave "
+                         "its task" if claim.shape == saved.shape else f"it has {claim.size} joints")
+                self._note("claim_refused", claimant, now_ns,
+                           f"planner {claimant!r}'s saved pose refused: {where}")
+        if saved is None:
+            s, _ = nearest_time(self.task, q, self.dq, claimed_s)  # nothing seen: the task's nearest point
+            saved = self.task.position(s)
+        else:
+            s, _ = self._task_time_at(saved, None, claimed_s, claimant, now_ns)
+        self.clock.s = s
+        self.saved = saved
+        log.info("planner %r takes over mid-reflex at task time %.3f s: returning to the saved pose", self.name, s)
         self._begin_return()
+
+    def _task_time_at(self, q: np.ndarray, dq: np.ndarray | None, claimed_s: float, claimant: str,
+                      now_ns: int) -> tuple[float, float]:
+        """The task time at pose ``q``: the claimed one if its pose is there, else the nearest; and the distance."""
+        off = claims.distance(self.task.position(claimed_s), q)
+        if off <= claims.TASK_TIME_RAD:
+            return claimed_s, off
+        s, nearest = nearest_time(self.task, q, dq, claimed_s)
+        if claimant:
+            self._note("claim_refused", claimant, now_ns,
+                       f"planner {claimant!r}'s task time {claimed_s:.3f} s puts the task {off:.3f} rad from the "
+                       f"arm; the task's own nearest time is {s:.3f} s ({nearest:.3f} rad)")
+        return s, nearest
 
     def restart(self) -> None:
         """After a failed cycle: forget the motion, start again from the arm's next measured state."""

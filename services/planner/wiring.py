@@ -83,7 +83,9 @@ class PlannerWiring:
         now = self.journal.now_ns()
         self._catch_up(now)
         planner.on_state(q, following=state.owner == self.name and state.status == "ok",
-                         dq=m.as_array(state.dq), owner=state.owner, now_ns=now)
+                         dq=m.as_array(state.dq), owner=state.owner, now_ns=now, phase=state.phase,
+                         ok=state.status == "ok")
+        self._notes()
         if planner.changed:
             self._status(self.journal.now_ns())
 
@@ -108,7 +110,17 @@ class PlannerWiring:
 
     def on_peer_status(self, key: str, status: m.PlannerStatus) -> None:
         self.journal.begin("status", key, status)
+        if key != keys.planner_status(status.name):
+            self.diag("warning", "status_spoofed",
+                      f"a status on {key} claims to be planner {status.name!r}'s: ignored (a planner's status names "
+                      "the planner whose key it comes on)")
+            return
         self.planner.on_peer_status(status, self.journal.now_ns())
+        self._notes()
+
+    def _notes(self) -> None:
+        for level, code, message in self.planner.drain_notes():
+            self.diag(level, code, message)
 
     def tick(self) -> None:
         """The control loop woke: step the cycles due, publish the status when it is due."""

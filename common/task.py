@@ -28,6 +28,11 @@ class FigureEight:
     def position(self, s: float) -> np.ndarray:
         return self.home + self.amplitude * np.sin(self.multiple * self.omega * s)
 
+    def range(self) -> tuple[np.ndarray, np.ndarray]:
+        """The lowest and highest position of each joint on the task's path."""
+        reach = np.abs(self.amplitude)
+        return self.home - reach, self.home + reach
+
     def velocity(self, s: float) -> np.ndarray:
         """dq/ds."""
         return self.amplitude * self.multiple * self.omega * np.cos(self.multiple * self.omega * s)
@@ -56,3 +61,34 @@ class TaskClock:
         self.s += rate * dt
         self.since_resume += dt
         return rate
+
+
+def nearest_time(task: FigureEight, q: np.ndarray, dq: np.ndarray | None = None, near_s: float = 0.0,
+                 samples: int = 1440) -> tuple[float, float]:
+    """The task time whose pose is nearest ``q`` (every joint), and that distance, rad.
+
+    The eight crosses itself (at home, twice a period): where several times
+    fit as well, the one whose direction agrees with the measured ``dq`` wins,
+    or without motion the one nearest ``near_s``. The time returned is the one
+    of its period nearest ``near_s``, so a task clock keeps counting.
+    """
+    period = 2.0 * np.pi / task.omega
+    s = np.linspace(0.0, period, samples, endpoint=False)
+    phase = np.outer(s, task.multiple * task.omega)
+    poses = task.home + task.amplitude * np.sin(phase)
+    error = np.max(np.abs(poses - q), axis=1)
+    fits = np.flatnonzero(error <= error.min() + 0.02)
+    if dq is not None and float(np.max(np.abs(dq))) > 1e-3:
+        velocity = task.amplitude * task.multiple * task.omega * np.cos(phase[fits])
+        agree = velocity @ dq / np.maximum(np.linalg.norm(velocity, axis=1), 1e-12)
+        best = int(fits[int(np.argmax(agree))])
+    else:
+        gap = np.abs((s[fits] - near_s + period / 2.0) % period - period / 2.0)
+        best = int(fits[int(np.argmin(gap))])
+    # Refine within one sample on either side.
+    fine = s[best] + np.linspace(-1.0, 1.0, 41) * (period / samples)
+    fine_error = np.array([float(np.max(np.abs(task.position(x) - q))) for x in fine])
+    k = int(np.argmin(fine_error))
+    found = float(fine[k])
+    found += period * round((near_s - found) / period)
+    return found, float(fine_error[k])
