@@ -83,6 +83,7 @@ class BridgeCore:
         limiter: CartesianLimiter | None = None,
         reduced: Limits | None = None,
         task_range: tuple[np.ndarray, np.ndarray] | None = None,
+        task_peak_m_s: float = 0.0,
     ) -> None:
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
@@ -135,8 +136,10 @@ class BridgeCore:
         self.previous_until_ns = 0
         # Where a handover's first motion may go, and whether it is under way:
         # from the switch until the arm has joined the incoming planner's stream
-        # (no faster than the outgoing stream moved: no catch-up, no lunge).
+        # (no faster than the task's fastest point, or than the outgoing stream
+        # moved the arm if that was faster: no catch-up, no lunge).
         self.reach = Reach(q0, env.joints, task_range)
+        self.task_peak_m_s = task_peak_m_s  # the task's own fastest point, m/s (0: unknown)
         self.joining = False
         self.joining_cap = REJOIN_FLOOR_M_S
         self.publish_now = False  # something others must learn at once (a switch)
@@ -361,7 +364,7 @@ class BridgeCore:
         self.planner_alive = True
         self.planner_seen = True
         self.joining = True
-        self.joining_cap = max(self.tracker.stream_peak, REJOIN_FLOOR_M_S)
+        self.joining_cap = max(self.tracker.stream_peak, self.task_peak_m_s, REJOIN_FLOOR_M_S)
         self.events.append(Event("info", "switched", f"active planner is now {request.name!r} (was {previous!r})"))
         self.publish_now = True
         return True

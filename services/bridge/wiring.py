@@ -58,6 +58,12 @@ def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
     return env, q0, len(desc.pads)
 
 
+def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimiter, samples: int = 240) -> float:
+    """The speed of the task's fastest point (any the limits watch) over one period, m/s."""
+    return max(float(limiter.speeds(task.position(s), task.velocity(s)).max())
+               for s in np.linspace(0.0, period_s, samples, endpoint=False))
+
+
 class BridgeWiring:
     service = SERVICE
     outputs = (keys.ROBOT_STATE,)
@@ -78,15 +84,18 @@ class BridgeWiring:
         self.journal = journal
         self.out = out
         self.diag = diag
+        limiter = CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits"), a_max=env.a_max,
+                                   j_max=env.j_max)
+        task = FigureEight(profile.planner.task, desc.home)
         journal.begin("start")
         self.core = BridgeCore(
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
             command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
             seq_restart_gap=cfg.seq_restart_gap, period_s=1.0 / cfg.rate_hz,
-            limiter=CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits"), a_max=env.a_max,
-                                     j_max=env.j_max),
+            limiter=limiter,
             reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
-            task_range=FigureEight(profile.planner.task, desc.home).range(),
+            task_range=task.range(),
+            task_peak_m_s=task_peak_speed(task, profile.planner.task.period_s, limiter),
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0
