@@ -273,3 +273,26 @@ def test_a_handover_s_first_motion_goes_no_faster_and_nowhere_the_arm_has_not_be
     assert max(speeds) <= peak * 1.001
     assert refused and "wrist_3" in refused[0].message and "'b'" in refused[0].message
     assert abs(c.tracker.q[5] - q0[5]) <= 0.1 + 1e-9
+
+
+def test_a_reflex_right_after_a_switch_is_not_slowed_and_ends_the_handover():
+    profile = Profile()
+    env, q0, n_pads = envelope_for(profile)
+    limiter = CartesianLimiter(MODEL, Limits.of(profile.bridge.limits, MODEL, "bridge.limits"), a_max=env.a_max,
+                               j_max=env.j_max)
+    c = BridgeCore(env, q0, 0, active="a", n_pads=n_pads, limiter=limiter)
+    for name in ("a", "b"):
+        c.on_planner_token(name, True, 0)
+    c.on_skin(skin(pads=n_pads), 0)
+    assert c.on_command(pos(q0, owner="a", seq=1, stamp=2 * MS), 2 * MS).accepted
+    c.step(2 * MS)
+    assert c.request_switch(request("b", stamp=2 * MS), 2 * MS) and c.joining
+    target = q0.copy()
+    target[2] += 0.09  # the elbow withdraws toward where the arm never was
+    assert c.on_command(pos(target, owner="b", seq=1, phase="REFLEX", reflex=1, stamp=4 * MS), 4 * MS).accepted
+    assert not c.joining and not c.tracker.rejoining  # a withdrawal is the planner's own: no handover cap
+    c.step(4 * MS)
+    back = target.copy()
+    back[2] += 0.05  # its return, from outside the range covered before the switch
+    verdict = c.on_command(pos(back, owner="b", seq=2, phase="RETURNING", reflex=1, stamp=6 * MS), 6 * MS)
+    assert verdict.accepted and not [e for e in c.drain_events() if e.code == "handover_refused"]

@@ -204,6 +204,10 @@ class BridgeCore:
         onset = cmd.phase == "REFLEX" and cmd.reflex_seq != self.reflex_seq
         if onset:
             tracker.toward = self._toward()  # into the contact, fixed at the onset
+            # A withdrawal is never slowed to a stream's speed, and it ends a handover's first motion:
+            # the reflex and its return are the planner's answer to a contact, not a claim.
+            tracker.rejoining = False
+            self.joining = False
         tracker.reflex = cmd.phase == "REFLEX"
         tracker.withdrawal = tracker.withdrawal or tracker.reflex
         if isinstance(cmd, m.PositionCommand):
@@ -223,8 +227,8 @@ class BridgeCore:
             self.accepted_ns = now_ns
         if self.handover is not None and self.handover.first_command_ns == 0 and cmd.owner == self.handover.owner:
             self.handover = msgspec.structs.replace(self.handover, first_command_ns=now_ns)
-            # The incoming stream, joined no faster than the outgoing one moved, for HANDOVER_S at least.
-            tracker.begin_rejoin(cap=self.joining_cap, cycles=round(HANDOVER_S / tracker.period_s))
+            if self.joining:  # the incoming stream, joined no faster than the task, for HANDOVER_S at least
+                tracker.begin_rejoin(cap=self.joining_cap, cycles=round(HANDOVER_S / tracker.period_s))
             self.events.append(Event(
                 "info", "handover_done",
                 f"planner {self.handover.owner!r} moves the arm: "

@@ -267,7 +267,7 @@ class Planner:
                 i, by = outside
                 return (f"its saved pose puts joint {self.desc.joints[i]} {by:.3f} rad outside the range measured "
                         "in this session")
-        if status.mode != seen.phase:
+        if (status.mode == "TASK") != (seen.phase == "TASK"):  # a return ends a withdrawal: either may show
             return (f"mode {status.mode} while the bridge has followed its {seen.phase} commands for over "
                     f"{claims.SETTLE_S} s")
         if status.mode == "TASK":
