@@ -233,7 +233,8 @@ def test_inactive_planner_computes_shadow_reflexes():
                                DESC.home[:4] + np.array([1, -1, 1, 1]) * np.radians([20, 35, 73, 36.5]), atol=1e-9)
 
 
-def test_a_handover_s_first_motion_goes_no_faster_and_nowhere_the_arm_has_not_been():
+def ur10e_bridge():
+    """The UR10e's bridge with the profile's Cartesian limits, planners a (active) and b alive."""
     profile = Profile()
     env, q0, n_pads = envelope_for(profile)
     limiter = CartesianLimiter(MODEL, Limits.of(profile.bridge.limits, MODEL, "bridge.limits"), a_max=env.a_max,
@@ -241,6 +242,11 @@ def test_a_handover_s_first_motion_goes_no_faster_and_nowhere_the_arm_has_not_be
     c = BridgeCore(env, q0, 0, active="a", n_pads=n_pads, limiter=limiter)
     for name in ("a", "b"):
         c.on_planner_token(name, True, 0)
+    return c, q0, n_pads, limiter
+
+
+def test_a_handover_s_first_motion_goes_no_faster_and_nowhere_the_arm_has_not_been():
+    c, q0, n_pads, limiter = ur10e_bridge()
     t, q, seq = 0, q0.copy(), 0
 
     def cycle(owner, velocity):
@@ -276,13 +282,7 @@ def test_a_handover_s_first_motion_goes_no_faster_and_nowhere_the_arm_has_not_be
 
 
 def test_a_reflex_right_after_a_switch_is_not_slowed_and_ends_the_handover():
-    profile = Profile()
-    env, q0, n_pads = envelope_for(profile)
-    limiter = CartesianLimiter(MODEL, Limits.of(profile.bridge.limits, MODEL, "bridge.limits"), a_max=env.a_max,
-                               j_max=env.j_max)
-    c = BridgeCore(env, q0, 0, active="a", n_pads=n_pads, limiter=limiter)
-    for name in ("a", "b"):
-        c.on_planner_token(name, True, 0)
+    c, q0, n_pads, limiter = ur10e_bridge()
     c.on_skin(skin(pads=n_pads), 0)
     assert c.on_command(pos(q0, owner="a", seq=1, stamp=2 * MS), 2 * MS).accepted
     c.step(2 * MS)

@@ -155,13 +155,9 @@ class BridgeCore:
         there is.
         """
         if publisher is not None and cmd.owner != publisher:
-            self.rejected += 1
-            self.events.append(Event(
-                "error", "command_spoofed",
-                f"{command_name(cmd)} rejected: it came on robot/command/{publisher} but claims owner "
-                f"{cmd.owner!r}: a planner may command only under its own name",
-            ))
-            return Verdict(False, False)
+            return self._reject("command_spoofed",
+                                f"{command_name(cmd)} rejected: it came on robot/command/{publisher} but claims owner "
+                                f"{cmd.owner!r}: a planner may command only under its own name")
         if cmd.owner == self.previous_owner and cmd.owner != self.active and now_ns < self.previous_until_ns:
             # The outgoing planner has not seen the switch yet: expected, not hostile.
             self.rejected += 1
@@ -187,13 +183,9 @@ class BridgeCore:
             poses = checked.values if checked.ahead is None else np.vstack([checked.values, checked.ahead])
             outside = self.reach.outside(poses)
             if outside is not None:
-                self.rejected += 1
-                self.events.append(Event(
-                    "error", "handover_refused",
-                    f"{command_name(cmd)} rejected: the first motion after the switch to {cmd.owner!r} moves "
-                    f"{outside}: a pose the arm was never at, off the task's path",
-                ))
-                return Verdict(False, False)
+                return self._reject("handover_refused",
+                                    f"{command_name(cmd)} rejected: the first motion after the switch to "
+                                    f"{cmd.owner!r} moves {outside}: a pose the arm was never at, off the task's path")
         if self.fault is not None:
             # The controller stopped the arm; nothing moves until the fault is cleared.
             self.events.append(Event(
@@ -237,6 +229,12 @@ class BridgeCore:
         self._evaluate(now_ns)
         switched = self._maybe_switch(now_ns)
         return Verdict(True, onset, switched)
+
+    def _reject(self, code: str, message: str) -> Verdict:
+        """A command refused as hostile or misled: counted and reported as an error."""
+        self.rejected += 1
+        self.events.append(Event("error", code, message))
+        return Verdict(False, False)
 
     def on_skin(self, pressure: m.SkinPressure, now_ns: int) -> None:
         """A skin sample: fresh skin data (if it is this robot's skin)."""
