@@ -199,6 +199,25 @@ class PlannerSection(_Section):
     v_max_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.25
     # Duration of a Cartesian reflex, s (the paper's 0.5 s).
     reflex_duration_s: Positive = 0.5
+    # Sustained contact. "hold" (this project's behaviour): once a withdrawal's
+    # motion ends the arm stays away (mode HOLDING) while the touch lasts; the
+    # return begins once no pad it would approach has felt a touch (pain level
+    # 2 or more) for release_s, or after max_hold_s along directions that bring
+    # no pad closer to a touch still felt; a return that feels a touch ahead
+    # stops there and holds. A pad the arm cannot move away from its contact
+    # (its joints cannot move it along its normal) holds still, reported.
+    # "paper": the paper's exact behaviour, for a lab reproducing its study:
+    # the return begins as soon as the withdrawal's motion ends.
+    sustained_contact: Literal["hold", "paper"] = "hold"
+    release_s: Annotated[float, msgspec.Meta(ge=0, le=5)] = 0.3
+    max_hold_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
+    # Returns and approaches (to the saved pose, to the task's start): no point
+    # of the arm faster than return_speed_m_s (at most bridge.limits.speed_m_s),
+    # and the touched pad no faster than approach_speed_m_s within
+    # approach_distance_m of where it was touched.
+    return_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.2
+    approach_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.05
+    approach_distance_m: Annotated[float, msgspec.Meta(ge=0, le=0.5)] = 0.05
     # During a reflex, a contact must exceed the current reflex's gain by this
     # much to update it (a new pad always updates it).
     update_margin: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.05

@@ -35,8 +35,9 @@ import numpy as np
 FINITE_BOUND = 1e12
 Finite = Annotated[float, msgspec.Meta(ge=-FINITE_BOUND, le=FINITE_BOUND)]
 
-MODES = ("TASK", "REFLEX", "RETURNING")
-Mode = Literal["TASK", "REFLEX", "RETURNING"]
+# HOLDING: the withdrawal's motion is over and the arm stays away while the touch lasts (planner.sustained_contact).
+MODES = ("TASK", "REFLEX", "RETURNING", "HOLDING")
+Mode = Literal["TASK", "REFLEX", "RETURNING", "HOLDING"]
 
 RobotStatus = Literal[
     "ok",  # following commands
@@ -278,6 +279,9 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     retreat: Retreat | None = None
     # Computed by an inactive planner: what it would have done.
     shadow: bool = False
+    # False: no motion of the joints can move the touched pad away from the contact in this pose (its
+    # normal speed is below a centimetre a second at the joint limits); the arm holds still instead.
+    withdraws: bool = True
 
 
 class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):
