@@ -26,6 +26,7 @@ log = logging.getLogger("nwr")
 COMMAND_MODULES: list[str] = [
     "nwr.services.tools.demo",
     "nwr.services.tools.summary",
+    "nwr.services.tools.press",
     "nwr.services.recorder.commands",
     "nwr.services.tools.figures",
     "nwr.services.view.commands",

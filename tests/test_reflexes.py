@@ -95,8 +95,8 @@ def test_smooth_profile_keeps_the_displacement_and_ramps():
     assert np.max(np.abs(np.diff(s))) < 0.01  # no step
 
 
-def start(strategy, pad, gain=1.0, guarded=False, level=4):
-    planner = Planner(PlannerSection(strategy=strategy, guarded=guarded), DESC, MODEL)
+def start(strategy, pad, gain=1.0, guarded=False, level=4, sustained="hold"):
+    planner = Planner(PlannerSection(strategy=strategy, guarded=guarded, sustained_contact=sustained), DESC, MODEL)
     planner.on_state(DESC.home.copy(), following=True)
     while planner.mode != "TASK":
         planner.step(0)
@@ -110,14 +110,16 @@ def start(strategy, pad, gain=1.0, guarded=False, level=4):
     return planner, first
 
 
+@pytest.mark.parametrize("sustained", ["hold", "paper"])
 @pytest.mark.parametrize("strategy", ["uniform", "location"])
-def test_joint_reflexes_are_position_controlled_and_reach_their_target(strategy):
-    planner, first = start(strategy, "wrist_2")
+def test_joint_reflexes_are_position_controlled_and_reach_their_target(strategy, sustained):
+    planner, first = start(strategy, "wrist_2", sustained=sustained)
     assert isinstance(first, m.PositionCommand) and first.phase == "REFLEX"
     target = planner.reflex.target.copy()
     while planner.mode == "REFLEX":
         planner.step(0)
-    assert planner.mode == "RETURNING"
+    # The paper returns at once; hold mode holds first, while the touch may last.
+    assert planner.mode == ("HOLDING" if sustained == "hold" else "RETURNING")
     np.testing.assert_allclose(planner.q, target, atol=1e-6)
 
 

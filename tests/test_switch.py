@@ -197,11 +197,16 @@ def _reflex_then_takeover(saved_pose):
 
 
 def test_a_takeover_mid_reflex_returns_where_it_saw_the_arm_leave_the_task():
+    # It holds first (planner.sustained_contact = "hold"): the touch may still be there; nothing is felt, so the
+    # return begins at its first check.
     b, saved = _reflex_then_takeover(None)
-    assert b.mode == "RETURNING" and np.allclose(b.saved, saved, atol=1e-12)  # the claim, confirmed
+    assert b.mode == "HOLDING" and np.allclose(b.saved, saved, atol=1e-12)  # the claim, confirmed
     assert not b.drain_notes()
     b, saved = _reflex_then_takeover(lambda q: (q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])).tolist())
-    assert b.mode == "RETURNING" and claims.distance(b.saved, saved) < 0.02  # where it saw the arm leave the task
+    assert b.mode == "HOLDING" and claims.distance(b.saved, saved) < 0.02  # where it saw the arm leave the task
+    for _ in range(20):
+        b.step(b.hold_since_ns + 25 * MS)
+    assert b.mode == "RETURNING"
     notes = b.drain_notes()
     assert [code for _, code, _ in notes] == ["claim_refused"] and "saved pose refused" in notes[0][2]
 

@@ -12,11 +12,26 @@
   *stronger* one (gain above the current reflex's by ``update_margin``)
   updates the reflex: new target or direction from the current motion state
   (the trajectory blends, nothing jumps), duration restarted, new number.
+- HOLDING (``sustained_contact = "hold"``, the default): once the reflex's
+  motion is over the arm brakes to rest and stays away while the touch
+  lasts. The return begins when the touched pad has not felt a touch (pain
+  level 2 or more) for ``release_s`` and no other pad that feels one would
+  be brought closer to it by the return. After ``max_hold_s`` the arm
+  returns only as far as it can without bringing any pad closer to a touch
+  still felt, and holds there. A reflex that cannot move the touched pad
+  away from the contact (its retreat check finds under 2 mm of withdrawal)
+  stops and holds at once, reported (``ReflexInfo.withdraws``). With
+  ``sustained_contact = "paper"`` (the paper's behaviour) there is no
+  HOLDING: the return begins as soon as the reflex's motion is over.
 - RETURNING: a jerk-limited trajectory (ruckig) from wherever the reflex
-  left the arm, velocity included, back to the saved pose. A new or stronger
-  contact here starts a new reflex but keeps the saved pose: the arm always
-  goes back to where the task paused. On arrival the task resumes where it
-  paused, easing in.
+  left the arm, velocity included, back to the saved pose, no point of the
+  arm faster than ``return_speed_m_s``; its last ``approach_distance_m`` (of
+  the touched pad's way back to where it was touched, or of the point that
+  travels farthest) at ``approach_speed_m_s``. A new or stronger contact
+  here starts a new reflex but keeps the saved pose: the arm always goes
+  back to where the task paused. In hold mode a touch felt on a pad the
+  return brings closer to it stops the return (a jerk-limited brake) and
+  the arm holds there. On arrival the task resumes where it paused, easing in.
 
 The core keeps its own commanded state (q, q_dot, q_ddot), integrated at
 the nominal control period and within the joint limits, so every command is
@@ -37,9 +52,19 @@ from __future__ import annotations
 import copy
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-from ruckig import InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization, Trajectory
+from ruckig import (
+    ControlInterface,
+    InputParameter,
+    OutputParameter,
+    Result,
+    Ruckig,
+    RuckigError,
+    Synchronization,
+    Trajectory,
+)
 
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
@@ -57,6 +82,12 @@ NOTE_EVERY_NS = 5_000_000_000
 CARTESIAN_MARGIN = 0.9
 # A joint that need not move still gets this speed limit, rad/s (ruckig needs one > 0).
 MIN_JOINT_SPEED = 1e-3
+# A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
+FELT_LEVEL = 2
+# A reflex whose planned motion withdraws the touched pad less than this cannot withdraw it, m.
+WITHDRAW_MIN_M = 0.002
+# How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
+HOLD_CHECK_NS = 20_000_000
 
 
 @dataclass
@@ -70,6 +101,10 @@ class Reflex:
     target: np.ndarray | None = None
     corrected: bool = False
     retreat: m.Retreat | None = None
+    withdraws: bool = True  # False: its retreat check found the touched pad cannot move away from the contact
+    # Hold mode: the motion ends here (s from its start), where the touched pad is furthest from the contact,
+    # when the strategy's motion would bring it back toward the contact afterwards.
+    stop_at_s: float | None = None
 
 
 @dataclass
@@ -147,6 +182,15 @@ class Planner:
         self.shadowed = 0  # reflexes planned in shadow, while another planner was active
         self.last_gain = np.zeros(len(desc.pads))
         self.last_level = [1] * len(desc.pads)
+        self.holds = cfg.sustained_contact == "hold"
+        self.felt_ns = np.full(len(desc.pads), np.iinfo(np.int64).min // 2, dtype=np.int64)  # each pad's last touch
+        self.hold_since_ns = 0
+        self.held_max = False  # this hold has reached max_hold_s (and made its partial return, if any)
+        self.partial = False  # the return under way is a partial one after max_hold_s: hold again on arrival
+        self.braking = False  # HOLDING: still braking to rest
+        self._hold_check_ns = 0
+        # The return's legs still to run after the current trajectory: (target, joint speed limits).
+        self._legs: list[tuple[np.ndarray, np.ndarray]] = []
         self.trace = m.Trace(-1, 0)
         self.seq = 0
         self.status_seq = 0
@@ -173,6 +217,18 @@ class Planner:
         self._otg_in.max_jerk = (cfg.speed_fraction * desc.j_max).tolist()
         if limits is not None:  # the way stays on the straight line the Cartesian caps are computed for
             self._otg_in.synchronization = Synchronization.Phase
+        # The hold's brake: from the commanded state to rest, jerk-limited.
+        self._brake = Ruckig(n, self.dt)
+        self._brake_in = InputParameter(n)
+        self._brake_out = OutputParameter(n)
+        self._brake_in.control_interface = ControlInterface.Velocity
+        self._brake_in.max_velocity = self._otg_in.max_velocity
+        self._brake_in.max_acceleration = self._otg_in.max_acceleration
+        self._brake_in.max_jerk = self._otg_in.max_jerk
+        self._brake_in.target_velocity = [0.0] * n
+        self._brake_in.target_acceleration = [0.0] * n
+        # Returns and approaches: every point of the arm within this, m/s.
+        self.return_speed = cfg.return_speed_m_s if limits is None else min(cfg.return_speed_m_s, limits.speed_m_s)
 
     @staticmethod
     def _target_order(cfg: PlannerSection, desc: RobotDescription) -> list[int]:
@@ -216,7 +272,9 @@ class Planner:
             self.ddq[:] = 0.0
             if self.mode == "TASK":
                 self.saved = self.task.position(self.clock.s)
-            if self.mode != "REFLEX":
+            if self.mode == "HOLDING" or (self.mode == "RETURNING" and self.partial):
+                self._begin_hold(now_ns, keep_since=True)
+            elif self.mode != "REFLEX":
                 self._begin_return()
 
     # -- inactive: mirror the arm and the active planner, ready to take over -------
@@ -368,6 +426,11 @@ class Planner:
             s, _ = self._task_time_at(saved, None, claimed_s, claimant, now_ns)
         self.clock.s = s
         self.saved = saved
+        if self.holds:
+            log.info("planner %r takes over mid-reflex at task time %.3f s: holding until no touch is felt, then "
+                     "returning to the saved pose", self.name, s)
+            self._begin_hold(now_ns)
+            return
         log.info("planner %r takes over mid-reflex at task time %.3f s: returning to the saved pose", self.name, s)
         self._begin_return()
 
@@ -414,21 +477,24 @@ class Planner:
             self.target_index += 1  # the study's target was touched: the next pad lights up
             self.changed = True
         self.last_level = list(pain.level)
+        if len(pain.level) == len(self.felt_ns):
+            self.felt_ns[np.asarray(pain.level) >= FELT_LEVEL] = now_ns
         contact = pain.strongest
         if not self.active:
             self._on_pain_inactive(contact, previous, pain.trace, now_ns)
             return None
-        if not self.initialized or contact is None or not contact.gain > 0:
+        if not self.initialized:
+            return None
+        if contact is None or not contact.gain > 0 or not self._reacts_to(contact, previous):
+            if self.holds and self.mode == "RETURNING" and not self.partial:
+                ahead = self._felt_ahead(now_ns)
+                if ahead:
+                    names = ", ".join(self.desc.pads[i].name for i in ahead)
+                    log.info("the return would press on a touch felt on %s: stopping it there", names)
+                    self._begin_hold(now_ns)
             return None
         if self.mode == "TASK":
             self.saved = self.q.copy()
-        else:
-            current = self.reflex.contact.gain if self.reflex is not None else 0.0
-            new_pad = previous[contact.pad] <= 0.0
-            stronger = contact.gain > current + self.cfg.update_margin
-            if not (new_pad or stronger):
-                return None
-        if self.mode == "TASK":
             self.started += 1
         else:
             self.restarted += 1
@@ -437,6 +503,13 @@ class Planner:
         # next tick rather than advancing the motion twice in one period.
         self._advanced_early = True
         return self._advance_reflex(now_ns)
+
+    def _reacts_to(self, contact: m.Contact, previous: np.ndarray) -> bool:
+        """Whether a contact with a gain starts a reflex: always from the task; else a new pad or a stronger one."""
+        if self.mode == "TASK":
+            return True
+        current = self.reflex.contact.gain if self.reflex is not None else 0.0
+        return bool(previous[contact.pad] <= 0.0 or contact.gain > current + self.cfg.update_margin)
 
     def _on_pain_inactive(self, contact: m.Contact | None, previous: np.ndarray, trace: m.Trace, now_ns: int) -> None:
         """Shadow mode: what this planner would do on the same touch, from the arm's pose now."""
@@ -458,9 +531,9 @@ class Planner:
             path, dt = self._preview_to(shadow.target, contact)
         else:
             path, dt = self._integrate_stream(self.q, 0.0)
-        shadow.retreat = retreat.assess(self.model, path, dt, contact.pad).to_message(
-            contact.pad, shadow.corrected or self.strategy.corrections > 0
-        )
+        assessment = retreat.assess(self.model, path, dt, contact.pad)
+        shadow.retreat = assessment.to_message(contact.pad, shadow.corrected or self.strategy.corrections > 0)
+        shadow.withdraws = assessment.furthest_m >= WITHDRAW_MIN_M
         self.shadow = shadow
         self.changed = True
 
@@ -483,6 +556,8 @@ class Planner:
 
     # -- transitions --------------------------------------------------------
     def _start_reflex(self, contact: m.Contact, trace: m.Trace, now_ns: int) -> None:
+        self.braking = self.partial = self.held_max = False
+        self._legs = []
         self.reflex_count += 1
         reflex = Reflex(self.reflex_count, contact, trace, now_ns)
         self._onset(reflex)
@@ -507,8 +582,9 @@ class Planner:
         return self._joint_speeds_for(target, self.limits.withdrawal_speed_m_s, toward, self.limits.speed_m_s)
 
     def _ruckig_to(self, target: np.ndarray, speed_m_s: float | None = None, *,
-                   speeds: np.ndarray | None = None) -> None:
-        """Start a jerk-limited trajectory from the current commanded state to rest at ``target``.
+                   speeds: np.ndarray | None = None, velocity: np.ndarray | None = None) -> None:
+        """Start a jerk-limited trajectory from the current commanded state to ``target`` (at rest, or at
+        ``velocity``).
 
         ``speed_m_s``: no point of the arm (pads, elbow, flange) may move faster
         (:meth:`_joint_speeds_for`), so that the bridge's Cartesian limits hold
@@ -520,12 +596,13 @@ class Planner:
         inp.current_velocity = self.dq.tolist()
         inp.current_acceleration = self.ddq.tolist()
         inp.target_position = target.tolist()
-        inp.target_velocity = [0.0] * len(self.q)
+        inp.target_velocity = [0.0] * len(self.q) if velocity is None else velocity.tolist()
         inp.target_acceleration = [0.0] * len(self.q)
         self._otg.reset()
 
     def _joint_speeds_for(self, target: np.ndarray, speed_m_s: float | None, toward: np.ndarray | None = None,
-                          toward_m_s: float = 0.0) -> np.ndarray:
+                          toward_m_s: float = 0.0, start: np.ndarray | None = None, point: int | None = None,
+                          point_m_s: float = 0.0) -> np.ndarray:
         """Joint speed limits under which no point moves faster than ``speed_m_s`` on the way to ``target``.
 
         On a straight line in joint space, at joint velocity ``k * d`` (``d`` the
@@ -534,37 +611,43 @@ class Planner:
         ``margin * speed`` (J_p at the start, the middle and the end of the way;
         margin: the pose between them, and a start at speed off the line).
         With ``toward``, the component of every point's velocity along it is
-        held to ``toward_m_s`` the same way. The trajectory is
+        held to ``toward_m_s`` the same way; with ``point`` (a row of the
+        speed Jacobians), that point's speed to ``point_m_s``; ``start``: the
+        way's start, if not the commanded pose. The trajectory is
         phase-synchronised, so it follows that line.
         """
         if speed_m_s is None:
             return self.v_limit
-        d = target - self.q
+        q0 = self.q if start is None else start
+        d = target - q0
         rate = 0.0  # the largest speed over limit ratio per unit of k
-        for q in (self.q, 0.5 * (self.q + target), target):
+        for q in (q0, 0.75 * q0 + 0.25 * target, 0.5 * (q0 + target), 0.25 * q0 + 0.75 * target, target):
             v = self.model.speed_jacobians(q) @ d
             rate = max(rate, float(np.linalg.norm(v, axis=1).max()) / speed_m_s)
             if toward is not None:
                 rate = max(rate, float((v @ toward).max()) / toward_m_s)
+            if point is not None:
+                rate = max(rate, float(np.linalg.norm(v[point])) / point_m_s)
         if rate <= 0.0:
             return self.v_limit
         caps = CARTESIAN_MARGIN * np.abs(d) / rate
         return np.minimum(self.v_limit, np.maximum(caps, MIN_JOINT_SPEED))
 
-    def _ruckig_step(self) -> bool:
-        """Advance the trajectory one cycle; True once it has arrived."""
+    def _ruckig_step(self, otg: Ruckig | None = None, inp: InputParameter | None = None,
+                     out: OutputParameter | None = None) -> bool:
+        """Advance the trajectory (or the brake: ``otg``, ``inp``, ``out``) one cycle; True once it has arrived."""
+        otg, inp, out = otg or self._otg, inp or self._otg_in, out or self._otg_out
         try:
-            result = self._otg.update(self._otg_in, self._otg_out)
+            result = otg.update(inp, out)
         except RuckigError as exc:  # an input ruckig cannot work from: stop this motion where it is
             log.error("trajectory generation failed (%s): stopping this motion where it is", exc)
             self.dq[:] = 0.0
             self.ddq[:] = 0.0
             return True
-        out = self._otg_out
         self.q = np.asarray(out.new_position)
         self.dq = np.asarray(out.new_velocity)
         self.ddq = np.asarray(out.new_acceleration)
-        out.pass_to_input(self._otg_in)
+        out.pass_to_input(inp)
         if result not in (Result.Working, Result.Finished):
             log.error("trajectory generation failed (%s): stopping this motion where it is", result)
             self.dq[:] = 0.0
@@ -572,11 +655,158 @@ class Planner:
             return True
         return result == Result.Finished
 
-    def _begin_return(self) -> None:
+    def _begin_return(self, target: np.ndarray | None = None) -> None:
+        """Back to the saved pose (or ``target``, a partial return), the last stretch at the approach speed."""
         assert self.saved is not None
-        self._ruckig_to(self.saved, self.limits.speed_m_s if self.limits else None)
+        self._legs = self._return_legs(self.saved if target is None else target)
+        goal, speeds = self._legs.pop(0)
+        velocity = None
+        if self._legs:  # arrive at the approach's start at its cruise velocity: no stop between the legs
+            after, slow = self._legs[0]
+            d = after - goal
+            moving = np.abs(d) > 1e-9
+            if moving.any():
+                velocity = d * float(np.min(slow[moving] / np.abs(d[moving])))
+        self._ruckig_to(goal, speeds=speeds, velocity=velocity)
+        self.braking = False
         self.mode = "RETURNING"
         self.changed = True
+
+    def _return_legs(self, target: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The return's legs on the straight line to ``target``: (end, joint speed limits) each.
+
+        Every point of the arm within the return speed; over the last
+        ``approach_distance_m`` of the approaching point's way (the touched
+        pad's, back to where it was touched; without a reflex, the pad or
+        flange that travels farthest) that point within the approach speed.
+        """
+        cfg = self.cfg
+        q0 = self.q.copy()
+        approach = min(cfg.approach_speed_m_s, self.return_speed)
+        row, at = self._approaching_point(q0, target)
+        goal = at(target)
+        if np.linalg.norm(at(q0) - goal) <= cfg.approach_distance_m:
+            return [(target, self._joint_speeds_for(target, self.return_speed, start=q0, point=row,
+                                                    point_m_s=approach))]
+        d = target - q0
+        lo, hi = 0.0, 1.0  # the fraction of the way where the approach begins (bisection: the distance shrinks)
+        for _ in range(14):
+            mid = 0.5 * (lo + hi)
+            if np.linalg.norm(at(q0 + mid * d) - goal) > cfg.approach_distance_m:
+                lo = mid
+            else:
+                hi = mid
+        start = q0 + lo * d
+        slow = self._joint_speeds_for(target, self.return_speed, start=start, point=row, point_m_s=approach)
+        fast = self._joint_speeds_for(start, self.return_speed, start=q0)
+        return [(start, np.maximum(fast, slow)), (target, slow)]
+
+    def _approaching_point(self, q0: np.ndarray, target: np.ndarray) -> tuple[int, Any]:
+        """The point whose approach is slowed (its row in the speed Jacobians, and its position function):
+        the touched pad; without a reflex, the pad or the flange that travels farthest to ``target``."""
+        model = self.model
+        if self.reflex is not None:
+            pad = self.reflex.contact.pad
+            return pad, lambda q: model.pad_point(q, pad)
+        ends = np.linalg.norm(model.pad_points(target) - model.pad_points(q0), axis=1)
+        far = int(np.argmax(ends))
+        if np.linalg.norm(model.tool_position(target) - model.tool_position(q0)) > ends[far]:
+            return len(model.speed_points) - 1, model.tool_position  # the flange: the last speed point
+        return far, lambda q: model.pad_point(q, far)
+
+    def _withdrawal_over(self, now_ns: int) -> None:
+        """The reflex's motion is over: hold while the touch lasts, or (the paper) return at once."""
+        if self.holds:
+            self._begin_hold(now_ns)
+        else:
+            self._begin_return()
+
+    def _begin_hold(self, now_ns: int, *, keep_since: bool = False) -> None:
+        """Brake to rest (jerk-limited) and hold there: HOLDING."""
+        self._legs = []
+        self.partial = False
+        if not keep_since or self.mode != "HOLDING":
+            self.hold_since_ns = now_ns
+            self.held_max = False
+        self._hold_check_ns = now_ns + HOLD_CHECK_NS
+        inp = self._brake_in
+        inp.current_position = self.q.tolist()
+        inp.current_velocity = self.dq.tolist()
+        inp.current_acceleration = self.ddq.tolist()
+        self._brake.reset()
+        self.braking = bool(np.any(self.dq != 0.0) or np.any(self.ddq != 0.0))
+        if self.mode != "HOLDING":
+            self.changed = True
+        self.mode = "HOLDING"
+
+    def _hold_step(self, now_ns: int) -> m.PositionCommand | None:
+        """One cycle of HOLDING: brake, hold, or (None) begin the return."""
+        if self.braking:
+            if self._ruckig_step(self._brake, self._brake_in, self._brake_out):
+                self.braking = False
+                self.dq[:] = 0.0
+                self.ddq[:] = 0.0
+            return self._position_command(now_ns)
+        if now_ns < self._hold_check_ns:
+            return self._position_command(now_ns)
+        self._hold_check_ns = now_ns + HOLD_CHECK_NS
+        assert self.saved is not None
+        blocking = self._blocking(self.saved, now_ns)
+        if not blocking:
+            self._begin_return()
+            return None
+        if not self.held_max and now_ns - self.hold_since_ns >= round(self.cfg.max_hold_s * 1e9):
+            self.held_max = True
+            self._partial_return(blocking)
+            if self.mode == "RETURNING":
+                return None
+        return self._position_command(now_ns)
+
+    def _partial_return(self, blocking: list[int]) -> None:
+        """After max_hold_s: return as far as no pad in ``blocking`` comes closer to its touch, and hold there."""
+        assert self.saved is not None
+        delta = self.saved - self.q
+        for _ in range(2):  # correcting for one pad may move another: once more
+            for pad in blocking:
+                delta, _ = retreat.guard_displacement(self.model, self.q, delta, pad, self.desc.q_min,
+                                                      self.desc.q_max)
+        names = ", ".join(self.desc.pads[i].name for i in blocking)
+        moved = float(np.max(np.abs(delta)))
+        if moved < 1e-3:
+            message = (f"touch still felt on {names} after {self.cfg.max_hold_s:g} s (planner.max_hold_s): no "
+                       "return moves away from it; holding until it ends")
+        else:
+            message = (f"touch still felt on {names} after {self.cfg.max_hold_s:g} s (planner.max_hold_s): "
+                       f"returning {moved:.3f} rad of the way, only along directions that approach no touch, "
+                       "then holding until it ends")
+        log.warning("%s", message)
+        self.notes.append(("warning", "max_hold", message))
+        if moved >= 1e-3:
+            self._begin_return(self.q + delta)
+            self.partial = True
+
+    def _blocking(self, target: np.ndarray, now_ns: int) -> list[int]:
+        """The pads that keep the arm holding: the touched pad while it feels the touch (within release_s),
+        and any other pad feeling one that the way to ``target`` would bring closer to it."""
+        within = np.flatnonzero(now_ns - self.felt_ns < round(self.cfg.release_s * 1e9)).tolist()
+        recent: list[int] = sorted(set(within) | {i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL})
+        touched = self.reflex.contact.pad if self.reflex is not None else -1
+        out = []
+        for pad in recent:
+            if pad == touched or retreat.toward_along_path(self.model, self.q, target - self.q, pad)[0] > \
+                    retreat.TOLERANCE_M:
+                out.append(pad)
+        return out
+
+    def _felt_ahead(self, now_ns: int) -> list[int]:
+        """The pads feeling a touch now that the rest of the return brings closer to it."""
+        assert self.saved is not None
+        felt = [i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL]
+        if not felt:
+            return []
+        d = self.saved - self.q
+        return [pad for pad in felt if float((self.model.pad_jacobian(self.q, pad)[:3] @ d)
+                                             @ self.model.pad_normal(self.q, pad)) > retreat.TOLERANCE_M]
 
     def _resume_task(self) -> None:
         assert self.saved is not None
@@ -614,8 +844,20 @@ class Planner:
             command = self._advance_reflex(now_ns)
             if command is not None:
                 return command
+        if self.mode == "HOLDING":
+            hold = self._hold_step(now_ns)
+            if hold is not None:
+                return hold
         if self.mode == "RETURNING":
             if not self._ruckig_step():
+                return self._position_command(now_ns)
+            if self._legs:  # on to the approach, at the speed this leg arrived with
+                target, speeds = self._legs.pop(0)
+                self._ruckig_to(target, speeds=speeds)
+                self._ruckig_step()
+                return self._position_command(now_ns)
+            if self.partial:
+                self._begin_hold(now_ns, keep_since=True)
                 return self._position_command(now_ns)
             self._resume_task()
         rate = self.clock.advance(self.dt)
@@ -645,14 +887,17 @@ class Planner:
         """One cycle of the reflex; None (and RETURNING) once it is over."""
         reflex = self.reflex
         assert reflex is not None
+        if reflex.stop_at_s is not None and reflex.elapsed_s >= reflex.stop_at_s:
+            self._withdrawal_over(now_ns)  # furthest from the contact: the rest of the motion would go back
+            return None
         if self.strategy.mode == "position":
             if self._ruckig_step():
-                self._begin_return()
+                self._withdrawal_over(now_ns)
                 return None
             reflex.elapsed_s += self.dt
             return self._position_command(now_ns)
         if reflex.elapsed_s >= self.cfg.reflex_duration_s:
-            self._begin_return()
+            self._withdrawal_over(now_ns)
             return None
         return self._velocity_command(now_ns)
 
@@ -706,7 +951,21 @@ class Planner:
         if reflex is not self.reflex:
             return False
         reflex.retreat = assessment.to_message(reflex.contact.pad, reflex.corrected or self.strategy.corrections > 0)
+        reflex.withdraws = assessment.furthest_m >= WITHDRAW_MIN_M
+        if self.holds and reflex.withdraws and assessment.furthest_m - assessment.withdrawal_m > retreat.TOLERANCE_M:
+            # A joint-space motion whose pad swings away and back: it ends where the pad is furthest away.
+            start = check.t0 if check.path is None else 0.0
+            reflex.stop_at_s = start + assessment.furthest_at_s
         self.changed = True
+        if not reflex.withdraws:
+            pad = self.desc.pads[reflex.contact.pad].name
+            if self.holds and self.mode == "REFLEX":
+                log.warning("reflex %d cannot move pad %s away from the contact (%.1f mm): holding still",
+                            reflex.seq, pad, 1e3 * assessment.furthest_m)
+                self._begin_hold(reflex.started_ns)
+            else:
+                log.warning("reflex %d cannot move pad %s away from the contact (%.1f mm)", reflex.seq, pad,
+                            1e3 * assessment.furthest_m)
         return True
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
@@ -754,7 +1013,7 @@ class Planner:
                 reflex_seq=r.seq, strategy=self.strategy.name, contact=r.contact, trace=r.trace,
                 started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
                 target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
-                shadow=not self.active,
+                shadow=not self.active, withdraws=r.withdraws,
             )
         msg = m.PlannerStatus(
             seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy.name,

@@ -41,6 +41,8 @@ class Assessment:
     toward_m: float
     withdrawal_m: float
     approach_m: np.ndarray  # per pad, >= 0
+    furthest_m: float = 0.0  # the furthest the touched pad gets from the contact along the way, m
+    furthest_at_s: float = 0.0  # when, from the path's first sample, s
 
     def to_message(self, pad: int, corrected: bool) -> m.Retreat:
         others = self.approach_m.copy()
@@ -79,10 +81,12 @@ def assess(model: RobotModel, path: np.ndarray, dt: float, pad: int) -> Assessme
         toward_m=float(max(0.0, along.max())),
         withdrawal_m=float(-along[-1]),
         approach_m=np.maximum(0.0, d0 - closest),
+        furthest_m=float(max(0.0, -along.min())),
+        furthest_at_s=float(np.argmin(along)) * dt,
     )
 
 
-def _toward_along_path(model: RobotModel, q0: np.ndarray, delta: np.ndarray, pad: int) -> tuple[float, float]:
+def toward_along_path(model: RobotModel, q0: np.ndarray, delta: np.ndarray, pad: int) -> tuple[float, float]:
     """Worst approach toward the contact along q0 + s delta, and the s where it happens."""
     p0, n0 = model.pad_point(q0, pad), model.pad_normal(q0, pad)
     worst, at = 0.0, 0.0
@@ -97,13 +101,13 @@ def guard_displacement(
     model: RobotModel, q0: np.ndarray, delta: np.ndarray, pad: int, q_min: np.ndarray, q_max: np.ndarray
 ) -> tuple[np.ndarray, bool]:
     """A displacement along which the touched pad never approaches the contact; and whether it changed."""
-    worst, _ = _toward_along_path(model, q0, delta, pad)
+    worst, _ = toward_along_path(model, q0, delta, pad)
     if worst <= TOLERANCE_M:
         return delta, False
     n0 = model.pad_normal(q0, pad)
     out = delta.copy()
     for _ in range(8):
-        worst, at = _toward_along_path(model, q0, out, pad)
+        worst, at = toward_along_path(model, q0, out, pad)
         if worst <= TOLERANCE_M:
             return out, True
         # Gradient of the pad's normal displacement at the worst point of the path.
@@ -117,7 +121,7 @@ def guard_displacement(
         out = np.clip(q0 + out - excess * grad / norm2, q_min, q_max) - q0
     # Last resort: keep only the part of the motion before the pad turns toward the contact.
     for scale in np.linspace(1.0, 0.0, 21)[1:]:
-        if _toward_along_path(model, q0, scale * out, pad)[0] <= TOLERANCE_M:
+        if toward_along_path(model, q0, scale * out, pad)[0] <= TOLERANCE_M:
             return scale * out, True
     return np.zeros_like(delta), True
 

@@ -8,7 +8,11 @@ in the gateway -> first command of the reflex accepted by the bridge); how
 far the touched pad withdrew along its outward normal (computed with the
 robot model from the recorded joint states); and the time from the onset
 until the planner was back in TASK, with how close the arm came back to the
-saved pose.
+saved pose. While the touch lasts: how many times the arm came back into it
+(a reflex of the same pad begun from a return or the task, after the first),
+the closest the touched pad came back to the contact point after its
+withdrawal, and the fastest point of the arm on the way back (phase
+RETURNING).
 """
 
 from __future__ import annotations
@@ -51,9 +55,22 @@ class TouchSummary:
     # (along the touched pad's outward normal at the onset), m/s: what the Cartesian limits let through.
     peak_speed_m_s: float | None = None
     peak_toward_m_s: float | None = None
+    # False: the planner found that no motion could move the touched pad away from the contact (it held still).
+    withdraws: bool = True
+    # Reflexes of this pad begun while the touch lasted, after the first, from a return or the task or after the
+    # pad had stopped feeling the touch's pain: each one a return into the finger still pressing (0 is the goal).
+    returns_into: int = 0
+    # The closest the touched pad came back to the contact point, along its normal at the onset, after its
+    # withdrawal and while the touch lasted, mm (negative: pressed past it).
+    back_mm: float | None = None
+    # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
+    return_speed_m_s: float | None = None
 
 
-def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None) -> list[TouchSummary]:
+def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,
+              touches: list[TouchSummary] | None = None) -> list[TouchSummary]:
+    """The per-touch figures; ``touches``: the touches to describe, when known otherwise than from the skin's
+    contact flags (a scripted press, which a withdrawing pad stops feeling before the finger leaves)."""
     model = model or RobotModel(desc)
     pressure = [r.message for r in records if r.key == "skin/pressure"]
     pain = [r.message for r in records if r.key == "skin/pain"]
@@ -63,7 +80,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
     statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
                 and r.message.active and (r.message.reflex is None or not r.message.reflex.shadow)]
 
-    touches = _segment(pressure, desc)
+    touches = _segment(pressure, desc) if touches is None else touches
     by_seq = {p.trace.seq: p for p in pain}
     for touch in touches:
         for seq in range(touch.first_seq, touch.last_seq + 1):
@@ -74,8 +91,8 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
                     touch.level = max(touch.level, p.level[touch.pad])
 
     reflexes: dict[int, m.ReflexInfo] = {}
-    for st in statuses:
-        if st.reflex is not None and st.reflex.reflex_seq not in reflexes:
+    for st in statuses:  # the newest status of each reflex: its retreat check comes after its onset
+        if st.reflex is not None:
             reflexes[st.reflex.reflex_seq] = st.reflex
     onsets: dict[int, m.RobotState] = {}
     for s in states:
@@ -85,6 +102,11 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
     state_q = np.array([s.q for s in states]) if states else np.zeros((0, len(desc.joints)))
     state_dq = np.array([s.dq for s in states]) if states else np.zeros((0, len(desc.joints)))
     withdrawing = np.array([s.phase == "REFLEX" for s in states], dtype=bool)
+    returning = np.array([s.phase == "RETURNING" for s in states], dtype=bool)
+    came_back = np.array([s.phase in ("RETURNING", "TASK") for s in states], dtype=bool)
+
+    def pad_gain(pad: int) -> list[tuple[int, float]]:
+        return [(p.stamp_ns, p.gain[pad]) for p in pain if len(p.gain) > pad]
 
     for touch in touches:
         reflex = next(
@@ -95,10 +117,25 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         if reflex is None:
             continue
         touch.reflex_seq = reflex.reflex_seq
+        touch.withdraws = reflex.withdraws
         onset = onsets.get(reflex.reflex_seq)
         if onset is None or onset.accepted is None:
             continue
         t0 = onset.accepted_ns
+        touch_end = touch.end_ns
+        # Later reflexes of the same pad while the touch lasted, each begun from a return or the task, or after
+        # the pad's gain fell to 0 (it had withdrawn from the pain): the arm came back into the finger.
+        previous = t0
+        for seq, r in sorted(reflexes.items()):
+            again = onsets.get(seq)
+            if seq == reflex.reflex_seq or r.contact.pad != touch.pad or again is None or \
+                    not t0 < again.accepted_ns <= touch_end:
+                continue
+            before = int(np.searchsorted(state_t, again.stamp_ns)) - 1
+            relieved = any(previous < t < again.accepted_ns and g <= 0.0 for t, g in pad_gain(touch.pad))
+            if (before >= 0 and came_back[before]) or relieved:
+                touch.returns_into += 1
+            previous = again.accepted_ns
         touch.onset_latency_ms = (t0 - onset.accepted.stamp_ns) / 1e6
         resumed = next((st for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
         end = resumed.stamp_ns if resumed is not None else int(state_t[-1]) if len(state_t) else t0
@@ -133,6 +170,15 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             velocities = [model.speed_jacobians(q) @ dq for q, dq in zip(state_q[moving], state_dq[moving])]
             touch.peak_speed_m_s = max(float(np.linalg.norm(v, axis=1).max()) for v in velocities)
             touch.peak_toward_m_s = max(0.0, max(float((v @ n0).max()) for v in velocities))
+            # Back toward the contact after the furthest withdrawal, while the touch lasted.
+            pressed = np.flatnonzero(window & (state_t <= touch_end))
+            if len(pressed):
+                furthest = int(np.argmin(along[:len(pressed)]))
+                touch.back_mm = -1e3 * max(along[furthest:len(pressed)])
+            back = window & returning
+            if back.any():
+                touch.return_speed_m_s = max(float(np.linalg.norm(model.speed_jacobians(q) @ dq, axis=1).max())
+                                             for q, dq in zip(state_q[back], state_dq[back]))
         planned = next((st.reflex.retreat for st in statuses
                         if st.reflex is not None and st.reflex.reflex_seq == reflex.reflex_seq
                         and st.reflex.retreat is not None), None)
@@ -179,21 +225,28 @@ def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
     return [
         [
             f"{(t.start_ns - t0_ns) / 1e9:6.2f}", t.name, t.region, f"{t.peak_hpa:5.1f}", str(t.level), f"{t.gain:.3f}",
-            "yes" if t.reflex_seq else "no", f(t.onset_latency_ms, ".2f"), f(t.withdrawal_mm, ".1f"),
+            "yes" if t.reflex_seq else "no", f(t.onset_latency_ms, ".2f"),
+            f(t.withdrawal_mm, ".1f") + ("" if t.withdraws else " cannot"),
             f(t.toward_mm, ".1f") + ("*" if t.corrected else ""),
             "-" if t.other_approach_mm is None else f"{t.other_approach_mm:.1f} {t.other_pad}",
-            f(t.peak_speed_m_s, ".3f"), f(t.peak_toward_m_s, ".3f"), f(t.resumed_after_s, ".2f"),
+            f(t.peak_speed_m_s, ".3f"), f(t.peak_toward_m_s, ".3f"), str(t.returns_into) if t.reflex_seq else "-",
+            f(t.back_mm, ".1f"), f(t.return_speed_m_s, ".3f"), f(t.resumed_after_s, ".2f"),
         ]
         for t in touches
     ]
 
 
 HEADER = ["t (s)", "pad", "region", "peak (hPa)", "PL", "gain", "reflex", "onset (ms)", "withdrawal (mm)",
-          "toward (mm)", "other pad closer (mm)", "peak (m/s)", "toward (m/s)", "resumed (s)"]
-# withdrawal: furthest the touched pad moved away from the contact along its normal;
+          "toward (mm)", "other pad closer (mm)", "peak (m/s)", "toward (m/s)", "back into", "back to (mm)",
+          "return (m/s)", "resumed (s)"]
+# withdrawal: furthest the touched pad moved away from the contact along its normal ("cannot": no motion of the
+# joints could move it away in that pose, and the arm held still);
 # toward: furthest it moved toward the contact (* = guarded mode corrected the reflex);
 # other pad closer: the largest approach of any other pad to the contact point;
-# peak: the withdrawal's fastest point of the arm; toward (m/s): its fastest speed toward the contact.
+# peak: the withdrawal's fastest point of the arm; toward (m/s): its fastest speed toward the contact;
+# back into: returns into the touch while it lasted (a reflex of the same pad begun from a return or the task);
+# back to: the closest the touched pad came back to the contact point while the touch lasted (mm from it);
+# return: the fastest point of the arm on its way back (phase RETURNING).
 
 
 def format_table(header: list[str], rows: list[list[str]]) -> str:
