@@ -180,3 +180,19 @@ def test_the_papers_behaviour_returns_into_a_finger_still_pressing():
 def test_a_3s_press_on_every_pad_in_open_and_closed_loop(strategy):
     for press in held_presses(Profile(), [strategy]):
         check(press)
+
+
+def test_the_first_approach_to_the_task_keeps_to_a_persons_speed_from_far_away():
+    p = Planner(PlannerSection(), DESC, MODEL, limits=LIMITS)
+    start = DESC.home + np.array([1.5, -0.8, 1.0, 1.2, 1.5, 3.0])  # 3 rad away on the wrist
+    p.on_state(start, following=True)
+    q = [p.q.copy()]
+    t = 0
+    while p.mode != "TASK":
+        t += 2 * MS
+        p.step(t)
+        q.append(p.q.copy())
+    q = np.array(q)
+    dq = np.diff(q, axis=0) / 0.002
+    peak = max(float(np.linalg.norm(MODEL.speed_jacobians(qi) @ v, axis=1).max()) for qi, v in zip(q[1:], dq))
+    assert PlannerSection().return_speed_m_s * 0.5 < peak <= PlannerSection().return_speed_m_s * 1.02

@@ -122,7 +122,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "came back to the contact point while pressed, the fastest point of the arm on the way "
                     "back, and when the task resumed. Exit status 1 if any press saw a return into it.",
     )
-    parser.add_argument("--strategy", action="append", metavar="NAME",
+    parser.add_argument("--reflex", action="append", metavar="R",
                         help="reflex strategy (repeatable; default: the profile's planner.strategy)")
     parser.add_argument("--pad", action="append", metavar="NAME", help="pad name (repeatable; default: every pad)")
     parser.add_argument("--loop", choices=("open", "closed", "both"), default="both")
@@ -140,7 +140,7 @@ def _press(args: argparse.Namespace) -> int:
     if not 0 < args.hpa <= 200:
         raise ConfigError(f"--hpa {args.hpa}: give a pressure change of more than 0 and at most 200 hPa")
     loops = {"open": (False,), "closed": (True,), "both": (False, True)}[args.loop]
-    presses = held_presses(profile, args.strategy or [profile.planner.strategy], args.pad, loops=loops,
+    presses = held_presses(profile, args.reflex or [profile.planner.strategy], args.pad, loops=loops,
                            press_s=args.seconds, peak_hpa=args.hpa)
     print(format_table(HEADER, rows(presses)))
     into = sum(p.touch.returns_into for p in presses if p.touch is not None)

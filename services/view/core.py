@@ -583,7 +583,7 @@ CHANNELS: tuple[ChannelSpec, ...] = (
         "mode_index": {"type": "integer"}, "active": {"type": "boolean"}, "active_planner": {"type": "string"},
         "target_pad": {"type": "integer"}, "target_name": {"type": "string"}, "reflex_seq": {"type": "integer"},
         "task_time_s": {"type": "number"},
-    }, "nwr.view.Planner"), "each planner's mode (TASK 0, REFLEX 1, RETURNING 2), strategy, target pad"),
+    }, "nwr.view.Planner"), "each planner's mode (TASK 0, REFLEX 1, RETURNING 2, HOLDING 3), strategy, target pad"),
     ChannelSpec("/nwr/robot", "json", "nwr.view.Robot", "jsonschema", _object({
         "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"},
         "q": {"type": "array", "items": {"type": "number"}}, "status": {"type": "string"},
