@@ -84,8 +84,10 @@ CARTESIAN_MARGIN = 0.9
 MIN_JOINT_SPEED = 1e-3
 # A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
 FELT_LEVEL = 2
-# A reflex whose planned motion withdraws the touched pad less than this cannot withdraw it, m.
+# A reflex whose planned motion withdraws the touched pad less than this times its gain (at least
+# MIN_GAIN_SCALE) cannot withdraw it, m: at G = 1 the strategies withdraw a pad they can move by centimetres.
 WITHDRAW_MIN_M = 0.002
+MIN_GAIN_SCALE = 0.1
 # How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
 HOLD_CHECK_NS = 20_000_000
 
@@ -533,7 +535,7 @@ class Planner:
             path, dt = self._integrate_stream(self.q, 0.0)
         assessment = retreat.assess(self.model, path, dt, contact.pad)
         shadow.retreat = assessment.to_message(contact.pad, shadow.corrected or self.strategy.corrections > 0)
-        shadow.withdraws = assessment.furthest_m >= WITHDRAW_MIN_M
+        shadow.withdraws = self._withdraws(shadow, assessment)
         self.shadow = shadow
         self.changed = True
 
@@ -951,7 +953,7 @@ class Planner:
         if reflex is not self.reflex:
             return False
         reflex.retreat = assessment.to_message(reflex.contact.pad, reflex.corrected or self.strategy.corrections > 0)
-        reflex.withdraws = assessment.furthest_m >= WITHDRAW_MIN_M
+        reflex.withdraws = self._withdraws(reflex, assessment)
         if self.holds and reflex.withdraws and assessment.furthest_m - assessment.withdrawal_m > retreat.TOLERANCE_M:
             # A joint-space motion whose pad swings away and back: it ends where the pad is furthest away.
             start = check.t0 if check.path is None else 0.0
@@ -967,6 +969,11 @@ class Planner:
                 log.warning("reflex %d cannot move pad %s away from the contact (%.1f mm)", reflex.seq, pad,
                             1e3 * assessment.furthest_m)
         return True
+
+    @staticmethod
+    def _withdraws(reflex: Reflex, assessment: retreat.Assessment) -> bool:
+        """Whether the reflex's motion moves the touched pad away from the contact at all (for its gain)."""
+        return assessment.furthest_m >= WITHDRAW_MIN_M * max(reflex.contact.gain, MIN_GAIN_SCALE)
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
         """Joint positions over the rest of the current reflex, from its planned motion."""
