@@ -5,21 +5,44 @@ a comment; unknown fields are errors (a typo must not be silently ignored).
 The packaged ``default`` profile (``common/profiles/default.toml``) spells
 every field out. Command-line flags and environment variables override the
 profile in each service's ``main``, never at import.
+
+:func:`load_profile` checks a profile in three steps, each a one-line
+:class:`ConfigError` naming the field (docs/profile.md has every field's
+default, hard bound and safe range):
+
+1. hard bounds: the Structs' ``Meta`` bounds and the cross-checks of
+   :func:`_check_profile` refuse what is never safe or never meaningful;
+2. the robot: :func:`check_against_robot` checks every per-joint list, pad
+   and region name, the task's range and its fastest point against the robot
+   description the profile names;
+3. safety beside a person: a value of :data:`GUARDS` past its default, on the
+   side that loosens it, must be acknowledged in ``[safety]`` (by its dotted
+   name, with a reason); an acknowledgement of a value that is not loosened
+   is refused too. Each acknowledged value is logged as a warning at load,
+   and the recorder keeps the list in the session's metadata.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import logging
 import math
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import msgspec
 
 from nwr.common.errors import ConfigError
+
+if TYPE_CHECKING:
+    from nwr.common.robot import RobotDescription
+
+log = logging.getLogger(__name__)
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 PROFILES_DIR = PACKAGE_DIR / "profiles"
@@ -30,6 +53,9 @@ NonNegative = Annotated[float, msgspec.Meta(ge=0)]
 Fraction = Annotated[float, msgspec.Meta(gt=0, le=1)]
 Port = Annotated[int, msgspec.Meta(ge=1024, le=65000)]
 Name = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_-]{0,31}$")]
+# The sigmoid's steepness: below 0.1 the scaled sigmoid is a straight line (to
+# 4e-5), above 50 it rises from 10 % to 90 % within 9 % of a pain level: a step.
+Steepness = Annotated[float, msgspec.Meta(ge=0.1, le=50)]
 
 
 class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -99,24 +125,25 @@ class GatewaySection(_Section):
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
     source: Literal["sim"] = "sim"
     # A change above this marks the pad as touched and freezes its baseline.
+    # Below every pad's PL 2 threshold: a press the gain feels must freeze it.
     contact_hpa: Positive = 1.0
     # The contact ends when the change falls below this (hysteresis).
     release_hpa: Positive = 0.5
     # Time constant of the baseline's tracking of slow drift while untouched.
     baseline_tau_s: Positive = 5.0
     # The baseline never moves faster than this, so it cannot follow a press.
-    max_drift_hpa_s: Positive = 0.05
+    max_drift_hpa_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.05
     # A "contact" longer than this is taken as a new no-contact level (a pad
     # that changed, not a hand): the baseline is re-acquired, with a warning.
-    max_contact_s: Positive = 120.0
+    max_contact_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 120.0
     sim: SimSkinSection = msgspec.field(default_factory=SimSkinSection)
 
 
 class PadGainOverride(_Section):
     # Pain-level thresholds for this pad, hPa: [PL2, PL3, PL4, saturation].
     thresholds_hpa: list[float] | None = None
-    # Sigmoid steepness for this pad.
-    k: Positive | None = None
+    # Sigmoid steepness for this pad (0.1-50, as gain.k).
+    k: Steepness | None = None
 
 
 class GainSection(_Section):
@@ -124,8 +151,9 @@ class GainSection(_Section):
     model: Literal["continuous", "discrete"] = "continuous"
     # Upper thresholds of PL 1, 2, 3 and the saturation of PL 4, hPa.
     thresholds_hpa: list[float] = msgspec.field(default_factory=lambda: [2.0, 6.0, 12.0, 20.0])
-    # Sigmoid steepness k.
-    k: Positive = 3.0
+    # Sigmoid steepness k (the paper's 3). 0.1-50: below, the scaled sigmoid
+    # is a straight line; above, a step in the middle of each pain level.
+    k: Steepness = 3.0
     # Gain at the start of PL 4 (the ratio of PL 3 to PL 4 displacements).
     pl3_gain: Fraction = 0.35
     # Per-pad overrides, by pad name.
@@ -133,29 +161,39 @@ class GainSection(_Section):
 
 
 class TaskSection(_Section):
-    # Period of the figure-eight, s.
-    period_s: Positive = 12.0
-    # Joint amplitudes of the figure-eight around the home pose, rad: the base
-    # swings at the task frequency, shoulder and elbow at twice it, which
-    # draws an eight with the tool.
-    amplitude_rad: list[float] = msgspec.field(default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
-    # Twice-frequency joints (1) versus task-frequency joints (0).
-    double_frequency: list[int] = msgspec.field(default_factory=lambda: [0, 1, 1, 0, 0, 0])
+    # Period of the figure-eight, s. The task's fastest point (0.19 m/s on the
+    # UR10e by default) must stay within bridge.limits.speed_m_s.
+    period_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 12.0
+    # Joint amplitudes of the figure-eight around the home pose, rad, one per
+    # joint: the base swings at the task frequency, shoulder and elbow at twice
+    # it, which draws an eight with the tool. Within the joint limits.
+    amplitude_rad: list[Annotated[float, msgspec.Meta(ge=-math.pi, le=math.pi)]] = msgspec.field(
+        default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
+    # Twice-frequency joints (1) versus task-frequency joints (0), one per joint.
+    double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = msgspec.field(
+        default_factory=lambda: [0, 1, 1, 0, 0, 0])
     # Time to ease in and out of the task when it resumes or pauses, s.
-    ramp_s: NonNegative = 0.5
+    ramp_s: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
+
+
+# The body regions a pad may belong to (as common.robot.REGIONS).
+REGION_NAMES = ("shoulder", "upper_arm", "elbow", "forearm", "wrist")
+# Four weights in [0, 1]: [w_base, w_shoulder, w_elbow, w_wrist].
+Weights = Annotated[list[Annotated[float, msgspec.Meta(ge=0, le=1)]], msgspec.Meta(min_length=4, max_length=4)]
 
 
 def _w(*rows: list[float]) -> dict[str, list[float]]:
-    return dict(zip(("shoulder", "upper_arm", "elbow", "forearm", "wrist"), rows))
+    return dict(zip(REGION_NAMES, rows))
 
 
 class LocationWeights(_Section):
     # The paper's Table II: [w_base, w_shoulder, w_elbow, w_wrist] per body
     # region, for pain level 3 and 4 (PL 1-2: all zero, no motion). The wrist
-    # weight applies to all three wrist joints.
-    pl3: dict[str, list[float]] = msgspec.field(default_factory=lambda: _w(
+    # weight applies to all three wrist joints. Every region of the robot's
+    # pads needs its row.
+    pl3: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
         [0.2, 0.8, 0.6, 0.0], [0.2, 0.8, 0.6, 0.0], [0.0, 0.6, 0.8, 0.2], [0.0, 0.6, 0.8, 0.2], [0.0, 0.3, 0.6, 0.8]))
-    pl4: dict[str, list[float]] = msgspec.field(default_factory=lambda: _w(
+    pl4: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
         [0.5, 1.0, 0.7, 0.1], [0.5, 1.0, 0.7, 0.1], [0.0, 0.8, 1.0, 0.4], [0.0, 0.8, 1.0, 0.4], [0.0, 0.6, 0.8, 1.0]))
 
 
@@ -176,10 +214,12 @@ class PlannerSection(_Section):
     # 1 = one command per cycle in the task too. At most 0.1 s of cycles.
     task_ahead_cycles: Annotated[int, msgspec.Meta(ge=1, le=50)] = 10
     # Joint-space reflexes: the paper's human range of motion q_max, degrees,
-    # per joint (base, shoulder, elbow, wrist 1-3). UR adds uniform_fraction of
-    # it (the paper's 1/2), LR adds G(p) W(PL, region) q_max; both in the
-    # robot description's reflex_direction, clipped to the joint limits.
-    q_max_deg: list[float] = msgspec.field(default_factory=lambda: [40.0, 70.0, 146.0, 73.0, 0.0, 0.0])
+    # per joint (base, shoulder, elbow, wrist 1-3; one per joint, 0-180). UR
+    # adds uniform_fraction of it (the paper's 1/2), LR adds G(p) W(PL, region)
+    # q_max; both in the robot description's reflex_direction, clipped to the
+    # joint limits.
+    q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = msgspec.field(
+        default_factory=lambda: [40.0, 70.0, 146.0, 73.0, 0.0, 0.0])
     uniform_fraction: Fraction = 0.5
     location_weights: LocationWeights = msgspec.field(default_factory=LocationWeights)
     # Smoothed Cartesian reflex: rise and fall time of its velocity (a raised
@@ -189,16 +229,18 @@ class PlannerSection(_Section):
     # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
     # motion would move the touched pad toward the contact, and report it.
     guarded: bool = False
-    # The study's target pads in the order they light up (names); empty = every
-    # pad, in an order shuffled with target_seed. The target moves on after
-    # each touch of it.
+    # The study's target pads in the order they light up (names of the robot's
+    # pads); empty = every pad, in an order shuffled with target_seed. The
+    # target moves on after each touch of it.
     target_order: list[str] = []
     target_seed: int = 1
     # Cartesian reflex: speed of the pad at G(p) = 1, m/s (the paper leaves it
-    # open; 0.25 m/s withdraws the pad 12.5 cm in the 0.5 s reflex).
+    # open; 0.25 m/s withdraws the pad 12.5 cm in the 0.5 s reflex). At most
+    # bridge.limits.withdrawal_speed_m_s.
     v_max_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.25
-    # Duration of a Cartesian reflex, s (the paper's 0.5 s).
-    reflex_duration_s: Positive = 0.5
+    # Duration of a Cartesian reflex, s (the paper's 0.5 s; a withdrawal, not
+    # a motion: at most 2 s).
+    reflex_duration_s: Annotated[float, msgspec.Meta(gt=0, le=2.0)] = 0.5
     # Sustained contact. "hold" (this project's behaviour): once a withdrawal's
     # motion ends the arm stays away (mode HOLDING) while the touch lasts; the
     # return begins once no pad it would approach has felt a touch (pain level
@@ -225,13 +267,13 @@ class PlannerSection(_Section):
     # q_dot = J^+ [v_c; 0] does (true), or only for its linear velocity (false).
     hold_orientation: bool = True
     # Damped least squares: the damping grows to this as the smallest singular
-    # value of the pad Jacobian falls below singular_threshold.
-    damping_max: NonNegative = 0.05
-    singular_threshold: Positive = 0.05
+    # value of the pad Jacobian (m/rad) falls below singular_threshold.
+    damping_max: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.05
+    singular_threshold: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.05
     # Fraction of the joint speed and acceleration limits reflexes may use.
     speed_fraction: Fraction = 0.9
     # Planner status rate, Hz (transitions are published at once as well).
-    status_rate_hz: Positive = 20.0
+    status_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 20.0
     # Real-time scheduling of the planner's threads: SCHED_FIFO at this
     # priority (1-99), as on a lab PC with a real-time kernel; 0 = off. Needs
     # CAP_SYS_NICE or an rtprio limit; without it, a warning and no change.
@@ -281,10 +323,19 @@ class CartesianLimits(_Section):
         return self
 
 
-def _reduced() -> CartesianLimits:
-    """The reduced mode's default limits (a UR's safety "reduced mode"): each at most the normal one."""
-    return CartesianLimits(speed_m_s=0.15, withdrawal_speed_m_s=0.25, momentum_kg_m_s=5.0, power_w=25.0,
-                           stopping_time_s=0.15, stopping_distance_m=0.04)
+class ReducedLimits(CartesianLimits):
+    """The reduced mode's limits (a UR's safety "reduced mode"): each at most the normal one.
+
+    Its own defaults, so that a [bridge.reduced] table that gives some fields
+    keeps the reduced defaults for the others (not the normal limits).
+    """
+
+    speed_m_s: Annotated[float, msgspec.Meta(gt=0)] = 0.15
+    withdrawal_speed_m_s: Annotated[float, msgspec.Meta(gt=0)] = 0.25
+    momentum_kg_m_s: Annotated[float, msgspec.Meta(gt=0)] = 5.0
+    power_w: Annotated[float, msgspec.Meta(gt=0)] = 25.0
+    stopping_time_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.15
+    stopping_distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.04
 
 
 class BridgeSection(_Section):
@@ -303,18 +354,20 @@ class BridgeSection(_Section):
     realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
     # The only planner whose commands move the arm.
     active_planner: Name = "cartesian"
-    # No command for this long: decelerate to rest and hold, s (10 control cycles).
+    # No command for this long: decelerate to rest and hold, s (10 control
+    # cycles). Longer than a planner cycle (1 / planner.rate_hz).
     command_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.02
     # Skin data older than this holds task and return motions, s (three periods
     # of the 25 Hz AIRSKIN stream). Reflexes already under way may finish.
+    # Longer than a skin period (1 / gateway.rate_hz).
     skin_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.12
     # Fractions of the robot description's joint speed / acceleration / jerk limits.
     speed_fraction: Fraction = 1.0
     acceleration_fraction: Fraction = 1.0
     jerk_fraction: Fraction = 1.0
     # Tighter per-joint limits than the robot description's (rad, rad/s, rad/s^2,
-    # rad/s^3); empty = the description's. Values looser than the description's
-    # are a configuration error, never silently used.
+    # rad/s^3), one per joint; empty = the description's. Values looser than the
+    # description's are a configuration error, never silently used.
     q_min: list[float] = []
     q_max: list[float] = []
     v_max: list[float] = []
@@ -326,19 +379,20 @@ class BridgeSection(_Section):
     # A command whose seq is at most the last accepted one is a duplicate or out
     # of order and is rejected, unless it is this far below it: a restarted planner.
     seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500
-    # Initial pose, rad; empty = the robot description's home pose.
+    # Initial pose of the simulated arm, rad, one per joint within the joint
+    # limits; empty = the robot description's home pose.
     initial_q: list[float] = []
     # Cartesian limits on every point of the arm and on its momentum, in the
     # normal and the reduced mode (nwr safety reduced|normal switches at
     # runtime). Tighter than the robot description's max_point_speed, never
     # looser (a configuration error names the field).
     limits: CartesianLimits = msgspec.field(default_factory=CartesianLimits)
-    reduced: CartesianLimits = msgspec.field(default_factory=_reduced)
+    reduced: ReducedLimits = msgspec.field(default_factory=ReducedLimits)
     # ur_rtde backend: servoJ lookahead time, s (UR allows 0.03-0.2; longer is
     # smoother but lags more) and proportional gain (UR allows 100-2000).
     servo_lookahead_s: Annotated[float, msgspec.Meta(ge=0.03, le=0.2)] = 0.1
     servo_gain: Annotated[float, msgspec.Meta(ge=100, le=2000)] = 300.0
-    # ur_rtde backend: reconnection backoff, doubling from min to max, s.
+    # ur_rtde backend: reconnection backoff, doubling from min to max (min <= max), s.
     reconnect_min_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
     reconnect_max_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 8.0
     # ur_rtde backend: the controller's watchdog on the bridge, Hz. The bridge
@@ -363,6 +417,20 @@ class RecorderSection(_Section):
     split_duration_s: Annotated[float, msgspec.Meta(ge=0, le=7 * 24 * 3600)] = 0.0
 
 
+class SafetySection(_Section):
+    # The safety-relevant values this profile loosens past their documented
+    # defaults (docs/profile.md: the side that loosens each), every one by its
+    # dotted name, e.g. ["bridge.skin_timeout_s", "planner.task.period_s"]. A
+    # loosened value missing here is refused at load; so is a name here whose
+    # value is not loosened (a stale acknowledgement would hide a later change).
+    acknowledge: list[str] = []
+    # Who loosened them, when and why; required with acknowledge, e.g. "bench
+    # test without a person in the cell, 2026-11-23, J. Doe". Every service
+    # logs it with each loosened value at start; the recorder keeps both in
+    # the session's metadata (loosened_safety).
+    reason: str = ""
+
+
 class Profile(_Section):
     robot: RobotSection = msgspec.field(default_factory=RobotSection)
     zenoh: ZenohSection = msgspec.field(default_factory=ZenohSection)
@@ -371,6 +439,7 @@ class Profile(_Section):
     planner: PlannerSection = msgspec.field(default_factory=PlannerSection)
     bridge: BridgeSection = msgspec.field(default_factory=BridgeSection)
     recorder: RecorderSection = msgspec.field(default_factory=RecorderSection)
+    safety: SafetySection = msgspec.field(default_factory=SafetySection)
 
 
 class Touch(_Section):
@@ -407,7 +476,8 @@ def _decode(path: Path, kind: type) -> object:
     try:
         return msgspec.convert(raw, kind)
     except msgspec.ValidationError as exc:
-        raise ConfigError(f"{path}: {exc}") from exc
+        hint = " (docs/profile.md gives every field's bounds)" if kind is Profile else ""
+        raise ConfigError(f"{path}: {exc}{hint}") from exc
 
 
 def resolve_profile(name_or_path: str | None) -> Path:
@@ -425,45 +495,409 @@ def resolve_profile(name_or_path: str | None) -> Path:
 
 
 def load_profile(name_or_path: str | None = None) -> Profile:
+    """The profile by packaged name or path, checked in full (the module docstring's three steps).
+
+    Each acknowledged loosened value is logged as one warning: every service
+    and tool that loads a profile says so at start.
+    """
+    from nwr.common.robot import load_description  # pinocchio's import only where a profile is loaded
+
     profile = _decode(resolve_profile(name_or_path), Profile)
     assert isinstance(profile, Profile)
     _check_profile(profile)
+    check_against_robot(profile, load_description(profile.robot.description or None))
+    for item in check_acknowledgements(profile):
+        log.warning("safety: %s = %s is loosened past its default %s (safe range %s), acknowledged in [safety]: %s",
+                    item.field, toml_value(item.value), toml_value(item.default), safe_range(item.field), item.reason)
     return profile
 
 
+# A threshold no pad's change can reach (the door refuses larger changes as
+# impossible, nwr.common.door.CHANGE_HPA) would never be crossed, hPa.
+THRESHOLD_TOP_HPA = 2000.0
+
+
 def _check_thresholds(where: str, thresholds: list[float]) -> None:
-    if len(thresholds) != 4 or any(b <= a for a, b in zip(thresholds, thresholds[1:])) or thresholds[0] <= 0:
+    if (len(thresholds) != 4 or any(not b > a for a, b in zip(thresholds, thresholds[1:]))
+            or not all(0 < t <= THRESHOLD_TOP_HPA for t in thresholds)):
         raise ConfigError(
-            f"{where}: thresholds_hpa must be four increasing positive values [PL2, PL3, PL4, saturation], "
-            f"got {thresholds}"
+            f"{where}: thresholds_hpa must be four increasing positive values [PL2, PL3, PL4, saturation] "
+            f"up to {THRESHOLD_TOP_HPA:g} hPa, got {thresholds}"
         )
 
 
 def _check_profile(profile: Profile) -> None:
-    _check_thresholds("gain", profile.gain.thresholds_hpa)
-    for pad, override in profile.gain.overrides.items():
+    """The hard cross-checks that need nothing but the profile (ConfigError naming the field)."""
+    gain, gateway, planner, bridge = profile.gain, profile.gateway, profile.planner, profile.bridge
+    for endpoint in profile.zenoh.router:
+        if not ENDPOINT.match(endpoint):
+            raise ConfigError(f"zenoh.router: {endpoint!r} is not a Zenoh endpoint; write <protocol>/<host>:<port>, "
+                              "e.g. tcp/10.0.0.2:7447")
+    _check_thresholds("gain", gain.thresholds_hpa)
+    felt = [("gain.thresholds_hpa", gain.thresholds_hpa[0])]
+    for pad, override in gain.overrides.items():
         if override.thresholds_hpa is not None:
             _check_thresholds(f"gain.overrides.{pad}", override.thresholds_hpa)
-    if profile.gateway.release_hpa > profile.gateway.contact_hpa:
+            felt.append((f"gain.overrides.{pad}.thresholds_hpa", override.thresholds_hpa[0]))
+    if gateway.release_hpa > gateway.contact_hpa:
         raise ConfigError(
-            f"gateway: release_hpa ({profile.gateway.release_hpa}) must not exceed contact_hpa "
-            f"({profile.gateway.contact_hpa})"
+            f"gateway: release_hpa ({gateway.release_hpa}) must not exceed contact_hpa "
+            f"({gateway.contact_hpa})"
         )
-    planner = profile.planner
+    for where, pl2 in felt:
+        if gateway.contact_hpa >= pl2:
+            raise ConfigError(
+                f"gateway.contact_hpa = {gateway.contact_hpa} hPa is not below {where}[0] = {pl2} hPa (PL 2): a press "
+                "the gain feels would not freeze the pad's baseline, which would drift into it; lower contact_hpa"
+            )
+    if 1.0 / gateway.rate_hz >= bridge.skin_timeout_s:
+        raise ConfigError(
+            f"gateway.rate_hz = {gateway.rate_hz:g} Hz samples the skin every {1e3 / gateway.rate_hz:.0f} ms, "
+            f"not within bridge.skin_timeout_s = {bridge.skin_timeout_s} s: the bridge would hold the task between "
+            "every two samples; raise the rate"
+        )
     if planner.task_ahead_cycles > 1 and planner.task_ahead_cycles / planner.rate_hz > 0.1 + 1e-9:
         raise ConfigError(
             f"planner.task_ahead_cycles = {planner.task_ahead_cycles} at {planner.rate_hz:g} Hz plans more than "
             "0.1 s ahead, which the bridge refuses: lower it"
         )
-    normal = profile.bridge.limits.checked("bridge.limits")
-    reduced = profile.bridge.reduced.checked("bridge.reduced")
+    if 1.0 / planner.rate_hz >= bridge.command_timeout_s:
+        raise ConfigError(
+            f"planner.rate_hz = {planner.rate_hz:g} Hz sends a reflex command every {1e3 / planner.rate_hz:.0f} ms, "
+            f"not within bridge.command_timeout_s = {bridge.command_timeout_s} s: the bridge would stop the arm "
+            "between every two; raise the rate"
+        )
+    for level in ("pl3", "pl4"):
+        unknown = sorted(set(getattr(planner.location_weights, level)) - set(REGION_NAMES))
+        if unknown:
+            raise ConfigError(f"planner.location_weights.{level} has rows for {unknown}, which are no body regions; "
+                              f"the regions are {list(REGION_NAMES)}")
+    normal = bridge.limits.checked("bridge.limits")
+    reduced = bridge.reduced.checked("bridge.reduced")
     for field in normal.__struct_fields__:
         if getattr(reduced, field) > getattr(normal, field):
             raise ConfigError(f"bridge.reduced.{field} = {getattr(reduced, field)} is above bridge.limits.{field} = "
                               f"{getattr(normal, field)}: the reduced mode may only tighten the limits")
-    task = profile.planner.task
-    if len(task.amplitude_rad) != len(task.double_frequency):
-        raise ConfigError("planner.task: amplitude_rad and double_frequency must have one entry per joint")
+    for field, value, bound, bound_name, what in (
+        ("planner.v_max_m_s", planner.v_max_m_s, normal.withdrawal_speed_m_s, "bridge.limits.withdrawal_speed_m_s",
+         "the bridge would slow every full reflex"),
+        ("planner.return_speed_m_s", planner.return_speed_m_s, normal.speed_m_s, "bridge.limits.speed_m_s",
+         "the bridge would slow every return"),
+        ("planner.approach_speed_m_s", planner.approach_speed_m_s, planner.return_speed_m_s,
+         "planner.return_speed_m_s", "the approach is the slow end of a return"),
+    ):
+        if value > bound:
+            raise ConfigError(f"{field} = {value} m/s is above {bound_name} = {bound} m/s ({what}): lower it")
+    if bridge.reconnect_min_s > bridge.reconnect_max_s:
+        raise ConfigError(f"bridge.reconnect_min_s = {bridge.reconnect_min_s} s is above bridge.reconnect_max_s = "
+                          f"{bridge.reconnect_max_s} s: the backoff doubles from min to max")
+
+
+def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
+    """What the profile says of the robot ``desc`` must hold for it; else a ConfigError naming the field.
+
+    Every per-joint list has one value per joint (the bridge's tighter limits
+    and initial pose: or none) and stays within the joint limits; every pad
+    the profile names is one of the skin's; every body region of the skin has
+    its location weights; the task stays within the joint limits and its
+    fastest point (pads, elbow, flange) within bridge.limits.speed_m_s and the
+    robot's max_point_speed; the Cartesian limits within max_point_speed.
+    :func:`load_profile` calls it with the description the profile names.
+    """
+    from nwr.common.robot import RobotModel
+    from nwr.common.task import FigureEight, peak_point_speed
+
+    planner, task, bridge = profile.planner, profile.planner.task, profile.bridge
+    n = len(desc.joints)
+    robot = f"robot {desc.name!r} has {n} joints ({', '.join(desc.joints)})"
+    per_joint: tuple[tuple[str, list[float] | list[int], bool], ...] = (
+        ("planner.q_max_deg", planner.q_max_deg, False),
+        ("planner.task.amplitude_rad", task.amplitude_rad, False),
+        ("planner.task.double_frequency", task.double_frequency, False),
+        ("bridge.q_min", bridge.q_min, True),
+        ("bridge.q_max", bridge.q_max, True),
+        ("bridge.v_max", bridge.v_max, True),
+        ("bridge.a_max", bridge.a_max, True),
+        ("bridge.j_max", bridge.j_max, True),
+        ("bridge.initial_q", bridge.initial_q, True),
+    )
+    for field, values, optional in per_joint:
+        if len(values) != n and not (optional and not values):
+            raise ConfigError(f"{field} has {len(values)} values, the {robot}: give one per joint"
+                              + (" or none" if optional else ""))
+        if not all(math.isfinite(v) for v in values):
+            raise ConfigError(f"{field} = {values}: every value must be a finite number")
+    described = {"q_min": desc.q_min, "q_max": desc.q_max, "v_max": desc.v_max, "a_max": desc.a_max,
+                 "j_max": desc.j_max}
+    for name, limit in described.items():
+        for i, (value, base) in enumerate(zip(getattr(bridge, name), limit)):
+            if value < base if name == "q_min" else value > base:
+                raise ConfigError(f"bridge.{name}[{i}] = {value} is looser than the robot description's {base:g} "
+                                  f"for {desc.joints[i]}: the profile may only tighten the limits")
+            if name not in ("q_min", "q_max") and value <= 0:
+                raise ConfigError(f"bridge.{name}[{i}] = {value} for {desc.joints[i]}: must be positive")
+    # The joint ranges the bridge enforces: the description's, tightened by the profile's.
+    q_lo = [float(b) for b in desc.q_min] if not bridge.q_min else [max(float(b), v) for b, v in zip(desc.q_min,
+                                                                                                    bridge.q_min)]
+    q_hi = [float(b) for b in desc.q_max] if not bridge.q_max else [min(float(b), v) for b, v in zip(desc.q_max,
+                                                                                                    bridge.q_max)]
+    for i, joint in enumerate(desc.joints):
+        if q_lo[i] >= q_hi[i]:
+            raise ConfigError(f"bridge.q_min/q_max leave {joint} no range: [{q_lo[i]:g}, {q_hi[i]:g}] rad")
+        if bridge.initial_q and not q_lo[i] <= bridge.initial_q[i] <= q_hi[i]:
+            raise ConfigError(f"bridge.initial_q[{i}] = {bridge.initial_q[i]} is outside {joint}'s limits "
+                              f"[{q_lo[i]:g}, {q_hi[i]:g}] rad")
+
+    pads = {pad.name for pad in desc.pads}
+    for field, names in (("gain.overrides", list(profile.gain.overrides)),
+                         ("planner.target_order", planner.target_order)):
+        unknown = [name for name in names if name not in pads]
+        if unknown:
+            raise ConfigError(f"{field} names {unknown}, which robot {desc.name!r} has no pad of; "
+                              f"its pads: {', '.join(sorted(pads))}")
+    regions = sorted({pad.region for pad in desc.pads})
+    for level in ("pl3", "pl4"):
+        missing = [r for r in regions if r not in getattr(planner.location_weights, level)]
+        if missing:
+            raise ConfigError(f"planner.location_weights.{level} has no row for {missing}, regions of robot "
+                              f"{desc.name!r}'s pads: give [w_base, w_shoulder, w_elbow, w_wrist] for each")
+
+    model = RobotModel(desc)
+    top = desc.max_point_speed
+    moving = float(model.link_masses.sum())
+    for field, value, bound, unit in (
+        ("speed_m_s", bridge.limits.speed_m_s, top, "m/s"),
+        ("withdrawal_speed_m_s", bridge.limits.withdrawal_speed_m_s, top, "m/s"),
+        ("momentum_kg_m_s", bridge.limits.momentum_kg_m_s, moving * top, "kg m/s"),
+    ):
+        if value > bound:
+            raise ConfigError(f"bridge.limits.{field} = {value} {unit} is beyond what the robot description allows "
+                              f"({bound:.3g} {unit}: max_point_speed {top} m/s"
+                              + (f" times the moving links' {moving:.3g} kg)" if unit == "kg m/s" else ")"))
+
+    figure = FigureEight(task, desc.home)
+    lo, hi = figure.range()
+    for i, joint in enumerate(desc.joints):
+        if lo[i] < q_lo[i] or hi[i] > q_hi[i]:
+            raise ConfigError(f"planner.task.amplitude_rad[{i}] = {task.amplitude_rad[i]} swings {joint} over "
+                              f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around home, beyond its limits "
+                              f"[{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it")
+    peak = peak_point_speed(figure, task.period_s, model)
+    for bound, name, why in (
+        (top, f"robot {desc.name!r}'s max_point_speed", "the arm cannot"),
+        (bridge.limits.speed_m_s, "bridge.limits.speed_m_s", "the bridge would slow it every cycle"),
+    ):
+        if peak > bound:
+            raise ConfigError(
+                f"planner.task.period_s = {task.period_s} s with amplitude_rad = {task.amplitude_rad} moves the task's "
+                f"fastest point at {peak:.3g} m/s, above {name} = {bound} m/s ({why}): lengthen period_s or shrink "
+                "amplitude_rad"
+            )
+
+
+# ------------------------------------------------------------------------------ safety beside a person
+
+
+@dataclass(frozen=True)
+class Guard:
+    """A safety-relevant field: the side of its default that loosens it, and its unit.
+
+    ``above``: a larger value (for a list: any element larger than the
+    default's); ``below``: a smaller one; ``wider``: a larger magnitude,
+    either sign; ``other``: any value but the default.
+    """
+
+    loosens: Literal["above", "below", "wider", "other"]
+    unit: str = ""
+
+
+# The safety-relevant fields beside a person, by dotted name (<pad>: a pad's
+# name): a value past the default on the side named must be acknowledged in
+# [safety]. docs/profile.md says why, one by one (tests/test_profile_safety.py
+# loosens each).
+GUARDS: dict[str, Guard] = {
+    # When a touch is felt and a press stays felt.
+    "gateway.contact_hpa": Guard("above", "hPa"),
+    "gateway.release_hpa": Guard("above", "hPa"),
+    "gateway.max_drift_hpa_s": Guard("above", "hPa/s"),
+    "gateway.max_contact_s": Guard("below", "s"),
+    "gain.thresholds_hpa": Guard("above", "hPa"),
+    "gain.overrides.<pad>.thresholds_hpa": Guard("above", "hPa"),
+    "planner.update_margin": Guard("above"),
+    # How far and how fast a reflex moves the arm.
+    "gain.pl3_gain": Guard("above"),
+    "planner.q_max_deg": Guard("above", "deg"),
+    "planner.uniform_fraction": Guard("above"),
+    **{f"planner.location_weights.{level}.{region}": Guard("above")
+       for level in ("pl3", "pl4") for region in REGION_NAMES},
+    "planner.v_max_m_s": Guard("above", "m/s"),
+    "planner.reflex_duration_s": Guard("above", "s"),
+    "planner.speed_fraction": Guard("above"),
+    # Sustained contact: when and how the arm comes back.
+    "planner.sustained_contact": Guard("other"),
+    "planner.release_s": Guard("below", "s"),
+    "planner.max_hold_s": Guard("below", "s"),
+    "planner.return_speed_m_s": Guard("above", "m/s"),
+    "planner.approach_speed_m_s": Guard("above", "m/s"),
+    "planner.approach_distance_m": Guard("below", "m"),
+    # The task.
+    "planner.task.period_s": Guard("below", "s"),
+    "planner.task.amplitude_rad": Guard("wider", "rad"),
+    "planner.task.double_frequency": Guard("above"),
+    "planner.task.ramp_s": Guard("below", "s"),
+    # The bridge: its timeouts and limits.
+    "bridge.command_timeout_s": Guard("above", "s"),
+    "bridge.skin_timeout_s": Guard("above", "s"),
+    "bridge.position_jump_rad": Guard("above", "rad"),
+    "bridge.watchdog_hz": Guard("below", "Hz"),
+    **{f"bridge.{mode}.{field}": Guard("above", unit)
+       for mode in ("limits", "reduced")
+       for field, unit in (("speed_m_s", "m/s"), ("withdrawal_speed_m_s", "m/s"), ("momentum_kg_m_s", "kg m/s"),
+                           ("power_w", "W"), ("stopping_time_s", "s"), ("stopping_distance_m", "m"))},
+}
+_DEFAULT = Profile()  # read only: the documented defaults
+
+
+def _pattern(name: str) -> str | None:
+    """The key of GUARDS that the dotted ``name`` stands for (None: no safety-relevant field)."""
+    if name in GUARDS:
+        return name
+    parts = name.split(".")
+    if len(parts) == 4 and parts[:2] == ["gain", "overrides"] and parts[3] == "thresholds_hpa" and parts[2]:
+        return "gain.overrides.<pad>.thresholds_hpa"
+    return None
+
+
+def _get(obj: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        obj = obj[part] if isinstance(obj, dict) else getattr(obj, part)
+    return obj
+
+
+def _default(name: str) -> Any:
+    """The documented default of a safety-relevant field (a pad's override: the profile-wide default)."""
+    pattern = _pattern(name)
+    value = _DEFAULT.gain.thresholds_hpa if pattern == "gain.overrides.<pad>.thresholds_hpa" else _get(_DEFAULT, name)
+    return list(value) if isinstance(value, list) else value  # a copy: the defaults stay the defaults
+
+
+def toml_value(value: Any) -> str:
+    """A value as a profile writes it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + "}"
+    if value is None:
+        return "unset"
+    return repr(value)
+
+
+def safe_range(name: str) -> str:
+    """What a safety-relevant field may hold without an acknowledgement (docs/profile.md prints the same)."""
+    pattern = _pattern(name)
+    if pattern is None:
+        raise KeyError(name)
+    guard, default = GUARDS[pattern], _default(name)
+    unit = f" {guard.unit}" if guard.unit else ""
+    each = "each " if isinstance(default, list) else ""
+    if guard.loosens == "other":
+        return f"= {toml_value(default)}"
+    if guard.loosens == "wider":
+        return f"{each}magnitude <= {toml_value([abs(v) for v in default])}{unit}"
+    return f"{each}{'<=' if guard.loosens == 'above' else '>='} {toml_value(default)}{unit}"
+
+
+def _loosens(guard: Guard, value: Any, default: Any) -> bool:
+    if guard.loosens == "other":
+        return bool(value != default)
+    if not isinstance(value, list):
+        value, default = [value], [default]
+    # A robot with more joints than the UR10e: its extra joints' default is 0.
+    pairs = zip(value, list(default) + [0] * max(0, len(value) - len(default)))
+    if guard.loosens == "above":
+        return any(v > d for v, d in pairs)
+    if guard.loosens == "below":
+        return any(v < d for v, d in pairs)
+    return any(abs(v) > abs(d) for v, d in pairs)
+
+
+class Loosened(msgspec.Struct, frozen=True):
+    """A safety-relevant value past its default on the side that loosens it, as the session's metadata keeps it."""
+
+    field: str
+    value: Any
+    default: Any
+    reason: str
+
+
+def _guarded(profile: Profile) -> Iterator[tuple[str, Any]]:
+    """(dotted name, value) of every safety-relevant field the profile holds."""
+    for pattern in GUARDS:
+        if "<pad>" in pattern:
+            for pad, override in profile.gain.overrides.items():
+                if override.thresholds_hpa is not None:
+                    yield pattern.replace("<pad>", pad), override.thresholds_hpa
+        elif pattern.startswith("planner.location_weights."):
+            _, _, level, region = pattern.split(".")
+            row = getattr(profile.planner.location_weights, level).get(region)
+            if row is not None:
+                yield pattern, row
+        else:
+            yield pattern, _get(profile, pattern)
+
+
+def loosened(profile: Profile) -> list[Loosened]:
+    """Every safety-relevant value of ``profile`` past its default on the side that loosens it."""
+    return [Loosened(name, value, _default(name), profile.safety.reason)
+            for name, value in _guarded(profile) if _loosens(GUARDS[_pattern(name) or name], value, _default(name))]
+
+
+def loosened_safety(profile: Profile) -> list[dict[str, Any]]:
+    """:func:`loosened` as plain data, for the session's metadata (``loosened_safety``)."""
+    return [msgspec.to_builtins(item) for item in loosened(profile)]
+
+
+def check_acknowledgements(profile: Profile) -> list[Loosened]:
+    """The loosened values, each acknowledged in ``[safety]``; else a ConfigError naming the field."""
+    safety = profile.safety
+    given = safety.acknowledge
+    for name in given:
+        if _pattern(name) is None:
+            raise ConfigError(f"safety.acknowledge names {name!r}, which is no safety-relevant field "
+                              "(docs/profile.md lists them, e.g. \"bridge.skin_timeout_s\")")
+    repeated = sorted({name for name in given if given.count(name) > 1})
+    if repeated:
+        raise ConfigError(f"safety.acknowledge names {repeated} more than once: name each loosened value once")
+    found = loosened(profile)
+    names = [item.field for item in found]
+    missing = [item for item in found if item.field not in given]
+    if missing:
+        values = "; ".join(f"{item.field} = {toml_value(item.value)} (default {toml_value(item.default)}, safe range "
+                           f"{safe_range(item.field)})" for item in missing)
+        raise ConfigError(
+            f"{values}: loosened past the default, which is unsafe beside a person. Keep the safe range, or, with "
+            f"nobody in the cell, acknowledge every loosened value in the profile: [safety] acknowledge = "
+            f"{toml_value(names)} and reason = \"who, when, why\" (docs/profile.md)"
+        )
+    held = dict(_guarded(profile))
+    for name in given:
+        if name not in names:
+            raise ConfigError(
+                f"safety.acknowledge names {name}, which this profile does not loosen ({name} = "
+                f"{toml_value(held.get(name))}, safe range {safe_range(name)}): remove it; a stale acknowledgement "
+                "would hide a later change"
+            )
+    if given and not safety.reason.strip():
+        raise ConfigError(f"safety.reason is empty: say who loosened {names}, when and why "
+                          "(e.g. \"bench test without a person in the cell, 2026-11-23, J. Doe\")")
+    if safety.reason.strip() and not given:
+        raise ConfigError("safety.reason is set but safety.acknowledge names nothing, and nothing is loosened: "
+                          "remove the reason")
+    return found
 
 
 def resolve_script(name_or_path: str) -> Path:

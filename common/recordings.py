@@ -446,8 +446,14 @@ def session_metadata(
     start_time_iso: str,
     start_monotonic_ns: int,
     labels: dict[str, str],
+    loosened_safety: list[dict[str, Any]] | None = None,
 ) -> dict[str, str]:
-    """The ``session`` metadata record (every value a string, as MCAP requires)."""
+    """The ``session`` metadata record (every value a string, as MCAP requires).
+
+    ``loosened_safety``: the profile's acknowledged loosened safety values
+    (:func:`nwr.common.config.loosened_safety`), kept as a JSON list of
+    {field, value, default, reason}, ``[]`` for none; None leaves it out.
+    """
     return {
         "robot": robot,
         "session": session,
@@ -459,6 +465,7 @@ def session_metadata(
         # Log times are on the machine's monotonic clock (as every stamp is):
         # this pair maps them to wall-clock time.
         "start_monotonic_ns": str(start_monotonic_ns),
+        **({} if loosened_safety is None else {"loosened_safety": json.dumps(loosened_safety)}),
         **{f"label.{k}": v for k, v in labels.items()},
     }
 

@@ -10,9 +10,14 @@ the saved pose without a velocity jump.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from nwr.common.config import TaskSection
+
+if TYPE_CHECKING:
+    from nwr.common.robot import RobotModel
 
 
 class FigureEight:
@@ -36,6 +41,13 @@ class FigureEight:
     def velocity(self, s: float) -> np.ndarray:
         """dq/ds."""
         return self.amplitude * self.multiple * self.omega * np.cos(self.multiple * self.omega * s)
+
+
+def peak_point_speed(task: FigureEight, period_s: float, model: RobotModel, samples: int = 240) -> float:
+    """The speed of the task's fastest point (any the bridge's Cartesian limits watch: pads, elbow, flange)
+    over one period, m/s: the profile's load checks it, the bridge paces a handover's stream with it."""
+    return max(float(np.linalg.norm(model.speed_jacobians(task.position(s)) @ task.velocity(s), axis=1).max())
+               for s in np.linspace(0.0, period_s, samples, endpoint=False))
 
 
 class TaskClock:

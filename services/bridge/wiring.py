@@ -30,7 +30,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
-from nwr.common.task import FigureEight
+from nwr.common.task import FigureEight, peak_point_speed
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.core import BridgeCore, at_rest
@@ -59,9 +59,9 @@ def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
 
 
 def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimiter, samples: int = 240) -> float:
-    """The speed of the task's fastest point (any the limits watch) over one period, m/s."""
-    return max(float(limiter.speeds(task.position(s), task.velocity(s)).max())
-               for s in np.linspace(0.0, period_s, samples, endpoint=False))
+    """The speed of the task's fastest point (any the limits watch) over one period, m/s (as the profile's load
+    checked it against bridge.limits.speed_m_s: :func:`nwr.common.task.peak_point_speed`)."""
+    return peak_point_speed(task, period_s, limiter.model, samples)
 
 
 class BridgeWiring:

@@ -32,9 +32,17 @@ from nwr.common.config import GainSection
 from nwr.common.errors import ConfigError
 from nwr.common.robot import Pad
 
+# Beyond this exponent e^t overflows a double near 709.8; 1 / (1 + e^t) equals
+# e^-t to double precision long before (from t = 37 on).
+_EXP_TOP = 700.0
+
 
 def sigmoid(x: float, k: float) -> float:
-    return 1.0 / (1.0 + math.exp(-k * (x - 0.5)))
+    """1 / (1 + e^(-k (x - 0.5))), for any finite k (never an OverflowError)."""
+    t = -k * (x - 0.5)
+    if t > _EXP_TOP:
+        return math.exp(-t)  # underflows to 0.0 gracefully, never overflows
+    return 1.0 / (1.0 + math.exp(t))
 
 
 def scaled_sigmoid(x: float, k: float) -> float:

@@ -22,7 +22,7 @@ from typing import IO
 import zenoh
 
 from nwr.common import keys
-from nwr.common.config import Profile, encode_profile
+from nwr.common.config import Profile, encode_profile, loosened_safety
 from nwr.common.errors import DecodeError
 from nwr.common.node import Node
 from nwr.common.recordings import (
@@ -109,7 +109,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             robot=robot, session=session, profile_json=encode_profile(profile).decode(),
             strategy=getattr(args, "strategy", None) or profile.planner.strategy, planner=profile.planner.name,
             start_time_iso=dt.datetime.now(dt.UTC).isoformat(), start_monotonic_ns=node.clock.now_ns(),
-            labels=labels,
+            labels=labels, loosened_safety=loosened_safety(profile),
         )
         recorder = SessionRecorder(
             open_part, close_part, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
