@@ -98,7 +98,9 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
     """Start every unit; wait for Ctrl-C/SIGTERM (or the gateway's end of script); stop them all; 0 if all went well.
 
     A unit that exits unexpectedly is restarted with backoff (:class:`Restarts`) while the others keep running
-    (the bridge holds the arm meanwhile); with ``restart=False`` every unit is stopped instead, and 1 returned.
+    (the bridge holds the arm meanwhile; nothing waits for the recorder, so the arm's task goes on while it is
+    gone, and the launcher says loudly that the recording has a hole); with ``restart=False`` every unit is
+    stopped instead, and 1 returned.
     """
     procs: dict[str, subprocess.Popen[bytes]] = {}
     by_label = {unit.label: unit for unit in units(layout)}
@@ -116,7 +118,7 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
             procs[unit.label] = spawn(unit, profile_arg, log_level)
             started[unit.label] = time.monotonic()
             if unit.label == "recorder":
-                wait_for_recorder(profile)
+                wait_for_recorder(profile, procs[unit.label])
             elif unit.service == ROUTER:
                 time.sleep(0.3)  # clients connect at start-up
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
@@ -134,6 +136,13 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
                 delay = restarts.schedule(label, started[label], now)
                 log.error("%s exited unexpectedly (code %s): restarting it in %.1f s (restart %d); the others "
                           "keep running", label, code, delay, restarts.count[label])
+                if by_label[label].service == "recorder":
+                    # The arm's task goes on without it (nothing waits for the recorder): say loudly that the
+                    # session's recording has a hole, and where it goes on.
+                    log.error("NOTHING IS RECORDED until the recorder is back (in %.1f s or more): the session's "
+                              "recording has a hole from here; the arm and the other services keep running; the "
+                              "restarted recorder writes %s", delay,
+                              _restart_output(by_label[label], restarts.count[label]))
             for label in restarts.ready(now):
                 unit = by_label[label].restarted(restarts.count[label])
                 procs[label] = spawn(unit, profile_arg, log_level)
@@ -153,12 +162,30 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
     return 0
 
 
-def wait_for_recorder(profile: Profile, timeout_s: float = 30.0) -> None:
-    """Until the recorder is alive (subscribed): what the others publish from their start is recorded."""
+def _restart_output(unit: Unit, n: int) -> str:
+    args = unit.restarted(n).args
+    return args[args.index("--output") + 1] if "--output" in args else "a new file of its own"
+
+
+def wait_for_recorder(profile: Profile, proc: subprocess.Popen[bytes] | None = None,
+                      timeout_s: float = 30.0) -> None:
+    """Until the recorder is alive (subscribed): what the others publish from their start is recorded.
+
+    A recorder that exits meanwhile (``proc``) is not waited for: the others start at once, and the
+    launcher's loop restarts it.
+    """
     if profile.zenoh.secure:
         return  # the launcher has no certificate of its own: the services start at once
     from nwr.common.node import Node
 
+    deadline = time.monotonic() + timeout_s
     with Node("launcher", profile.robot.name, profile.zenoh, token=False) as node:
-        if node.wait_for(["recorder"], timeout_s):
-            log.warning("the recorder is not alive after %.0f s: starting the other services anyway", timeout_s)
+        while node.wait_for(["recorder"], min(1.0, max(0.0, deadline - time.monotonic()))):
+            if proc is not None and proc.poll() is not None:
+                log.error("the recorder exited at its start (code %s): starting the other services without it",
+                          proc.returncode)
+                return
+            if time.monotonic() >= deadline:
+                log.warning("the recorder is not alive after %.0f s: starting the other services anyway",
+                            timeout_s)
+                return

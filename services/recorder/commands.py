@@ -18,7 +18,10 @@ def register(subparsers: Any) -> None:
     record = subparsers.add_parser(
         "record", help="run the recorder alone (same as `nwr run recorder`)",
         description="Record every message under nwr/<robot>/ to MCAP until Ctrl-C or SIGTERM. Chunks are closed "
-                    "every recorder.chunk_interval_s, so a killed recorder leaves a file `nwr recover` can repair.",
+                    "every recorder.chunk_interval_s, so a killed recorder leaves a file `nwr recover` can repair. "
+                    "A disk that fills, a directory that is read-only or cannot be created does not stop it: it "
+                    "finishes the file it has, says so on diag/recorder (and `nwr status`), counts what it cannot "
+                    "record, and goes on in <stem>-NNN.mcap once it can write again (retried every second).",
     )
     recorder_main.add_arguments(record)
     record.set_defaults(handler=_record)

@@ -7,6 +7,12 @@ process's own loop (:mod:`.core`), which wakes every ``BATCH_S`` and writes
 everything that arrived meanwhile: one wake-up per batch instead of one per
 message (about 200 messages a second at the default rates while nobody
 touches the arm, about 650 during a reflex, several thousand at 1 kHz skin).
+
+The recorder never exits on its disk: a directory that cannot be created or
+written, a disk that fills, a file system that turns read-only are reported on
+``diag/recorder`` and retried every ``RETRY_S`` while the messages are counted
+(:class:`~nwr.common.recordings.SessionRecorder`); the rest of the pipeline and
+the arm's task do not depend on it.
 """
 
 from __future__ import annotations
@@ -26,12 +32,12 @@ from nwr.common.config import Profile, encode_profile, loosened_safety
 from nwr.common.errors import DecodeError
 from nwr.common.node import Node
 from nwr.common.recordings import (
+    PartFiles,
     RecordingError,
     SessionRecorder,
     SplitPolicy,
     fits_mcap,
     parse_labels,
-    part_path,
     session_metadata,
 )
 
@@ -47,12 +53,20 @@ BATCH_S = 0.1
 # The network thread that queues a message waits for the GIL while the loop
 # writes a batch: switch at least this often (s; Python's default is 5 ms).
 SWITCH_INTERVAL_S = 0.001
+# While the recording's disk cannot be written: how often a new file is tried
+# (each try that fails is one not_writing diagnostic, so `nwr status`, which
+# listens 2 s, sees it), s.
+RETRY_S = 1.0
+# The disk diagnostics come once per failure or per retry: let every one out
+# (Node.diag's default holds back a code repeated within 1 s).
+DISK_DIAG_EVERY_S = 0.5
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", "-o",
                         help="MCAP file to write (default: <recorder.directory>/<session>.mcap); split sessions "
-                             "write <stem>-000.mcap, <stem>-001.mcap, ... beside it")
+                             "write <stem>-000.mcap, <stem>-001.mcap, ... beside it, and so does a session that "
+                             "goes on in a new file after its disk could not be written (<stem>-001.mcap, ...)")
     parser.add_argument("--session", help="session name (default: the start time)")
     parser.add_argument("--label", action="append", default=[], metavar="KEY=VALUE",
                         help="free label stored in the session metadata (repeatable), e.g. participant=P07")
@@ -87,19 +101,17 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     labels = parse_labels(args.label)
     split = split_policy(profile, args)
     base = Path(args.output) if args.output else Path(cfg.directory) / f"{session}.mcap"
-    base.parent.mkdir(parents=True, exist_ok=True)
+    # The directory is created with the first file: one that cannot be is reported and retried, like a full disk.
+    files = PartFiles(base, split.enabled)
     robot = profile.robot.name
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     # Appended on Zenoh's thread, drained by the loop (deque appends and pops are atomic).
     inbox: deque[tuple[str, bytes, int]] = deque()
 
     def open_part(part: int) -> IO[bytes]:
-        path = part_path(base, part, split.enabled)
-        log.info("writing %s", path)
-        return path.open("wb")
-
-    def close_part(_part: int, stream: IO[bytes]) -> None:
-        stream.close()
+        stream = files.open(part)
+        log.info("writing %s", files.path(part))
+        return stream
 
     # The token is declared once the subscriber is: a launcher that waits for
     # the recorder to be alive knows nothing published after it is lost.
@@ -112,8 +124,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             labels=labels, loosened_safety=loosened_safety(profile),
         )
         recorder = SessionRecorder(
-            open_part, close_part, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
-            chunk_interval_ns=round(cfg.chunk_interval_s * 1e9), split=split,
+            open_part, files.close, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
+            chunk_interval_ns=round(cfg.chunk_interval_s * 1e9), split=split, disk=files,
+            retry_ns=round(RETRY_S * 1e9),
+            diag=lambda level, code, text: node.diag(level, code, text, every_s=DISK_DIAG_EVERY_S),
         )
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -150,7 +164,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                           f"{full_key}: seq {message.seq} or stamp_ns {message.stamp_ns} beyond what an MCAP record "
                           "holds (uint32, uint64): recorded with them folded into its range, the data keeps them")
             try:
-                recorder.write(full_key, message, received)
+                recorder.write(full_key, message, received)  # counted, not written, while the disk cannot be
             except Exception as exc:  # noqa: BLE001  no message may stop the recorder
                 bad += 1
                 node.diag("error", "record_error", f"not recorded: a {type(message).__name__} on {full_key}: {exc!r}")
@@ -163,14 +177,21 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             while not node.stop.wait(BATCH_S):
                 drain()
                 # Also when nothing arrives: a quiet pipeline must not keep its last chunk in memory.
-                recorder.flush_if_due(node.clock.now_ns())
+                now = node.clock.now_ns()
+                recorder.flush_if_due(now)
+                recorder.retry_if_due(now)
         finally:
             sub.undeclare()
             try:
                 drain()  # what arrived before the subscriber closed is kept
             finally:
-                report = recorder.finish()
+                report = recorder.finish(node.clock.now_ns())
             log.info("wrote %s; %d malformed samples dropped", report.format(), bad)
+            if report.outages:
+                log.warning("the session is incomplete: %d messages were not recorded while the disk could not be "
+                            "written (%d time(s))%s", report.dropped, len(report.outages),
+                            f"; {report.lost} more were lost with a file that could not be finished"
+                            if report.lost else "")
             if any(report.gaps.values()):
                 log.warning("sequence gaps: messages were lost before they reached the recorder: %s",
                             {k: v for k, v in report.gaps.items() if v})

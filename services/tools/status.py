@@ -4,7 +4,9 @@
   ``nwr/<robot>/alive/*``; planners announce themselves as
   ``planner-<name>``), the active planner and the bridge's status (from
   ``robot/state``), every planner's mode, each key's message rate over a
-  short window and the last pain event seen in it.
+  short window, the last pain event seen in it, and a recorder that cannot
+  write its disk (its ``diag/recorder``: it says so once a second while it
+  cannot).
 - ``nwr status --check SERVICE`` exits 0 if SERVICE's token is visible and 1
   if not: the compose health checks ask each service this way whether it is
   alive, through the same router every other service uses. SERVICE may be a
@@ -40,6 +42,11 @@ from nwr.services.pipeline.graph import NOT_WAITED_FOR, SERVICES, START_ORDER, p
 
 log = logging.getLogger(__name__)
 
+RECORDER_DIAG = keys.diag("recorder")
+# The recorder's codes about its disk (nwr.common.recordings.DISK_CODES; not imported from there, which would
+# load mcap into every health check, and test_recorder_disk holds the two equal).
+RECORDER_DISK_CODES = ("write_failed", "not_writing", "recording_resumed")
+
 # Long enough for every key of the pipeline (the slowest, planner status, is
 # 10 Hz or more) to show a rate; short enough for a command a person waits on.
 DEFAULT_WINDOW_S = 2.0
@@ -68,6 +75,7 @@ class StatusReport:
     pain: PainEvent | None = None
     undecodable: int = 0
     now_ns: int = 0
+    recorder: m.Diagnostic | None = None  # the recorder's last disk diagnostic in the window
 
     @property
     def active_planner(self) -> str | None:
@@ -87,13 +95,19 @@ class StatusCollector:
         self.state: m.RobotState | None = None
         self.planners: dict[str, m.PlannerStatus] = {}
         self.pain: PainEvent | None = None
+        self.recorder: m.Diagnostic | None = None
         self.undecodable = 0
         self._lock = threading.Lock()  # Zenoh calls observe() from its own threads
 
     def reset(self) -> None:
-        """Start the rate window afresh (the latest state, statuses and pain event are kept)."""
+        """Start the rate window afresh (the latest state, statuses and pain event are kept).
+
+        The recorder's disk diagnostic is not kept: it is repeated while the
+        trouble lasts, so one from before the window would be stale.
+        """
         with self._lock:
             self.counts.clear()
+            self.recorder = None
 
     def observe(self, full_key: str, payload: bytes, received_ns: int) -> None:
         try:
@@ -102,7 +116,7 @@ class StatusCollector:
             return  # not this robot's (the subscription is on its prefix, so only a malformed key)
         with self._lock:
             self.counts[relative] = self.counts.get(relative, 0) + 1
-            if relative not in (keys.ROBOT_STATE, keys.SKIN_PAIN) and not (
+            if relative not in (keys.ROBOT_STATE, keys.SKIN_PAIN, RECORDER_DIAG) and not (
                 relative.startswith("reflex/") and relative.endswith("/status")
             ):
                 return  # only counted: the report shows no content of other keys
@@ -118,6 +132,8 @@ class StatusCollector:
                     self.planners[message.name] = message
                 case m.SkinPain(strongest=m.Contact() as contact) if contact.level >= 1:
                     self.pain = PainEvent(contact, received_ns)
+                case m.Diagnostic(code=code) if code in RECORDER_DISK_CODES:
+                    self.recorder = message
 
     def report(self, alive: list[str], window_s: float, now_ns: int, endpoints: list[str]) -> StatusReport:
         with self._lock:
@@ -125,7 +141,7 @@ class StatusCollector:
                 robot=self.robot, endpoints=endpoints, window_s=window_s, alive=sorted(alive),
                 rates_hz={k: n / window_s for k, n in sorted(self.counts.items())},
                 state=self.state, planners=dict(sorted(self.planners.items())), pain=self.pain,
-                undecodable=self.undecodable, now_ns=now_ns,
+                undecodable=self.undecodable, now_ns=now_ns, recorder=self.recorder,
             )
 
 
@@ -178,6 +194,9 @@ def format_report(report: StatusReport) -> str:
                      f"{c.change_hpa:+.1f} hPa, {ago:.1f} s ago")
     else:
         lines.append(f"last pain event: none in the last {report.window_s:.1f} s")
+    if report.recorder is not None:
+        # The recorder's own words: "not writing: disk full (...) at FILE; ...", or "recording resumed in FILE ...".
+        lines.append(f"recorder: {report.recorder.message}")
     if report.undecodable:
         lines.append(f"warning: {report.undecodable} samples did not decode (see diag/*)")
     return "\n".join(lines)
