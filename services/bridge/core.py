@@ -208,7 +208,7 @@ class BridgeCore:
             if clipped is not None:
                 self._report_clip(clipped)
         else:
-            tracker.follow_velocity(checked.values)
+            tracker.follow_velocity(checked.values, cmd, now_ns, self.last_seq, self.last_stamp_ns)
         self.phase = cmd.phase
         self.last_seq = cmd.seq
         self.last_stamp_ns = cmd.stamp_ns

@@ -5,10 +5,16 @@ description's, scaled by the profile's fractions and tightened by its
 per-joint lists (never loosened), as :func:`make_envelope` builds them. The
 command check (:mod:`.checks`), the tracker (:mod:`.tracking`) and the
 backends' last guard (:mod:`.backend`) all work within it.
+
+:func:`stop_extent` and :func:`brake` describe one joint's time-optimal
+jerk-limited stop from any speed and acceleration: how far it goes, and
+where it is one control cycle into it. The tracker keeps every joint able to
+make that stop before its limits.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,3 +134,80 @@ def clip(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """
     return np.minimum(np.maximum(a, lo), hi)
 
+
+
+# ------------------------------------------------------------------------------ one joint's stop
+
+
+def _stop_phases(v: float, a: float, a_max: float, j_max: float) -> tuple[float, list[tuple[float, float]]]:
+    """The time-optimal stop to rest (speed and acceleration 0) from ``v``, ``a``: the direction it is computed in
+    (+1 or -1: the profile is for ``sign * v``, ``sign * a``) and its phases (jerk, duration).
+
+    Deceleration at most ``a_max`` (more only while it ramps down from beyond
+    it), jerk at most ``j_max``. From the direction of motion: ramp the
+    deceleration up to ``a_p`` at the jerk limit, hold it, ramp it back to 0,
+    where ``a_p = sqrt(j v + a^2 / 2)`` (at most ``a_max``) is what ends at
+    rest. A joint already decelerating harder than that (``j v < a^2 / 2``)
+    cannot stop without reversing a little: it ramps its acceleration up
+    through 0 to ``sqrt(a^2 / 2 - j v)`` and back, ending at rest.
+    """
+    sign = 1.0 if v > 0.0 or (v == 0.0 and a >= 0.0) else -1.0
+    v, a, j = sign * v, sign * a, j_max
+    energy = j * v + 0.5 * a * a  # invariant while the jerk is -j
+    if a < 0.0 and energy < a * a:
+        peak = math.sqrt(max(0.5 * a * a - j * v, 0.0))
+        return sign, [(j, (peak - a) / j), (-j, peak / j)]
+    peak = math.sqrt(energy)
+    hold = 0.0
+    if peak > a_max:
+        peak = a_max
+        hold = max((v + a * a / (2.0 * j) - a_max * a_max / j) / a_max, 0.0)
+    return sign, [(-j, max(a + peak, 0.0) / j), (0.0, hold), (j, peak / j)]
+
+
+def _integrate(x: float, v: float, a: float, jerk: float, t: float) -> tuple[float, float, float]:
+    return (x + v * t + 0.5 * a * t * t + jerk * t * t * t / 6.0, v + a * t + 0.5 * jerk * t * t, a + jerk * t)
+
+
+def stop_extent(v: float, a: float, a_max: float, j_max: float) -> tuple[float, float]:
+    """The lowest and highest displacement (lo <= 0 <= hi, rad) along one joint's time-optimal stop from ``v``, ``a``.
+
+    Within a phase the position turns back only where the speed crosses 0, so
+    the phase ends and those crossings are all the extremes there are.
+    """
+    sign, phases = _stop_phases(v, a, a_max, j_max)
+    x, v, a = 0.0, sign * v, sign * a
+    lo = hi = 0.0
+    for jerk, t in phases:
+        if t <= 0.0:
+            continue
+        if jerk != 0.0:  # where v + a s + jerk s^2 / 2 = 0 within the phase
+            disc = a * a - 2.0 * jerk * v
+            if disc >= 0.0:
+                root = math.sqrt(disc)
+                for s in ((-a - root) / jerk, (-a + root) / jerk):
+                    if 0.0 < s < t:
+                        xs = _integrate(x, v, a, jerk, s)[0]
+                        lo, hi = min(lo, xs), max(hi, xs)
+        x, v, a = _integrate(x, v, a, jerk, t)
+        lo, hi = min(lo, x), max(hi, x)
+    return (lo, hi) if sign > 0.0 else (-hi, -lo)
+
+
+def brake(v: float, a: float, h: float, a_max: float, j_max: float) -> tuple[float, float, float]:
+    """Displacement, speed and acceleration of one joint ``h`` s into its time-optimal stop from ``v``, ``a``.
+
+    Taken one cycle at a time, the stop is the same stop: from where it
+    brings the joint, the rest of it is what :func:`stop_extent` computes.
+    """
+    sign, phases = _stop_phases(v, a, a_max, j_max)
+    x, v, a = 0.0, sign * v, sign * a
+    left = h
+    for jerk, t in phases:
+        step = min(t, left)
+        if step > 0.0:
+            x, v, a = _integrate(x, v, a, jerk, step)
+            left -= step
+    if left > 0.0:  # at rest before the cycle ends
+        v = a = 0.0
+    return sign * x, sign * v, sign * a

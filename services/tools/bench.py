@@ -587,10 +587,40 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"first of the {PORTS_PER_RUN * PORT_BLOCKS} loopback ports the runs use (default 18050)")
     p.add_argument("--output", "-o", help="directory for bench.json and bench.md (default: bench/<time>/)")
     p.add_argument("--keep", action="store_true", help="keep every run's recording, logs and profile")
+    p.add_argument("--tracking", action="store_true",
+                   help="instead: how the bridge's tracker follows the planner (jerk, acceleration, tracking error, "
+                        "the task's fastest point, reflex onsets, stops, cost per cycle), in this process on "
+                        "simulated time (a minute)")
+    p.add_argument("--against", metavar="TRACKING_PY",
+                   help="with --tracking: compare with another version of services/bridge/tracking.py, "
+                        "e.g. git show REV:services/bridge/tracking.py > old.py")
+    p.add_argument("--jitter-ms", type=float, default=0.0,
+                   help="with --tracking: delay each command by up to this much, each bridge cycle by a quarter "
+                        "of it (seeded), as a loaded machine does")
     p.set_defaults(handler=_handler_with_defaults)
 
 
+def run_tracking(args: argparse.Namespace) -> int:
+    """``nwr bench --tracking``: the tracker's figures (:mod:`.bench_tracking`), one row per session and version."""
+    from nwr.services.tools import bench_tracking
+
+    profile = load_profile(args.profile)
+
+    def show(row: dict[str, Any]) -> None:
+        print(", ".join(f"{k} {_f(v, '.4g') if isinstance(v, float) else v}" for k, v in row.items()), flush=True)
+
+    rows = bench_tracking.run(profile, against=args.against, jitter_ms=args.jitter_ms, print_row=show)
+    if args.output:
+        out = Path(args.output)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "tracking.json").write_text(json.dumps(rows, indent=1, default=_jsonable))
+        print(f"raw numbers: {out / 'tracking.json'}")
+    return 0
+
+
 def _handler_with_defaults(args: argparse.Namespace) -> int:
+    if args.tracking:
+        return run_tracking(args)
     if args.soak_minutes is None:
         args.soak_minutes = 0.5 if args.quick else 60.0
     if args.reps < 0 or args.onsets < 1:
