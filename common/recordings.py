@@ -1052,12 +1052,16 @@ def session_metadata(
     start_monotonic_ns: int,
     labels: dict[str, str],
     loosened_safety: list[dict[str, Any]] | None = None,
+    timing: str = "live",
 ) -> dict[str, str]:
     """The ``session`` metadata record (every value a string, as MCAP requires).
 
     ``loosened_safety``: the profile's acknowledged loosened safety values
     (:func:`nwr.common.config.loosened_safety`), kept as a JSON list of
     {field, value, default, reason}, ``[]`` for none; None leaves it out.
+    ``timing``: "live" (services as processes, on the machine's clock) or
+    "lockstep" (one process on simulated time, where stamps are control
+    cycles and no latency is measured).
     """
     return {
         "robot": robot,
@@ -1070,6 +1074,7 @@ def session_metadata(
         # Log times are on the machine's monotonic clock (as every stamp is):
         # this pair maps them to wall-clock time.
         "start_monotonic_ns": str(start_monotonic_ns),
+        "timing": timing,
         **({} if loosened_safety is None else {"loosened_safety": json.dumps(loosened_safety)}),
         **{f"label.{k}": v for k, v in labels.items()},
     }

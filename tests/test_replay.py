@@ -160,3 +160,27 @@ def test_replay_fast_cli_and_live_against_the_outside_planner(tmp_path):
     onsets = {s.reflex_seq for s in states if s.accepted is not None}
     assert len(onsets) >= 2  # the two supra-threshold touches of the replayed window moved the arm
     assert max(np.abs(s.dq).max() for s in states) > 0.1  # and the arm moved
+
+
+def test_a_lockstep_recording_prints_no_latency_and_says_why(tmp_path, capsys):
+    from nwr.services.tools.replay import simulate
+    from nwr.services.tools.summary import print_summary
+
+    path = simulate(Profile(), str(Path(__file__).parent / "data" / "short.toml"), "cartesian",
+                    tmp_path / "lockstep.mcap")[0]
+    _, metadata = read_recording(path)
+    assert metadata["session"]["timing"] == "lockstep"
+    assert print_summary(path, None, Profile()) == 0
+    out = capsys.readouterr().out
+    assert "no latency is measured" in out and "median" not in out
+
+
+def test_a_channel_of_a_few_messages_has_no_rate():
+    from nwr.services.recorder.salvage import ChannelInfo
+
+    events = ChannelInfo(1, "nwr/ur10e/control/active", "nwr.SwitchRequest", "json", count=2, first_log_ns=0,
+                         last_log_ns=1_270_000)
+    assert events.rate_hz is None  # was 787 Hz
+    stream = ChannelInfo(2, "nwr/ur10e/robot/state", "nwr.RobotState", "json", count=51, first_log_ns=0,
+                         last_log_ns=1_000_000_000)
+    assert stream.rate_hz == pytest.approx(50.0)

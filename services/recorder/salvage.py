@@ -60,6 +60,10 @@ _INDEX_OPCODES = {Opcode.MESSAGE_INDEX, Opcode.DATA_END, Opcode.CHUNK_INDEX, Opc
                   Opcode.SUMMARY_OFFSET, Opcode.METADATA_INDEX, Opcode.ATTACHMENT_INDEX, Opcode.FOOTER}
 
 
+# A channel with fewer messages has no rate worth printing: they are events, not a stream.
+RATE_MIN_COUNT = 10
+
+
 @dataclass
 class ChannelInfo:
     id: int
@@ -72,9 +76,11 @@ class ChannelInfo:
     undecodable: int = 0
 
     @property
-    def rate_hz(self) -> float:
+    def rate_hz(self) -> float | None:
+        """Messages per second over the channel's own span; None for fewer than RATE_MIN_COUNT messages (two
+        events 1 ms apart are not a 1 kHz stream)."""
         span = (self.last_log_ns - self.first_log_ns) / 1e9
-        return (self.count - 1) / span if self.count > 1 and span > 0 else 0.0
+        return (self.count - 1) / span if self.count >= RATE_MIN_COUNT and span > 0 else None
 
 
 @dataclass
@@ -489,8 +495,9 @@ def format_info(report: ScanReport, *, full: bool = False) -> str:
         gaps, restarts = report.gaps.gaps(), report.gaps.restarts()
         gaps_source = "recounted from the messages (the recorder's own count is missing)"
     headers = ("channel", "schema", "messages", "rate (Hz)", "gaps", "restarts")
-    rows = [(c.topic, c.schema_name, str(c.count), f"{c.rate_hz:.2f}", str(gaps.get(c.topic, 0)),
-             str(restarts.get(c.topic, 0))) for c in sorted(report.channels.values(), key=lambda c: c.topic)]
+    rows = [(c.topic, c.schema_name, str(c.count), "-" if c.rate_hz is None else f"{c.rate_hz:.2f}",
+             str(gaps.get(c.topic, 0)), str(restarts.get(c.topic, 0)))
+            for c in sorted(report.channels.values(), key=lambda c: c.topic)]
     widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(headers)]
     lines.append("")
     lines.append("  ".join(h.ljust(w) if i < 2 else h.rjust(w) for i, (h, w) in enumerate(zip(headers, widths))))

@@ -43,7 +43,7 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_script, profile_for
+from nwr.common.config import Profile, load_script, loosened_safety, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.recordings import McapRecorder, Recorded, new_file, read_recording, session_metadata
@@ -133,6 +133,7 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
         recorder.metadata("session", session_metadata(
             robot=robot, session=output.stem, profile_json=msgspec.json.encode(profile).decode(), strategy=strategy,
             planner=strategy, start_time_iso=start_time_iso, start_monotonic_ns=first, labels=labels,
+            loosened_safety=loosened_safety(profile), timing="lockstep",
         ))
         if not isinstance(skin, SkinSource):
             for touch in touches or []:

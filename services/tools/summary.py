@@ -19,10 +19,17 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     desc = load_description(profile.robot.description or None)
     touches = analysis.summarize(records, desc)
     first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
+    latencies = [t.onset_latency_ms for t in touches if t.onset_latency_ms is not None]
+    lockstep = metadata.get("session", {}).get("timing") == "lockstep"
+    if lockstep:  # stamps are control cycles of simulated time: the "latency" is the cycle it fell in
+        for t in touches:
+            t.onset_latency_ms = None
     print(f"\nRecording {path}: {len(records)} messages")
     print(analysis.format_table(analysis.HEADER, analysis.table_rows(touches, first)))
-    latencies = [t.onset_latency_ms for t in touches if t.onset_latency_ms is not None]
-    if latencies:
+    if lockstep and latencies:
+        print(f"\n{len(latencies)} reflexes on simulated time (lockstep): each began within the control cycle of "
+              "its skin sample, by construction; no latency is measured here (`nwr demo` or `nwr bench` live)")
+    elif latencies:
         import numpy as np
 
         print(f"\nreflex onset latency over {len(latencies)} reflexes: median {np.median(latencies):.2f} ms, "
