@@ -962,11 +962,12 @@ class Planner:
         if not reflex.withdraws:
             pad = self.desc.pads[reflex.contact.pad].name
             if self.holds and self.mode == "REFLEX":
-                log.warning("reflex %d cannot move pad %s away from the contact (%.1f mm): holding still",
+                # Info: a property of the pose and the strategy, reported on the status, not a fault.
+                log.info("reflex %d cannot move pad %s away from the contact (%.1f mm): holding still",
                             reflex.seq, pad, 1e3 * assessment.furthest_m)
                 self._begin_hold(reflex.started_ns)
             else:
-                log.warning("reflex %d cannot move pad %s away from the contact (%.1f mm)", reflex.seq, pad,
+                log.info("reflex %d cannot move pad %s away from the contact (%.1f mm)", reflex.seq, pad,
                             1e3 * assessment.furthest_m)
         return True
 
