@@ -138,7 +138,7 @@ build_wheels() {
     "$PYTHON" -m pip download --quiet --disable-pip-version-check --dest "$tmp" \
         --only-binary=:all: --implementation cp --python-version 3.11 --abi cp311 --abi abi3 --abi none \
         "${platforms[@]}" --platform any \
-        -r requirements.lock "setuptools>=69" wheel 2> "$NWR_CACHE/pip-download.log" \
+        -r requirements.lock "setuptools>=77" wheel 2> "$NWR_CACHE/pip-download.log" \
         || { grep -v 'is ignored' "$NWR_CACHE/pip-download.log" | tail -20 >&2; die "pip download of requirements.lock failed: a package without a cp311 manylinux wheel, or no PyPI"; }
     touch "$tmp/.complete"
     rm -rf "$dir"
