@@ -424,3 +424,16 @@ def test_shipped_layout_plots_fields_the_view_publishes():
         assert {p.rsplit(".", 1)[1] for p in paths if p.startswith(f"/nwr/skin.{field}.")} == names
     assert "/nwr/planner.mode" in paths and "/nwr/onset.latency_ms" in paths
     assert set(panels["3D!nwr"]["topics"]) <= set(c.CHANNEL_BY_TOPIC)
+
+
+def test_the_live_server_broadcasts_time_without_an_error(caplog):
+    from nwr.services.view.server import ViewServer
+
+    view = ViewServer("127.0.0.1", 0, name="time test")  # as `nwr view` serves live: no capability asked
+    try:
+        with caplog.at_level("DEBUG"):
+            for t in range(5):
+                view.server.broadcast_time(1_000_000 * t)
+    finally:
+        view.stop()
+    assert not [r for r in caplog.records if r.levelname == "ERROR"], caplog.text  # was one per frame

@@ -58,8 +58,11 @@ class ViewServer(ServerListener):
         self.stats = foxglove.Channel(STATS_TOPIC, schema=STATS_SCHEMA, context=self.context)
         self.description_wanted = threading.Event()
         self._delegate = listener
+        # Time always: live and in playback the view broadcasts the time of what it serves (without the
+        # capability the SDK logs an error on every broadcast).
+        capabilities = [*(capabilities or []), *([] if Capability.Time in (capabilities or []) else [Capability.Time])]
         self.server = foxglove.start_server(
-            name=name, host=host, port=port, capabilities=capabilities or [], server_listener=self,
+            name=name, host=host, port=port, capabilities=capabilities, server_listener=self,
             context=self.context, playback_time_range=playback_time_range,
         )
         self.port = self.server.port
