@@ -244,7 +244,10 @@ def test_every_package_is_installed() -> None:
     """The image installs the wheel, not the checkout: a package missing from pyproject.toml is missing there."""
     import tomllib
 
-    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(setuptools["packages"])
     found = {".".join(["nwr", *p.parent.relative_to(ROOT).parts])
              for top in ("common", "services") for p in (ROOT / top).rglob("__init__.py")}
-    assert found == listed
+    # Besides the code, the folders of data files (profiles, scripts, a robot's files), each with its files.
+    data = set(setuptools["package-data"])
+    assert found | data == listed and not found & data
