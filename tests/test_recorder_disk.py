@@ -17,11 +17,9 @@ import io
 import os
 import subprocess
 import tracemalloc
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import pytest
 from mcap.records import Channel, Message
 
 from nwr.common import keys
@@ -463,28 +461,6 @@ def test_a_file_deleted_while_written_goes_on_in_a_new_one(tmp_path: Path) -> No
     assert final.parts[0].outcome == "gone"
     records, metadata = read_recording(tmp_path / "rec" / "s-001.mcap")
     assert metadata["session"]["part"] == "1" and records
-
-
-@pytest.fixture
-def tmpfs(tmp_path: Path) -> Iterator[Any]:
-    """``mount(options)``: a tmpfs on tmp_path/disk, unmounted at the end; skipped where mounting is not permitted."""
-    where = tmp_path / "disk"
-    where.mkdir()
-    mounted = []
-
-    def mount(options: str) -> Path:
-        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True,
-                              text=True)
-        if proc.returncode != 0:
-            pytest.skip(f"cannot mount a tmpfs here (needs root): {proc.stderr.strip()}")
-        mounted.append(where)
-        return where
-
-    try:
-        yield mount
-    finally:
-        for path in mounted:
-            subprocess.run(["umount", str(path)], check=False)
 
 
 def remount(where: Path, options: str) -> None:

@@ -18,12 +18,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
+from test_recorder_disk import remount
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -43,28 +43,6 @@ ROOM = 200 * 1024
 WAIT_S = 90.0
 # How long the pipeline is watched once the recorder stopped writing.
 WATCH_S = 4.0
-
-
-@pytest.fixture
-def tmpfs(tmp_path: Path) -> Iterator[Any]:
-    """``mount(options)`` a tmpfs on tmp_path/disk; unmounted at the end, skipped where mounting is not permitted."""
-    where = tmp_path / "disk"
-    where.mkdir()
-    mounted: list[Path] = []
-
-    def mount(options: str) -> Path:
-        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)], capture_output=True,
-                              text=True)
-        if proc.returncode != 0:
-            pytest.skip(f"cannot mount a tmpfs for the recording (needs root): {proc.stderr.strip()}")
-        mounted.append(where)
-        return where
-
-    try:
-        yield mount
-    finally:
-        for path in mounted:
-            subprocess.run(["umount", "-l", str(path)], check=False)
 
 
 class Watch:
@@ -237,7 +215,7 @@ def test_a_read_only_directory_at_the_start_is_reported_and_recording_starts_onc
             print(text)
             assert "recorder: not writing" in text and "read-only file system" in text
 
-            subprocess.run(["mount", "-o", "remount,rw", str(disk)], check=True)
+            remount(disk, "rw")
             t_rw = time.monotonic()
             t_resumed, resumed = watch.wait_diag(RECORDING_RESUMED, up, log, after=t_rw)
             assert f"recording resumed in {output} after" in resumed.message  # the session's first file
