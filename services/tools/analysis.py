@@ -218,10 +218,13 @@ def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[Tou
     return done
 
 
-def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
-    def f(x: float | None, fmt: str) -> str:
-        return "-" if x is None else format(x, fmt)
+def cell(x: float | None, fmt: str) -> str:
+    """A table cell: ``x`` formatted, "-" when there is none."""
+    return "-" if x is None else format(x, fmt)
 
+
+def table_rows(touches: list[TouchSummary], t0_ns: int) -> list[list[str]]:
+    f = cell
     return [
         [
             f"{(t.start_ns - t0_ns) / 1e9:6.2f}", t.name, t.region, f"{t.peak_hpa:5.1f}", str(t.level), f"{t.gain:.3f}",

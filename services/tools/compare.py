@@ -138,9 +138,7 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
               "other pad closer (mm)", "peak speed (rad/s)", "peak (m/s)", "toward (m/s)", "resumed (s)",
               "dq vs first (mrad)"]
 
-    def f(x: float | None, fmt: str) -> str:
-        return "-" if x is None else format(x, fmt)
-
+    f = analysis.cell
     out = []
     for i, row in enumerate(rows, start=1):
         for session, touch in zip(sessions, row):

@@ -25,7 +25,7 @@ from nwr.common import keys
 from nwr.common.config import Profile, Touch, TouchScript, profile_for
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools.analysis import TouchSummary, format_table, summarize
+from nwr.services.tools.analysis import TouchSummary, cell, format_table, summarize
 
 # The press begins once the arm has reached its task (the approach from the start pose is over), s.
 START_S = 2.0
@@ -96,9 +96,7 @@ HEADER = ["strategy", "loop", "pad", "reflexes", "back into", "withdrawal (mm)",
 
 
 def rows(presses: list[Press]) -> list[list[str]]:
-    def f(x: float | None, fmt: str) -> str:
-        return "-" if x is None else format(x, fmt)
-
+    f = cell
     out = []
     for p in presses:
         t = p.touch
