@@ -232,3 +232,23 @@ def test_a_stop_begun_while_accelerating_stays_within_the_cartesian_speed_limit(
     point past the speed limit, the stop starts at zero acceleration, the joints in proportion."""
     worst, limit = bench.stop_overshoot(profile)
     assert worst <= limit + 1e-3
+
+
+# --------------------------------------------------------------------------- ruckig refusing an input
+
+def test_an_input_ruckig_rejects_falls_back_to_the_acceleration_limited_law(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ruckig raises RuckigError (not a RuntimeError) on some inputs at the edge of its limits (one live
+    uniform-reflex session did, with the acceleration exactly at a_max): the bridge crashed with it. The cycle
+    now falls back to the acceleration-limited law, still within the envelope, and the arm stays commanded."""
+    from ruckig import RuckigError
+
+    c = core()
+    drive(c, 5, lambda k, t: vel((0.5, -0.5), k, t))
+
+    def refuse(*_args: object) -> None:
+        raise RuckigError("[ruckig] error in step 1, dof: 1 input: ...")
+
+    monkeypatch.setattr(c.tracker, "_otg", type("Refusing", (), {"calculate": staticmethod(refuse)})())
+    qs, dqs, ddqs = drive(c, 50, lambda k, t: vel((0.5, -0.5), 5 + k, t), t0=10 * MS)
+    assert np.isfinite(qs).all() and np.abs(dqs[-1] - (0.5, -0.5)).max() < 1e-6  # it keeps following the command
+    assert np.all(np.abs(ddqs) <= ENV.a_max * (1 + JERK_TOL)) and np.all(np.abs(dqs) <= ENV.v_max * (1 + JERK_TOL))

@@ -62,7 +62,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Synchronization, Trajectory
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Synchronization, Trajectory
 
 from nwr.common import messages as m
 from nwr.services.bridge.cartesian import CartesianLimiter, Scaling
@@ -642,7 +642,7 @@ class Tracker:
         inp.min_acceleration = (-env.a_max - a_end).tolist()
         try:
             result = self._otg.calculate(inp, trajectory)
-        except (RuntimeError, ValueError):  # an error code the binding does not name (-101: too long)
+        except (RuckigError, RuntimeError, ValueError):  # an input it rejects, or an error code it does not name
             result = Result.Error
         if result not in (Result.Working, Result.Finished):
             if r0 is None:
@@ -921,7 +921,7 @@ class Tracker:
         inp.synchronization = sync
         try:
             return self._otg.calculate(inp, trajectory)
-        except (RuntimeError, ValueError):
+        except (RuckigError, RuntimeError, ValueError):
             return Result.Error
 
     def _stop_check(self, trajectory: Trajectory, velocity: np.ndarray) -> tuple[bool, bool]:
