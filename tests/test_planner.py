@@ -184,6 +184,20 @@ def test_resync_when_the_arm_is_elsewhere():
     sim.until("TASK")
 
 
+def test_no_resync_while_the_bridge_follows_the_position_stream_behind_it():
+    """The bridge continues a position stream from the stream's own setpoints and refuses a jump back to the
+    arm: a planner that resynchronised on the arm lagging its stream (the bridge's limits slowing a withdrawal)
+    had every command refused as a jump, and the bridge stopped the arm (stale commands)."""
+    sim = Sim()
+    sim.until("TASK")
+    q = sim.p.q.copy()
+    sim.p.on_state(q - 0.3, following=True, streaming=True)
+    assert sim.p.mode == "TASK" and sim.p.resyncs == 0
+    np.testing.assert_array_equal(sim.p.q, q)  # the stream goes on from its own setpoint
+    sim.p.on_state(q - 0.3, following=False, streaming=True)  # the bridge holds the arm: start again from it
+    assert sim.p.resyncs == 1
+
+
 def test_damped_pinv_exact_away_from_singularities():
     q = DESC.home
     for pad in range(N_PADS):

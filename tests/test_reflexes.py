@@ -9,7 +9,7 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.services.gain.core import continuous_gain
 from nwr.services.planner import strategies
 from nwr.services.planner.core import Planner
-from nwr.services.planner.reflexes import smooth_profile
+from nwr.services.planner.reflexes import JOINT_MARGIN_RAD, smooth_profile
 from nwr.services.planner.retreat import assess
 
 DESC = load_description()
@@ -32,6 +32,17 @@ def test_reflex_directions_are_robot_data():
     np.testing.assert_array_equal(DESC.reflex_direction, SIGN)
 
 
+def test_joint_targets_stay_inside_the_joint_ranges_by_the_margin():
+    """A target on the limit itself had the bridge brake the arm short of it (joint_limit), off the plan."""
+    ur = joint_reflex("uniform")
+    q = DESC.home.copy()
+    q[2] = DESC.q_max[2] - 0.5  # the elbow's 73 deg of flexion would pass its limit
+    target = ur.target(q, contact("forearm_top", 25.0, 4))
+    assert target[2] == pytest.approx(DESC.q_max[2] - JOINT_MARGIN_RAD)
+    q[2] = DESC.q_max[2] - JOINT_MARGIN_RAD / 2  # already inside the margin: it stays, never pulled back
+    assert ur.target(q, contact("forearm_top", 25.0, 4))[2] == q[2]
+
+
 def test_uniform_adds_half_q_max_whatever_the_gain():
     ur = joint_reflex("uniform")
     q = DESC.home.copy()
@@ -44,7 +55,7 @@ def test_uniform_clips_to_the_joint_limits():
     ur = joint_reflex("uniform")
     q = np.array([0.0, -1.0, 2.5, -2.0, -1.57, 0.0])  # elbow at 2.5 rad: +73 deg passes pi
     target = ur.target(q, contact("wrist_1", 16.0, 4))
-    assert target[2] == pytest.approx(np.pi)  # the URDF's elbow limit
+    assert target[2] == pytest.approx(np.pi - JOINT_MARGIN_RAD)  # inside the URDF's elbow limit
     np.testing.assert_allclose(target[[0, 1, 3]], q[[0, 1, 3]] + SIGN[[0, 1, 3]] * np.radians([20, 35, 36.5]))
 
 

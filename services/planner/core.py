@@ -244,8 +244,10 @@ class Planner:
 
     # -- inputs -------------------------------------------------------------
     def on_state(self, q: np.ndarray, following: bool, *, dq: np.ndarray | None = None,
-                 owner: str | None = None, now_ns: int = 0, phase: m.Mode = "TASK", ok: bool = True) -> None:
-        """Measured joints from the bridge, whether it follows this planner, whom it follows, in which phase."""
+                 owner: str | None = None, now_ns: int = 0, phase: m.Mode = "TASK", ok: bool = True,
+                 streaming: bool = False) -> None:
+        """Measured joints from the bridge, whether it follows this planner, whom it follows, in which phase;
+        ``streaming``: the bridge follows a position stream (it tracks the stream's own setpoints)."""
         self.seen.observe(q, phase, ok, self.name if owner is None else owner, now_ns)
         if owner is not None and owner != self.name:
             self._mirror(q, dq, now_ns)
@@ -262,13 +264,20 @@ class Planner:
         # The bridge tracks the commands within a cycle or two; a large gap, or
         # a bridge that stopped following (stale input, another owner), means
         # the arm is not where this planner believes: start again from there.
-        if error > RESYNC_RAD or (not following and error > 1e-3):
+        # Not while the bridge follows this planner's position stream: it
+        # continues the stream from the stream's own setpoints (the arm may lag
+        # them while its limits slow it), and refuses a jump back to the arm.
+        if (error > RESYNC_RAD and not (following and streaming)) or (not following and error > 1e-3):
             self.resyncs += 1
-            # While the bridge holds the arm (stale input, before the skin
-            # starts) this repeats every state message: say it now and then.
-            if self.resyncs == 1 or self.resyncs % 250 == 0:
-                log.warning("the arm is %.3f rad from the commanded pose (%s): resynchronising (%d times so far)",
-                            error, "bridge following" if following else "bridge not following", self.resyncs)
+            # A bridge that holds the arm (stale input, a switch, its shutdown)
+            # reports why itself: here that is expected, said now and then. A
+            # bridge that follows with the arm elsewhere is a fault.
+            if following:
+                log.warning("the arm is %.3f rad from the commanded pose while the bridge follows: "
+                            "resynchronising (%d times so far)", error, self.resyncs)
+            elif self.resyncs == 1 or self.resyncs % 250 == 0:
+                log.info("the bridge holds the arm %.3f rad from the commanded pose: resynchronising from it "
+                         "(%d times so far)", error, self.resyncs)
             self.q = q.copy()
             self.dq[:] = 0.0
             self.ddq[:] = 0.0

@@ -5,7 +5,8 @@ Joint-space reflexes of the paper (:mod:`.strategies.uniform`,
 q_ref is added to the current pose, signed by the robot description's
 ``reflex_direction`` (shoulder internal rotation, shoulder adduction, elbow
 flexion, wrist flexion: the arm draws in toward the base) and clipped to the
-joint limits; the planner moves to the target with a jerk-limited trajectory
+joint limits less :data:`JOINT_MARGIN_RAD` (a target on the limit itself
+would have the bridge brake the arm short of it, off the plan); the planner moves to the target with a jerk-limited trajectory
 (ruckig). In guarded mode the displacement is corrected when its path would
 move the touched pad toward the contact (:func:`.retreat.guard_displacement`).
 
@@ -27,6 +28,10 @@ from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner.retreat import guard_displacement
 from nwr.services.planner.strategies import Onset, ReflexStrategy
+
+
+# A joint-space target stays this far inside each joint's range (a joint already closer stays where it is).
+JOINT_MARGIN_RAD = 0.01
 
 
 def damped_pinv(jac: np.ndarray, damping_max: float, threshold: float) -> np.ndarray:
@@ -70,20 +75,24 @@ class JointReflex(ReflexStrategy):
             raise ConfigError(f"planner.q_max_deg has {len(cfg.q_max_deg)} values, the robot has {n} joints")
         self.q_max = np.radians(cfg.q_max_deg)
         self.sign = desc.reflex_direction
-        self.q_min, self.q_lim = desc.q_min, desc.q_max
+        self.q_min, self.q_lim = desc.q_min + JOINT_MARGIN_RAD, desc.q_max - JOINT_MARGIN_RAD
         self.guarded = cfg.guarded
 
     @abstractmethod
     def displacement(self, contact: m.Contact) -> np.ndarray:
         """q_ref, rad, before the direction signs and clipping."""
 
+    def bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where a target from ``q`` may go: the joint ranges less the margin, widened to ``q`` itself."""
+        return np.minimum(self.q_min, q), np.maximum(self.q_lim, q)
+
     def target(self, q: np.ndarray, contact: m.Contact) -> np.ndarray:
-        return np.clip(q + self.sign * self.displacement(contact), self.q_min, self.q_lim)
+        return np.clip(q + self.sign * self.displacement(contact), *self.bounds(q))
 
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
         target = self.target(q, contact)
         corrected = False
         if self.guarded:
-            delta, corrected = guard_displacement(self.model, q, target - q, contact.pad, self.q_min, self.q_lim)
+            delta, corrected = guard_displacement(self.model, q, target - q, contact.pad, *self.bounds(q))
             target = q + delta
         return Onset(target=target, corrected=corrected)

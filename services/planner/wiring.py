@@ -84,7 +84,7 @@ class PlannerWiring:
         self._catch_up(now)
         planner.on_state(q, following=state.owner == self.name and state.status == "ok",
                          dq=m.as_array(state.dq), owner=state.owner, now_ns=now, phase=state.phase,
-                         ok=state.status == "ok")
+                         ok=state.status == "ok", streaming=state.command_mode == "position")
         self._notes()
         if planner.changed:
             self._status(self.journal.now_ns())
