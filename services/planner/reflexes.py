@@ -6,9 +6,10 @@ q_ref is added to the current pose, signed by the robot description's
 ``reflex_direction`` (shoulder internal rotation, shoulder adduction, elbow
 flexion, wrist flexion: the arm draws in toward the base) and clipped to the
 joint limits less :data:`JOINT_MARGIN_RAD` (a target on the limit itself
-would have the bridge brake the arm short of it, off the plan); the planner moves to the target with a jerk-limited trajectory
-(ruckig). In guarded mode the displacement is corrected when its path would
-move the touched pad toward the contact (:func:`.retreat.guard_displacement`).
+would have the bridge brake the arm short of it, off the plan); the planner
+moves to the target with a jerk-limited trajectory (ruckig). In guarded mode
+the displacement is corrected when its path would move the touched pad toward
+the contact (:func:`.retreat.guard_displacement`).
 
 The Cartesian stream (:mod:`.strategies.cartesian`) inverts the pad Jacobian
 with :func:`damped_pinv` and scales the result into the speed limits with
@@ -28,7 +29,6 @@ from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner.retreat import guard_displacement
 from nwr.services.planner.strategies import Onset, ReflexStrategy
-
 
 # A joint-space target stays this far inside each joint's range (a joint already closer stays where it is).
 JOINT_MARGIN_RAD = 0.01
