@@ -252,3 +252,14 @@ def test_an_input_ruckig_rejects_falls_back_to_the_acceleration_limited_law(monk
     qs, dqs, ddqs = drive(c, 50, lambda k, t: vel((0.5, -0.5), 5 + k, t), t0=10 * MS)
     assert np.isfinite(qs).all() and np.abs(dqs[-1] - (0.5, -0.5)).max() < 1e-6  # it keeps following the command
     assert np.all(np.abs(ddqs) <= ENV.a_max * (1 + JERK_TOL)) and np.all(np.abs(dqs) <= ENV.v_max * (1 + JERK_TOL))
+
+
+def test_a_limit_met_in_a_withdrawal_is_info_and_counted_elsewhere_a_warning() -> None:
+    """The envelope shaping a withdrawal (a velocity step ramped at a_max) is expected: info, counted; the same
+    step asked for by the task is the planner asking more than the envelope allows: a warning."""
+    for phase, level in (("REFLEX", "info"), ("TASK", "warning")):
+        c = core()
+        drive(c, 3, lambda k, t, phase=phase: vel((0.0, 0.0) if k == 0 else (0.9, -0.9), k, t, phase=phase))
+        clips = [e for e in c.events if e.code == "command_clipped"]
+        assert clips and {e.level for e in clips} == {level}, (phase, clips)
+        assert c.clipped >= 1 and c.clipped_in_reflex == (c.clipped if phase == "REFLEX" else 0)

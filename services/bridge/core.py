@@ -44,6 +44,8 @@ HANDOVER_S = 1.0
 
 SetpointMode = Literal["position", "velocity", "hold"]
 # Statuses during which the bridge brings the arm to rest and holds it.
+# Reports of a limit the bridge held a command to (a warning, but info in a withdrawal: see _limit_level).
+LIMIT_CODES = frozenset({"command_clipped", "joint_limit", "cartesian_limit"})
 STOPPING_STATUSES = frozenset({"stale_command", "stale_skin", "planner_lost", "stopped"})
 
 
@@ -124,6 +126,7 @@ class BridgeCore:
         self.shutdown = False
         self.rejected = 0
         self.clipped = 0
+        self.clipped_in_reflex = 0  # of them, in a withdrawal (phase REFLEX)
         self.reflex_seq = 0
         self.accepted: m.Trace | None = None
         self.accepted_ns = 0
@@ -170,12 +173,13 @@ class BridgeCore:
         q_ref = (tracker.planned(now_ns)[0] if tracker.plan is not None else tracker.target) if streaming else tracker.q
         ctx = CheckContext(self.active, self.planner_alive, q_ref, self.last_seq, self.seq_restart_gap)
         checked = check_command(cmd, self.env, ctx)
-        self.events.extend(checked.events)
+        self.events.extend(self._limit_level(e, cmd.phase == "REFLEX") for e in checked.events)
         if checked.rejected or checked.values is None:
             self.rejected += 1
             return Verdict(False, False)
         if checked.clipped:
             self.clipped += 1
+            self.clipped_in_reflex += cmd.phase == "REFLEX"
         if checked.restarted:
             self.events.append(Event("info", "command_seq_restart",
                                      f"{command_name(cmd)}: seq fell back from {self.last_seq}: a restarted planner"))
@@ -496,8 +500,18 @@ class BridgeCore:
 
     def _report_clip(self, event: Event) -> None:
         """Count and report a clip the tracker made."""
+        reflex = self.tracker.withdrawal
         self.clipped += 1
-        self.events.append(event)
+        self.clipped_in_reflex += reflex
+        self.events.append(self._limit_level(event, reflex))
+
+    @staticmethod
+    def _limit_level(event: Event, reflex: bool) -> Event:
+        """A limit met in a withdrawal is how the envelope shapes it, expected: info (counted); elsewhere, the
+        planner asked for more than the envelope allows: a warning."""
+        if reflex and event.code in LIMIT_CODES and event.level == "warning":
+            return Event("info", event.code, f"{event.message} (in a withdrawal)")
+        return event
 
     # -- output -----------------------------------------------------------------------
     def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str) -> m.RobotState:

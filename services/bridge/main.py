@@ -134,8 +134,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 watcher.undeclare()
                 bridge.core.release()
                 log.info(pacer.summary())
-                log.info("%d commands rejected, %d clipped; stop distance %s rad", bridge.core.rejected,
-                         bridge.core.clipped, np.round(bridge.core.tracker.stop_distance, 4).tolist())
+                log.info("%d commands rejected, %d held to a limit (%d of them in withdrawals); stop distance %s rad",
+                         bridge.core.rejected, bridge.core.clipped, bridge.core.clipped_in_reflex,
+                         np.round(bridge.core.tracker.stop_distance, 4).tolist())
     finally:
         backend.disconnect()
     return 0
