@@ -102,6 +102,8 @@ class Door:
         return Refusal("pad out of range", f"{what} {pad}: the robot has pads 0..{self.n_pads - 1}")
 
     def _trace(self, trace: m.Trace) -> Refusal | None:
+        if trace == m.NO_TRACE:
+            return None
         if not 0 <= trace.seq < SEQ_LIMIT or not 0 <= trace.stamp_ns < STAMP_LIMIT:
             return Refusal("trace out of range", f"trace seq {trace.seq}, stamp_ns {trace.stamp_ns}")
         return None

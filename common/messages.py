@@ -60,6 +60,10 @@ class Trace(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     stamp_ns: int
 
 
+# A decision made on no skin sample yet: a planner's task commands before its first pain message.
+NO_TRACE = Trace(-1, 0)
+
+
 class SkinPressure(msgspec.Struct, tag="skin_pressure", tag_field="kind", forbid_unknown_fields=True):
     """Skin gateway output: one sample of every pad, in pad id order.
 

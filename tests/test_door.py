@@ -64,6 +64,17 @@ def test_the_door_lets_a_whole_session_through() -> None:
     assert not refused, refused[:5]
 
 
+def test_a_command_on_no_skin_sample_yet_passes_and_no_other_negative_trace() -> None:
+    """A planner's task commands before its first pain message carry NO_TRACE: the live bridge refused them
+    (``trace out of range``) at every start-up, while the gain estimator was still starting."""
+    home = [float(x) for x in DESC.home]
+    cmd = m.PositionCommand(seq=0, stamp_ns=10**9, owner="cartesian", q=home, trace=m.NO_TRACE)
+    assert Door(DESC).refuse(cmd) is None
+    for forged in (m.Trace(-1, 5), m.Trace(-2, 0), m.Trace(0, -1)):
+        refusal = Door(DESC).refuse(replace(cmd, trace=forged))
+        assert refusal is not None and refusal.cause == "trace out of range", forged
+
+
 def test_a_robot_state_that_does_not_continue_the_bridge_s_stream_is_refused() -> None:
     door = Door(DESC)
     home = [float(x) for x in DESC.home]

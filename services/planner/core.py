@@ -193,7 +193,7 @@ class Planner:
         self._hold_check_ns = 0
         # The return's legs still to run after the current trajectory: (target, joint speed limits).
         self._legs: list[tuple[np.ndarray, np.ndarray]] = []
-        self.trace = m.Trace(-1, 0)
+        self.trace = m.NO_TRACE
         self.seq = 0
         self.status_seq = 0
         self.decision_seq = 0

@@ -279,7 +279,7 @@ class BridgeRun:
     def command(self, cls: type, **fields: Any) -> Any:
         """A command of class ``cls`` for the coming cycle, of the active planner, with ``fields``."""
         self.seq += 1
-        return cls(seq=self.seq, stamp_ns=self.clock.t_ns + self.period_ns, owner=self.name, trace=m.Trace(-1, 0),
+        return cls(seq=self.seq, stamp_ns=self.clock.t_ns + self.period_ns, owner=self.name, trace=m.NO_TRACE,
                    **fields)
 
 
