@@ -1,7 +1,10 @@
 """The one pacing helper for every fixed-rate loop.
 
 Sleeps to absolute deadlines (no drift), counts overruns, warns about them
-at a bounded rate, and summarises the loop's timing at the end.
+at a bounded rate, and summarises the loop's timing at the end. While the
+loop's service is still ``starting`` (it sets that off once its inputs flow:
+the pipeline's other processes start meanwhile, and load the machine), an
+overrun is counted apart and not warned about.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ def realtime(priority: int, name: str) -> bool:
 class Rate:
     """``for tick in Rate(500).run(stop): ...`` or ``rate.sleep()`` in a loop."""
 
-    def __init__(self, hz: float, name: str, *, keep: int = 4096) -> None:
+    def __init__(self, hz: float, name: str, *, keep: int = 4096, starting: bool = False) -> None:
         if not hz > 0:
             raise ValueError(f"rate of {name} must be positive, got {hz} Hz")
         self.name = name
@@ -49,6 +52,8 @@ class Rate:
         self._last = time.monotonic_ns()
         self.ticks = 0
         self.overruns = 0
+        self.starting = starting  # the service is starting: overruns are counted apart, not warned about
+        self.start_overruns = 0
         self._periods = np.zeros(keep)
         self._samples = 0  # periods recorded (one per wake: a wake may take several ticks)
         self._last_warning = 0
@@ -65,12 +70,9 @@ class Rate:
                 return False
             self._next += self.period_ns
         else:
-            self.overruns += 1
             missed = -delay // self.period_ns + 1
             self._next += missed * self.period_ns
-            if now - self._last_warning > 5_000_000_000 and delay < -self.period_ns:
-                self._last_warning = now
-                log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, -delay / 1e6, self.overruns)
+            self._overran(now, -delay, -delay > self.period_ns)
         now = time.monotonic_ns()
         self._record((now - self._last) / 1e6)
         self._last = now
@@ -121,11 +123,17 @@ class Rate:
         if n:
             late = now_ns - self._next + self.period_ns
             self._next += n * self.period_ns
-            self.overruns += 1
-            if now_ns - self._last_warning > 5_000_000_000 and late > 2 * self.period_ns:
-                self._last_warning = now_ns
-                log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, late / 1e6, self.overruns)
+            self._overran(now_ns, late, late > 2 * self.period_ns)
         return n
+
+    def _overran(self, now_ns: int, late_ns: int, worth_saying: bool) -> None:
+        self.overruns += 1
+        if self.starting:
+            self.start_overruns += 1
+        elif worth_saying and now_ns - self._last_warning > 5_000_000_000:
+            self._last_warning = now_ns
+            log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, late_ns / 1e6,
+                        self.overruns - self.start_overruns)
 
     def _record(self, period_ms: float) -> None:
         self._periods[self._samples % len(self._periods)] = period_ms
@@ -139,4 +147,5 @@ class Rate:
         return (
             f"{self.name}: {self.ticks} ticks at {1e9 / self.period_ns:.0f} Hz, period p50 {np.median(p):.3f} ms "
             f"p99 {np.percentile(p, 99):.3f} ms worst {p.max():.3f} ms, {self.overruns} overruns"
+            + (f" ({self.start_overruns} while starting)" if self.start_overruns else "")
         )

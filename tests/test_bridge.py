@@ -314,6 +314,8 @@ def test_no_skin_yet_holds_the_task():
     c.on_command(pos([0.01, 0.0], seq=0), MS)
     assert c.status == "stale_skin" and "no skin data yet" in c.detail
     assert c.skin_age_s(MS) == -1.0
+    # The skin is starting (the gateway starts last): reported, but not as a fault.
+    assert [e.level for e in c.drain_events() if e.code == "stale_skin"] == ["info"]
 
 
 def test_foreign_skin_does_not_count_as_fresh():

@@ -108,6 +108,27 @@ def test_rate_take_steps_each_cycle_once_whoever_takes_it():
     assert "12 ticks at 500 Hz, period p50 2.000 ms" in rate.summary()
 
 
+def test_overruns_while_starting_are_counted_apart_and_not_warned_about(caplog):
+    """The pipeline's processes start one after the other and load the machine meanwhile: a loop late then
+    printed 'overran' warnings at every start. Once the service's inputs flow, an overrun is a warning again."""
+    import logging
+
+    from nwr.common.pacing import Rate
+
+    rate = Rate(500, "planner", starting=True)
+    p = rate.period_ns
+    t0 = 10**10
+    rate.restart(t0)
+    assert rate.take(t0 + p) == 1
+    with caplog.at_level(logging.WARNING, logger="nwr.common.pacing"):
+        assert rate.skip(t0 + 10 * p) == 9
+        assert not caplog.records and rate.overruns == 1 and rate.start_overruns == 1
+        rate.starting = False
+        assert rate.skip(t0 + 10 * p + 10**10) > 0  # 10 s later (the warnings are at most one per 5 s)
+    assert [r.getMessage() for r in caplog.records] == ["planner loop overran by 10000.0 ms (1 overruns so far)"]
+    assert rate.summary().endswith("2 overruns (1 while starting)")
+
+
 def test_rate_wait_sleeps_through_cycles_until_woken():
     import threading
     import time

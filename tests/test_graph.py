@@ -89,11 +89,11 @@ def test_an_unnamed_planner_is_waited_for_under_the_profiles_name() -> None:
     assert got[-1].args[:2] == ("--wait-for", "bridge,planner-lab,gain")
 
 
-def test_stop_order_gateway_first_recorder_after_the_others_router_last() -> None:
+def test_stop_order_bridge_first_then_gateway_recorder_after_the_others_router_last() -> None:
     labels = [u.label for u in units(Layout(active="uniform", recorder=[], router=["--listen", "tcp/127.0.0.1:1"]))]
     assert labels == ["router", "recorder", "bridge", "planner-uniform", "gain", "gateway"]
-    assert stop_order(labels) == [["gateway"], ["gain", "planner-uniform", "bridge"], ["recorder"], ["router"]]
-    assert stop_order(["bridge", "gain"]) == [["gain", "bridge"]]
+    assert stop_order(labels) == [["bridge"], ["gateway"], ["gain", "planner-uniform"], ["recorder"], ["router"]]
+    assert stop_order(["bridge", "gain"]) == [["bridge"], ["gain"]]
     assert units(Layout(active="x", router=[]))[0].command() == ["router"]
 
 

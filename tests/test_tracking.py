@@ -262,4 +262,4 @@ def test_a_limit_met_in_a_withdrawal_is_info_and_counted_elsewhere_a_warning() -
         drive(c, 3, lambda k, t, phase=phase: vel((0.0, 0.0) if k == 0 else (0.9, -0.9), k, t, phase=phase))
         clips = [e for e in c.events if e.code == "command_clipped"]
         assert clips and {e.level for e in clips} == {level}, (phase, clips)
-        assert c.clipped >= 1 and c.clipped_in_reflex == (c.clipped if phase == "REFLEX" else 0)
+        assert c.clipped >= 1 and c.clipped_expected == (c.clipped if phase == "REFLEX" else 0)

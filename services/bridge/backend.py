@@ -45,6 +45,7 @@ class Observation:
 
 class Pacer(Protocol):
     ticks: int
+    starting: bool  # the bridge has no skin yet: overruns are start-up, not warned about
 
     def sleep(self, stop: threading.Event | None = None) -> bool: ...
 
@@ -127,7 +128,7 @@ class Backend(ABC):
         self.last_sent = np.asarray(q, dtype=float).copy()
 
     def pacer(self, rate_hz: float) -> Pacer:
-        return Rate(rate_hz, "bridge")
+        return Rate(rate_hz, "bridge", starting=True)
 
 
 class SimBackend(Backend):

@@ -126,7 +126,7 @@ class BridgeCore:
         self.shutdown = False
         self.rejected = 0
         self.clipped = 0
-        self.clipped_in_reflex = 0  # of them, in a withdrawal (phase REFLEX)
+        self.clipped_expected = 0  # of them, in a withdrawal or while rejoining a stream (see _limit_level)
         self.reflex_seq = 0
         self.accepted: m.Trace | None = None
         self.accepted_ns = 0
@@ -173,13 +173,14 @@ class BridgeCore:
         q_ref = (tracker.planned(now_ns)[0] if tracker.plan is not None else tracker.target) if streaming else tracker.q
         ctx = CheckContext(self.active, self.planner_alive, q_ref, self.last_seq, self.seq_restart_gap)
         checked = check_command(cmd, self.env, ctx)
-        self.events.extend(self._limit_level(e, cmd.phase == "REFLEX") for e in checked.events)
+        self.events.extend(self._limit_level(e, "in a withdrawal" if cmd.phase == "REFLEX" else "")
+                           for e in checked.events)
         if checked.rejected or checked.values is None:
             self.rejected += 1
             return Verdict(False, False)
         if checked.clipped:
             self.clipped += 1
-            self.clipped_in_reflex += cmd.phase == "REFLEX"
+            self.clipped_expected += cmd.phase == "REFLEX"
         if checked.restarted:
             self.events.append(Event("info", "command_seq_restart",
                                      f"{command_name(cmd)}: seq fell back from {self.last_seq}: a restarted planner"))
@@ -448,8 +449,10 @@ class BridgeCore:
                 if failed is not None:
                     self.events.append(failed)
                 if status != "stopped":
+                    # Before the first skin sample the skin is starting (the gateway starts last): not a fault.
+                    starting = status == "stale_skin" and self.last_skin_ns is None
                     self.events.append(Event(
-                        "warning", status,
+                        "info" if starting else "warning", status,
                         f"{detail}: decelerating to rest within the limits (stopping distance up to "
                         f"{float(np.max(np.abs(tracker.stop_distance))):.4f} rad, {tracker.stop_time_s:.3f} s) "
                         "and holding",
@@ -500,17 +503,19 @@ class BridgeCore:
 
     def _report_clip(self, event: Event) -> None:
         """Count and report a clip the tracker made."""
-        reflex = self.tracker.withdrawal
+        tracker = self.tracker
+        why = "in a withdrawal" if tracker.withdrawal else "rejoining the stream" if tracker.rejoining else ""
         self.clipped += 1
-        self.clipped_in_reflex += reflex
-        self.events.append(self._limit_level(event, reflex))
+        self.clipped_expected += bool(why)
+        self.events.append(self._limit_level(event, why))
 
     @staticmethod
-    def _limit_level(event: Event, reflex: bool) -> Event:
-        """A limit met in a withdrawal is how the envelope shapes it, expected: info (counted); elsewhere, the
-        planner asked for more than the envelope allows: a warning."""
-        if reflex and event.code in LIMIT_CODES and event.level == "warning":
-            return Event("info", event.code, f"{event.message} (in a withdrawal)")
+    def _limit_level(event: Event, why: str) -> Event:
+        """A limit met in a withdrawal, or while the bridge rejoins a stream after a hold (at its own rejoin
+        speed), is the envelope shaping the motion as designed: info (counted). Elsewhere the planner asked
+        for more than the envelope allows: a warning."""
+        if why and event.code in LIMIT_CODES and event.level == "warning":
+            return Event("info", event.code, f"{event.message} ({why})")
         return event
 
     # -- output -----------------------------------------------------------------------

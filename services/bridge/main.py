@@ -118,6 +118,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 while pacer.sleep(node.stop):
                     with lock:
                         bridge.tick()
+                        pacer.starting = bridge.core.last_skin_ns is None  # start-up lasts until the skin flows
             finally:
                 # One shutdown path: a controlled stop, then the robot released.
                 with lock:
@@ -134,9 +135,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 watcher.undeclare()
                 bridge.core.release()
                 log.info(pacer.summary())
-                log.info("%d commands rejected, %d held to a limit (%d of them in withdrawals); stop distance %s rad",
-                         bridge.core.rejected, bridge.core.clipped, bridge.core.clipped_in_reflex,
-                         np.round(bridge.core.tracker.stop_distance, 4).tolist())
+                core = bridge.core
+                log.info("%d commands rejected, %d held to a limit (%d of them in withdrawals or rejoins); "
+                         "stop distance %s rad", core.rejected, core.clipped, core.clipped_expected,
+                         np.round(core.tracker.stop_distance, 4).tolist())
     finally:
         backend.disconnect()
     return 0

@@ -75,6 +75,7 @@ class RtdePacer:
         self.backend = backend
         self.period_s = 1.0 / rate_hz
         self.ticks = 0
+        self.starting = True  # the controller paces the loop: nothing here to warn about either way
         self._t: Any = None
         self._t_local = time.monotonic()
 

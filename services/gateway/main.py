@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 
 from nwr.common import keys
@@ -31,6 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated services to wait for (liveliness) before the script's clock starts",
     )
     parser.add_argument("--exit-at-end", action="store_true", help="exit when the touch script ends")
+    parser.add_argument(
+        "--notify-fd", type=int, metavar="FD",
+        help="when the touch script ends, write 'script-end' to this inherited file descriptor and go on "
+             "publishing the pads at rest until stopped (how a launcher ends a session in order: the arm "
+             "comes to rest while the skin is still watched)",
+    )
     parser.add_argument(
         "--follow-target", type=float, metavar="SECONDS",
         help="simulated participant: press the planner's current target pad every SECONDS while the arm does "
@@ -85,13 +92,28 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         rate = Rate(cfg.rate_hz, "gateway")
         with lock:
             wiring.origin()
+        notify = getattr(args, "notify_fd", None)
+        ended = False
         try:
             while rate.sleep(node.stop):
                 with lock:
                     t = wiring.tick()
-                if args.exit_at_end and script is not None and t >= script.duration_s:
+                if not ended and script is not None and t >= script.duration_s:
+                    ended = True
                     log.info("touch script finished after %.1f s", t)
-                    break
+                    if args.exit_at_end:
+                        break
+                    if notify is not None:
+                        notify_end(notify)
         finally:
             log.info(rate.summary())
     return 0
+
+
+def notify_end(fd: int) -> None:
+    """Tell the launcher the script has ended (one line on its pipe); a launcher gone is no error."""
+    try:
+        os.write(fd, b"script-end\n")
+        os.close(fd)
+    except OSError as exc:
+        log.info("could not tell the launcher the script ended (fd %d: %s)", fd, exc)

@@ -52,6 +52,9 @@ class SkinSource:
         """The ``i``-th sample, made with the arm at ``pose`` (emits what it makes); None: the wiring published it."""
         raise NotImplementedError
 
+    def extend_to(self, end_ns: int) -> None:
+        """Go on making samples until ``end_ns``, if this source can (recorded samples end where they end)."""
+
 
 class RecordedSkin(SkinSource):
     """Recorded samples, delivered as they are (open loop); the caller has them already, nothing is emitted."""
@@ -96,8 +99,10 @@ class SimulatedSkin(SkinSource):
 
     Its script clock starts at ``origin_ns``; the samples are stamped every
     sample period from one period after it until the script's end (the
-    sample at or after ``duration_s`` is the last, as ``--exit-at-end``).
-    Like the live gateway, it sees the arm where the newest robot state puts it.
+    sample at or after ``duration_s`` is the last, as ``--exit-at-end``), or
+    on at rest until :meth:`extend_to` (as the live gateway goes on until the
+    launcher has stopped the arm). Like the live gateway, it sees the arm
+    where the newest robot state puts it.
     """
 
     def __init__(self, profile: Profile, script: TouchScript, model: RobotModel | None = None,
@@ -105,15 +110,21 @@ class SimulatedSkin(SkinSource):
         self.profile = profile
         self.script = script
         self.origin_ns: int = origin_ns
-        period = 1e9 / profile.gateway.rate_hz
+        self.period = 1e9 / profile.gateway.rate_hz
         self.stamps: list[int] = []
         k = 1
         while True:
-            self.stamps.append(origin_ns + round(k * period))
+            self.stamps.append(origin_ns + round(k * self.period))
             if (self.stamps[-1] - origin_ns) / 1e9 >= script.duration_s:
                 break
             k += 1
         self.gateway: GatewayWiring | None = None
+
+    def extend_to(self, end_ns: int) -> None:
+        k = len(self.stamps) + 1
+        while (stamp := self.origin_ns + round(k * self.period)) <= end_ns:
+            self.stamps.append(stamp)
+            k += 1
 
     def __len__(self) -> int:
         return len(self.stamps)

@@ -14,9 +14,11 @@ Start order: the recorder first (the others start once it is alive, so it
 records every journal from its first batch), then the bridge, the planners
 and the gain estimator; the view (read-only) before the gateway; the gateway
 last, once the others are alive (``--wait-for``), since its clock starts the
-touch script. Stop order: the gateway first (no new samples), the others in
-reverse start order, the recorder once they have exited (it keeps their last
-journal batches), a router after everything.
+touch script. Stop order: the bridge first (it brings the arm to rest while
+the skin, the gain estimator and the planners still run: an orderly end, not a
+stale input), then the gateway (no new samples), the others in reverse start
+order, the recorder once they have exited (it keeps their last journal
+batches), a router after everything.
 """
 
 from __future__ import annotations
@@ -139,9 +141,10 @@ def stop_order(labels: list[str]) -> list[list[str]]:
     """Groups of process labels to stop one after the other (see the module's docstring)."""
     last = [label for label in (ROUTER,) if label in labels]
     recorder = [label for label in labels if label == "recorder"]
+    bridge = [label for label in labels if label == "bridge"]
     gateway = [label for label in labels if label == "gateway"]
-    rest = [label for label in reversed(labels) if label not in (*last, *recorder, *gateway)]
-    return [group for group in (gateway, rest, recorder, last) if group]
+    rest = [label for label in reversed(labels) if label not in (*last, *recorder, *bridge, *gateway)]
+    return [group for group in (bridge, gateway, rest, recorder, last) if group]
 
 
 def recorder_args(output: Path, session: str, strategy: str, labels: dict[str, str] | None = None) -> list[str]:

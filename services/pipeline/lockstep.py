@@ -45,7 +45,7 @@ from nwr.services.gain.wiring import GainWiring
 from nwr.services.gateway.sources import Emit, Pose, RecordedSkin, SkinSource
 from nwr.services.gateway.wiring import GatewayWiring
 from nwr.services.planner.wiring import PlannerWiring, planner_profile
-from nwr.services.wiring import no_diag
+from nwr.services.wiring import Diag, no_diag
 
 
 @dataclass
@@ -68,7 +68,7 @@ class Lockstep:
     """
 
     def __init__(self, profile: Profile, *, strategy: str | None = None, name: str | None = None,
-                 journal: bool = True) -> None:
+                 journal: bool = True, diag: Diag = no_diag) -> None:
         profile = planner_profile(profile, name=name, strategy=strategy)
         self.profile = msgspec.structs.replace(
             profile, bridge=msgspec.structs.replace(profile.bridge, active_planner=profile.planner.name))
@@ -76,6 +76,7 @@ class Lockstep:
         self.period_ns = round(1e9 / profile.bridge.rate_hz)
         self.clock = ManualClock()
         self.keep_journal = journal
+        self.diag = diag  # what the services report (the live ones on diag/<service>): dropped by default
         self.journals: list[tuple[Any, Journal, Batcher]] = []  # (wiring, journal, batcher)
         self.queue: deque[tuple[str, Any]] = deque()
         self.emit: Emit = _no_emit
@@ -94,7 +95,7 @@ class Lockstep:
 
     def _wire(self, factory: Any, **kwargs: Any) -> Any:
         journal = self._journal()
-        wiring = factory(self.profile, journal=journal, out=self._out, diag=no_diag, **kwargs)
+        wiring = factory(self.profile, journal=journal, out=self._out, diag=self.diag, **kwargs)
         self.journals.append((wiring, journal, Batcher(wiring.service, self.clock.t_ns,
                                                        service_config(self.profile, **wiring.params()))))
         return wiring
@@ -157,6 +158,7 @@ class Lockstep:
             settle_s: float = 2.0, start_ns: int | None = None) -> LockstepReport:
         """Feed skin samples (in stamp order) through the chain; ``emit`` gets every message
         the chain makes (and those a source makes, but not recorded samples given as they are).
+        The chain runs on ``settle_s`` after the last sample (a simulated skin's samples go on).
 
         The chain's first control cycle (the planner's first command, the
         start of its task) is at ``start_ns``, by default at the first
@@ -170,6 +172,8 @@ class Lockstep:
         self.emit = emit
         t0 = (source.stamp(0) if start_ns is None else min(start_ns, source.stamp(0))) - self.period_ns
         end = source.stamp(n - 1) + round(settle_s * 1e9)
+        source.extend_to(end)  # a simulated skin goes on at rest while the chain settles, as the live gateway does
+        n = len(source)
         self._start(t0, source)
         self.drain()
         flush_every = max(1, round(JOURNAL_PERIOD_S * 1e9 / self.period_ns))

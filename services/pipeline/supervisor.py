@@ -9,6 +9,7 @@ their units with :func:`spawn` and :func:`stop_all`.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -28,13 +29,14 @@ CLEAN_EXITS = (0, -signal.SIGTERM, -signal.SIGINT)
 GATEWAY_GRACE_S = 0.3
 
 
-def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None) -> subprocess.Popen[bytes]:
-    """Start one unit; its output goes to ``log_path`` if given, else to this process's."""
+def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None, *,
+          pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:
+    """Start one unit; its output goes to ``log_path`` if given, else to this process's; ``pass_fds``: inherited."""
     cmd = [sys.executable, "-m", "nwr.services.cli", "--profile", profile, "--log-level", log_level, *unit.command()]
     if log_path is None:
-        return subprocess.Popen(cmd)
+        return subprocess.Popen(cmd, pass_fds=pass_fds)
     with log_path.open("wb") as out:
-        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, pass_fds=pass_fds)
 
 
 def stop_all(procs: Mapping[str, subprocess.Popen[bytes]], timeout_s: float = 10.0) -> dict[str, int]:
@@ -97,6 +99,12 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
            settle_s: float = 2.0, restart: bool = True) -> int:
     """Start every unit; wait for Ctrl-C/SIGTERM (or the gateway's end of script); stop them all; 0 if all went well.
 
+    With ``until_script_end`` the gateway tells the end of its touch script on
+    a pipe (``--notify-fd``) and goes on publishing the pads at rest: after
+    ``settle_s`` (the last reflex returns) the units stop in the graph's order,
+    the bridge first, so the session ends with the arm brought to rest while
+    the skin is still watched, not with a stale input.
+
     A unit that exits unexpectedly is restarted with backoff (:class:`Restarts`) while the others keep running
     (the bridge holds the arm meanwhile; nothing waits for the recorder, so the arm's task goes on while it is
     gone, and the launcher says loudly that the recording has a hole); with ``restart=False`` every unit is
@@ -113,9 +121,18 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
         stop = True
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    ends = ScriptEnd() if until_script_end else None
+    if ends is not None and "gateway" in by_label:
+        gateway = by_label["gateway"]
+        by_label["gateway"] = Unit(gateway.label, gateway.service, (*gateway.args, "--notify-fd", str(ends.write_fd)))
+
+    def start(unit: Unit) -> subprocess.Popen[bytes]:
+        fds = (ends.write_fd,) if ends is not None and unit.service == "gateway" else ()
+        return spawn(unit, profile_arg, log_level, pass_fds=fds)
+
     try:
         for unit in by_label.values():
-            procs[unit.label] = spawn(unit, profile_arg, log_level)
+            procs[unit.label] = start(unit)
             started[unit.label] = time.monotonic()
             if unit.label == "recorder":
                 wait_for_recorder(profile, procs[unit.label])
@@ -125,8 +142,10 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
         while not stop:
             now = time.monotonic()
             dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None and n not in restarts.due}
-            if until_script_end and dead.get("gateway") == 0:
-                time.sleep(settle_s)  # let the last reflex return and the recorder catch up
+            if ends is not None and ends.ended():
+                log.info("the touch script has ended: stopping in %.1f s, once the last reflex has returned",
+                         settle_s)
+                time.sleep(settle_s)
                 break
             if dead and not restart:
                 log.error("service(s) exited unexpectedly: %s (stopping every service: --stop-on-exit)", dead)
@@ -145,7 +164,7 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
                               _restart_output(by_label[label], restarts.count[label]))
             for label in restarts.ready(now):
                 unit = by_label[label].restarted(restarts.count[label])
-                procs[label] = spawn(unit, profile_arg, log_level)
+                procs[label] = start(unit)
                 started[label] = now
                 log.warning("restarted %s (pid %d)", label, procs[label].pid)
             time.sleep(0.1)
@@ -153,6 +172,8 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
         codes = stop_all({n: p for n, p in procs.items() if n not in restarts.due})
         for s, handler in old.items():
             signal.signal(s, handler)
+        if ends is not None:
+            ends.close()
     if restarts.count:
         log.warning("restarts: %s", ", ".join(f"{n} {k}x" for n, k in restarts.count.items()))
     bad = failed(codes)
@@ -160,6 +181,24 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
         log.error("service(s) stopped with errors: %s", bad)
         return 1
     return 0
+
+
+class ScriptEnd:
+    """The pipe on which a gateway tells the launcher its touch script has ended (``--notify-fd``)."""
+
+    def __init__(self) -> None:
+        self.read_fd, self.write_fd = os.pipe()  # the write end stays open here: a restarted gateway inherits it
+        os.set_blocking(self.read_fd, False)
+
+    def ended(self) -> bool:
+        try:
+            return b"script-end" in os.read(self.read_fd, 4096)
+        except BlockingIOError:
+            return False
+
+    def close(self) -> None:
+        for fd in (self.read_fd, self.write_fd):
+            os.close(fd)
 
 
 def _restart_output(unit: Unit, n: int) -> str:

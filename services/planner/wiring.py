@@ -48,7 +48,7 @@ class PlannerWiring:
         self.journal = journal
         self.out = out
         self.diag = diag
-        self.rate = Rate(cfg.rate_hz, "planner")
+        self.rate = Rate(cfg.rate_hz, "planner", starting=True)  # until the first pain message
         self.status_every = max(1, round(cfg.rate_hz / cfg.status_rate_hz))
         self.status_tick = 0
         self.failure: Exception | None = None
@@ -94,6 +94,7 @@ class PlannerWiring:
         self.journal.begin("pain", keys.SKIN_PAIN, pain, arg=received_ns)
         planner = self.planner
         self._catch_up(received_ns)
+        self.rate.starting = False  # the skin flows: the pipeline has started
         try:
             command = planner.on_pain(pain, self.journal.now_ns())
         except ValueError as exc:

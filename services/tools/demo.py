@@ -48,8 +48,7 @@ def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
     return session, Path(args.output) if args.output else Path(profile.recorder.directory) / f"{session}.mcap"
 
 
-def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str, Path] | None, *,
-               until_script_end: bool) -> Layout:
+def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str, Path] | None) -> Layout:
     """The processes ``nwr up`` / ``nwr demo`` start, from their flags; ``recording``: (session, file) or None."""
     planners = [p for p in (args.planners or "").split(",") if p]
     unknown = [p for p in planners if p not in strategies.names()]
@@ -62,8 +61,6 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
         session, output = recording
         layout.recorder = recorder_args(output, session, layout.active or profile.planner.strategy)
     gateway = ["--script", args.script] if args.script else []
-    if until_script_end:
-        gateway.append("--exit-at-end")
     if args.follow_target:
         gateway += ["--follow-target", str(args.follow_target)]
     if args.closed_loop:
@@ -75,7 +72,7 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
 def run_up(args: argparse.Namespace) -> int:
     profile = profile_for(args)  # fails here, not in five processes
     recording = None if args.no_record else output_path(args, profile)
-    layout = layout_for(args, profile, recording, until_script_end=False)
+    layout = layout_for(args, profile, recording)
     return supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=False,
                              restart=not args.stop_on_exit)
 
@@ -86,7 +83,7 @@ def run_demo(args: argparse.Namespace) -> int:
     profile = profile_for(args)
     load_script(args.script)
     recording = None if args.no_record else output_path(args, profile)
-    layout = layout_for(args, profile, recording, until_script_end=True)
+    layout = layout_for(args, profile, recording)
     code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True,
                              restart=not args.stop_on_exit)
     if code or recording is None:
