@@ -1,12 +1,21 @@
 """The figures are drawn by the services' own code and show what they claim."""
 
+from pathlib import Path
+
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from matplotlib.colors import to_rgb
+from matplotlib.colors import same_color, to_rgb
 
+from nwr.common.config import Profile
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools import figures
+from nwr.services.planner import retreat
+from nwr.services.tools import analysis, compare, figures
+from nwr.services.tools.replay import simulate
+
+DATA = Path(__file__).parent / "data"
+DESC = load_description()
+MODEL = RobotModel(DESC)
 
 
 def pixels_of(image: np.ndarray, color: str, tol: float = 0.06) -> int:
@@ -29,7 +38,7 @@ def test_reflexes_figure(tmp_path):
     path = figures.reflexes_figure(tmp_path / "reflexes.png")
     assert path.stat().st_size > 100_000
     image = mpimg.imread(path)
-    assert image.shape[1] > 3 * image.shape[0]  # four panels side by side
+    assert image.shape[1] > 1.5 * image.shape[0]  # four columns side by side, three rows
     for color in figures.TOUCH_COLORS:
         assert pixels_of(image, color) > 300, color
     assert pixels_of(image, "0.55", tol=0.03) > 1000  # the initial pose
@@ -43,3 +52,112 @@ def test_reflex_end_poses_differ_as_the_paper_says():
     # UR is stereotypical: the same end pose whatever was touched; LR depends on the region.
     np.testing.assert_allclose(ends[("uniform", "upper_arm_top")], ends[("uniform", "wrist_2")], atol=1e-6)
     assert np.abs(ends[("location", "upper_arm_top")] - ends[("location", "wrist_2")]).max() > 0.1
+
+
+def texts(fig) -> list[str]:
+    """Every title, axis label, text and legend entry of a figure (its subfigures' too)."""
+    out = [t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "get_position"))]
+    return [t for t in out if t]
+
+
+def test_contact_motion_is_positive_away_from_the_contact_and_negative_toward_it():
+    """The figures' measure of a touch: the retreat check's, signed so that a withdrawal goes up."""
+    pad = DESC.pad("wrist_2").id
+    q0 = DESC.home.copy()
+    toward = np.linalg.pinv(MODEL.pad_jacobian(q0, pad)[:3]) @ MODEL.pad_normal(q0, pad)  # pad along +n0
+    into = np.array([q0 + s * toward for s in np.linspace(0.0, 0.02, 11)])
+    away, approach, _ = analysis.contact_motion(MODEL, into, pad, q0)
+    assert away[0] == 0.0 and np.all(np.diff(away) < 0) and away[-1] == pytest.approx(-0.02, rel=0.05)
+    check = retreat.assess(MODEL, into, 0.01, pad)
+    assert -away.min() == pytest.approx(check.toward_m) and away[-1] == pytest.approx(check.withdrawal_m)
+    others = np.delete(check.approach_m, pad)
+    assert max(0.0, approach.max()) == pytest.approx(others.max())
+    out = np.array([q0 - s * toward for s in np.linspace(0.0, 0.02, 11)])
+    away, _, _ = analysis.contact_motion(MODEL, out, pad, q0)
+    assert np.all(np.diff(away) > 0) and away[-1] == pytest.approx(0.02, rel=0.05)
+
+
+def test_the_uniform_reflex_on_the_upper_arm_moves_its_pad_toward_the_contact():
+    """The paper's criticism of UR, as the reflexes figure plots it: below zero, not as a distance."""
+    run = figures.reflex_runs(("uniform",), DESC, MODEL, Profile().planner, Profile().bridge.limits)
+    assert run[("uniform", "upper_arm_top")].away_mm.min() < -100.0
+    assert run[("uniform", "wrist_2")].away_mm.min() > -1.0 and run[("uniform", "wrist_2")].away_mm[-1] > 100.0
+
+
+def test_the_uniform_panel_says_its_end_poses_coincide():
+    plt = figures._pyplot()
+    fig = figures.draw_reflexes(("uniform", "location"))
+    try:
+        ur, lr = (ax for ax in fig.axes if ax.name == "3d")
+        assert any("same end pose" in t.get_text() for t in ur.texts)
+        assert not any("same end pose" in t.get_text() for t in lr.texts)
+        # The three coinciding poses are drawn dashed, each in its colour, so that every colour shows.
+        dashed = [line for line in ur.get_lines() if line.get_linestyle() != "-"]
+        for color in figures.TOUCH_COLORS:
+            assert any(same_color(line.get_color(), color) for line in dashed), color
+    finally:
+        plt.close(fig)
+    assert figures.coinciding([np.zeros(6), np.ones(6), np.zeros(6) + 1e-6]) == [[0, 2], [1]]
+
+
+def test_the_smoothed_cartesian_panel_shows_what_the_smoothing_changed():
+    plt = figures._pyplot()
+    fig = figures.draw_reflexes(("cartesian", "cartesian-smooth"))
+    try:
+        speed = [ax for ax in fig.axes if ax.get_title().startswith("its speed")]
+        assert len(speed) == 2
+        cr, smooth = speed
+        assert "dashed: Cartesian (CR)" in smooth.get_title()
+        pink = figures.TOUCH_COLORS[figures.TOUCHES.index("wrist_2")]
+
+        def curve(ax, ls: str) -> np.ndarray:
+            return next(line.get_ydata() for line in ax.get_lines()
+                        if same_color(line.get_color(), pink) and line.get_linestyle() == ls)
+        cr_v, smooth_v = curve(cr, "-"), curve(smooth, "-")
+        np.testing.assert_array_equal(curve(smooth, "--"), cr_v)  # CR drawn under CR-smooth for comparison
+        # CR steps up to its speed and is still at it at the end; CR-smooth ramps in and out.
+        assert cr_v[-1] > 0.8 * cr_v.max() and smooth_v[-1] < 0.2 * smooth_v.max()
+        assert np.argmax(smooth_v > 0.5 * smooth_v.max()) > np.argmax(cr_v > 0.5 * cr_v.max())
+    finally:
+        plt.close(fig)
+
+
+@pytest.fixture(scope="module")
+def short_sessions(tmp_path_factory) -> list[compare.Session]:
+    """The short touch script in lockstep against UR and CR, recorded like ``nwr demo --fast``."""
+    where = tmp_path_factory.mktemp("compare")
+    paths = [simulate(Profile(), str(DATA / "short.toml"), s, where / f"short-{s}.mcap")[0]
+             for s in ("uniform", "cartesian")]
+    return [compare.load_session(p, DESC, MODEL) for p in paths]
+
+
+def test_compare_figure_plots_the_table_s_withdrawal_signed(short_sessions):
+    cr = short_sessions[1]
+    touch = next(t for t in cr.touches if t.name == "wrist_2")
+    motion = compare.touch_motion(cr, touch, MODEL)
+    assert motion is not None and motion.onset_s is not None and motion.resumed_s is not None
+    during = motion.t >= motion.onset_s
+    # The table's withdrawal and toward, from the same contact point and normal: up and down, not a distance.
+    assert touch.toward_mm > 1.0
+    assert motion.away_mm[during].min() == pytest.approx(-touch.toward_mm)
+    assert motion.away_mm[during].max() == pytest.approx(touch.withdrawal_mm)
+    assert motion.t[0] == pytest.approx(-compare.FIGURE_BEFORE_S, abs=0.03)  # time from the touch's onset
+    assert motion.t[-1] <= motion.resumed_s + 0.03  # the reflex and its return, not the task after it
+    np.testing.assert_allclose(motion.dq[np.searchsorted(motion.t, motion.onset_s)], 0.0)
+
+
+def test_compare_figure_names_the_joints_and_the_files(short_sessions):
+    plt = figures._pyplot()
+    rows = compare.line_up(short_sessions, 0.3)
+    fig = compare.draw(short_sessions, rows, MODEL)
+    try:
+        words = texts(fig)
+        for joint in DESC.joints:
+            assert words.count(joint) == 2, joint  # one panel per joint, in each of the two reflex touches
+        assert "short-uniform.mcap: Uniform (UR)" in words and "short-cartesian.mcap: Cartesian (CR)" in words
+        assert any("withdrawal" in w and "toward the contact" in w and "(mm)" in w for w in words)
+        assert any(w.startswith("time from the touch") and "(s)" in w for w in words)
+        assert any("(rad)" in w for w in words)
+        assert any(w.startswith("touch 3: wrist_2") for w in words)
+    finally:
+        plt.close(fig)

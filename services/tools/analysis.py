@@ -258,3 +258,37 @@ def format_table(header: list[str], rows: list[list[str]]) -> str:
     out = [line, "  ".join("-" * w for w in widths)]
     out += ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in rows]
     return "\n".join(out)
+
+
+def contact_motion(model: RobotModel, q: np.ndarray, pad: int, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                          np.ndarray]:
+    """How the arm moved relative to a touch on ``pad`` felt in pose ``q0``, one value per row of ``q`` (m).
+
+    The contact is where :func:`summarize` and the planner's retreat check
+    (:func:`nwr.services.planner.retreat.assess`) put it: the touched pad's
+    point in ``q0`` (the pose at the reflex onset), with the pad's outward
+    normal n0 there. Returns
+
+    - the touched pad's motion along n0 from that point, signed for a reader:
+      positive away from the contact (withdrawal), negative toward it,
+      ``-(p(t) - p0) . n0`` (its largest value is the table's withdrawal, its
+      smallest minus its "toward");
+    - the largest approach of any other pad to the contact point,
+      ``max_k (|p_k(0) - p0| - |p_k(t) - p0|)`` (negative: all moved away), and
+    - which pad it is (id), per row.
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    p0 = model.pad_point(q0, pad)
+    n0 = model.pad_normal(q0, pad)
+    d0 = np.linalg.norm(model.pad_points(q0) - p0, axis=1)
+    away = np.empty(len(q))
+    approach = np.empty(len(q))
+    worst = np.empty(len(q), dtype=int)
+    for i, row in enumerate(q):
+        points = model.pad_points(row)
+        away[i] = -float((points[pad] - p0) @ n0)
+        closer = d0 - np.linalg.norm(points - p0, axis=1)
+        closer[pad] = -np.inf
+        worst[i] = int(np.argmax(closer))
+        approach[i] = float(closer[worst[i]])
+    return away, approach, worst

@@ -11,8 +11,12 @@ strayed from the first file's (the largest difference of the joints'
 displacements from their onset poses, from the reflex onset until the earlier
 of the two resumptions, the two aligned at their onsets). Below the table, each file's command stream against the
 first's: identical decoded messages (a deterministic replay of the first
-file), or where they part. A PNG overlays, per touch, the joint
-trajectories and the touched pad's distance from the contact.
+file), or where they part. A PNG (``--figure``) draws, per touch that
+caused a reflex, one colour per file and time from the touch's first skin
+sample: the touched pad's motion along its outward normal at the reflex
+onset (withdrawal up, toward the contact down: the table's withdrawal and
+toward), the other pads' closest approach to the contact point, and each
+joint's displacement from the onset pose in a panel of its own.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,6 +42,7 @@ class Session:
     records: list[Recorded]
     t0_ns: int
     touches: list[analysis.TouchSummary]
+    strategy: str = ""  # the recording's reflex strategy (session metadata), if it says
 
 
 def load_session(path: Path, desc: RobotDescription, model: RobotModel) -> Session:
@@ -44,7 +50,7 @@ def load_session(path: Path, desc: RobotDescription, model: RobotModel) -> Sessi
     t0 = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     strategy = metadata.get("session", {}).get("strategy", "")
     label = f"{path.stem} ({strategy})" if strategy else path.stem
-    return Session(path, label, records, t0, analysis.summarize(records, desc, model))
+    return Session(path, label, records, t0, analysis.summarize(records, desc, model), strategy)
 
 
 def line_up(sessions: list[Session], window_s: float) -> list[list[analysis.TouchSummary | None]]:
@@ -158,47 +164,176 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
     return analysis.format_table(header, out)
 
 
+TOWARD_COLOR = "#d62728"
+FIGURE_BEFORE_S = 0.2  # the figure starts this long before the touch's first skin sample
+FIGURE_AFTER_S = 5.0  # and ends at most this long after it (each file's sooner: see touch_motion)
+
+
+@dataclass
+class TouchMotion:
+    """One file's motion around one touch, as the figure draws it."""
+
+    t: np.ndarray  # s from the touch's first skin sample
+    dq: np.ndarray  # joint displacements from the onset pose, rad, one row per state
+    away_mm: np.ndarray  # touched pad along its normal at the onset: + away from the contact, - toward it
+    other_mm: np.ndarray  # the other pads' largest approach to the contact point (- : closer), mm
+    other_pad: np.ndarray  # which pad that is, per state
+    onset_s: float | None  # the reflex onset (None: no reflex)
+    resumed_s: float | None  # the task's resumption
+
+
+def touch_motion(session: Session, touch: analysis.TouchSummary, model: RobotModel) -> TouchMotion | None:
+    """The arm around ``touch`` in ``session``, measured as the per-touch table measures it.
+
+    The contact is the touched pad's point at the reflex onset and the
+    direction its outward normal there (:func:`analysis.contact_motion`; the
+    pose at the touch's first skin sample if no reflex followed). The window
+    runs from ``FIGURE_BEFORE_S`` before the touch until the task resumed
+    (after that the task moves the arm, not the reflex), the session's next
+    touch's reflex began, or ``FIGURE_AFTER_S`` after the touch, whichever
+    comes first. The other pads' approach counts from the onset only (before
+    it, they were where the task put them).
+    """
+    start = touch.start_ns
+    onset = onset_ns(session, touch)
+    end = start + round(FIGURE_AFTER_S * 1e9)
+    if onset is not None and touch.resumed_after_s is not None:
+        end = min(end, onset + round(touch.resumed_after_s * 1e9))
+    following = [onset_ns(session, t) for t in session.touches if t.start_ns > start and t.reflex_seq]
+    end = min([end, *(o for o in following if o is not None and o > (onset or start))])
+    states = [r.message for r in session.records if r.key == "robot/state"
+              and start - FIGURE_BEFORE_S * 1e9 <= r.message.stamp_ns <= end]
+    if len(states) < 2:
+        return None
+    t = np.array([(s.stamp_ns - start) / 1e9 for s in states])
+    q = np.array([s.q for s in states])
+    stamps = np.array([s.stamp_ns for s in states], dtype=np.int64)
+    first = min(int(np.searchsorted(stamps, start if onset is None else onset)), len(q) - 1)  # as summarize
+    q0 = q[first]
+    away, other, worst = analysis.contact_motion(model, q, touch.pad, q0)
+    other[:first] = np.nan
+    return TouchMotion(t, q - q0, 1e3 * away, -1e3 * other, worst,
+                       None if onset is None else (onset - start) / 1e9,
+                       None if onset is None or touch.resumed_after_s is None
+                       else (onset - start) / 1e9 + touch.resumed_after_s)
+
+
+def file_label(session: Session) -> str:
+    """A file in the figure's legend: its name and its reflex (from the recording's metadata)."""
+    from nwr.services.tools.figures import TITLES
+
+    name = session.path.name
+    return f"{name}: {TITLES.get(session.strategy, session.strategy)}" if session.strategy else name
+
+
+def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]], model: RobotModel) -> Any:
+    """The comparison figure (a matplotlib Figure), one block per touch that caused a reflex in any file.
+
+    Each block: the touched pad's motion along its normal (withdrawal up,
+    toward the contact down), the other pads' closest approach to the
+    contact point, and one small panel per joint with its displacement from
+    the onset pose; one colour per file throughout, time from the touch's
+    first skin sample.
+    """
+    from nwr.services.tools.figures import _pyplot
+
+    plt = _pyplot()
+    joints = model.desc.joints
+    pads = [p.name for p in model.desc.pads]
+    reflex_rows = [(i, row) for i, row in enumerate(rows, start=1) if any(t is not None and t.reflex_seq for t in row)]
+    n = max(1, len(reflex_rows))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    width = max(2 * len(joints), 10)
+    fig = plt.figure(figsize=(2.3 * len(joints), 4.6 * n + 0.9), dpi=100, layout="constrained")
+    blocks = fig.subfigures(n, 1, squeeze=False)[:, 0] if n > 1 else [fig.subfigures(1, 1)]
+    for block, (number, row) in zip(blocks, reflex_rows):
+        grid = block.add_gridspec(2, width, height_ratios=(1.35, 1))
+        ax_n = block.add_subplot(grid[0, :width * 3 // 5])
+        ax_o = block.add_subplot(grid[0, width * 3 // 5:], sharex=ax_n)
+        ax_j = [block.add_subplot(grid[1, j * width // len(joints):(j + 1) * width // len(joints)], sharex=ax_n)
+                for j in range(len(joints))]
+        for ax in ax_j[1:]:
+            ax.sharey(ax_j[0])
+        first = next(t for t in row if t is not None)
+        missing = []
+        named: set[tuple[int, int]] = set()  # (pad, mm) already written on the other pads' panel
+        for c, (session, touch) in enumerate(zip(sessions, row)):
+            motion = None if touch is None else touch_motion(session, touch, model)
+            if motion is None:
+                missing.append(session.path.name)
+                continue
+            color, lw = colors[c % len(colors)], max(1.0, 2.6 - 0.5 * c)  # later files thinner: overlaps show
+            style = "-" if motion.onset_s is not None else ":"
+            ax_n.plot(motion.t, motion.away_mm, style, color=color, lw=lw)
+            ax_o.plot(motion.t, motion.other_mm, style, color=color, lw=lw)
+            for j, ax in enumerate(ax_j):
+                ax.plot(motion.t, motion.dq[:, j], style, color=color, lw=max(0.8, lw - 0.6))
+            for at, marker in ((motion.onset_s, "o"), (motion.resumed_s, "s")):
+                if at is not None and motion.t[0] <= at <= motion.t[-1] + 0.1:  # the last state may precede it
+                    k = int(np.argmin(np.abs(motion.t - at)))
+                    ax_n.plot(motion.t[k], motion.away_mm[k], marker, color=color, ms=6, mec="k", mew=0.6)
+            k = int(np.nanargmin(motion.other_mm))
+            if motion.other_mm[k] < -5.0 and (motion.other_pad[k], round(motion.other_mm[k])) not in named:
+                named.add((motion.other_pad[k], round(motion.other_mm[k])))  # name the pad where it came closest
+                ax_o.annotate(pads[motion.other_pad[k]], (motion.t[k], motion.other_mm[k]), fontsize=7,
+                              color=color, xytext=(4, 3), textcoords="offset points")
+        ax_n.xaxis.set_major_locator(plt.MaxNLocator(5))  # shared by the block's panels: few enough for the joints'
+        for ax in (ax_n, ax_o):
+            ax.axhline(0.0, color="0.3", lw=0.8)
+            low, high = ax.get_ylim()
+            ax.set_ylim(min(low, -0.1 * (high - low)), high)
+            ax.axhspan(ax.get_ylim()[0], 0.0, color=TOWARD_COLOR, alpha=0.07, lw=0)
+        ax_n.set_ylabel("touched pad along its normal (mm)\n+ withdrawal, \u2212 toward the contact", fontsize=8)
+        ax_n.set_title(f"{first.name}: the touched pad's motion along its outward normal at the reflex onset",
+                       fontsize=9)
+        ax_o.set_ylabel("closest other pad: change in\nits distance to the contact (mm)", fontsize=8)
+        ax_o.set_title("other pads: the closest approach to the contact point", fontsize=9)
+        for j, ax in enumerate(ax_j):
+            ax.set_title(joints[j], fontsize=8)
+            ax.axhline(0.0, color="0.6", lw=0.6)
+            if j == 0:
+                ax.set_ylabel("joint displacement\nfrom the onset (rad)", fontsize=8)
+            else:
+                ax.tick_params(labelleft=False)
+        for ax in (ax_n, ax_o, *ax_j):
+            ax.axvline(0.0, color="0.5", ls="--", lw=0.7)
+
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+        for ax in ax_j:
+            ax.set_xlabel("time from the touch (s)", fontsize=8)
+        ax_n.set_xlabel("time from the touch's first skin sample (s)", fontsize=8)
+        ax_o.set_xlabel("time from the touch (s)", fontsize=8)
+        title = f"touch {number}: {first.name} ({first.region}) at {(first.start_ns - sessions[0].t0_ns) / 1e9:.2f} s"
+        title += f", gain {max(t.gain for t in row if t is not None):.2f}"
+        if missing:
+            title += f"; not in {', '.join(missing)}"
+        block.suptitle(title, fontsize=11, fontweight="bold", x=0.01, ha="left")
+    files = [plt.Line2D([], [], color=colors[c % len(colors)], lw=max(1.0, 2.6 - 0.5 * c), label=file_label(s))
+             for c, s in enumerate(sessions)]
+    marks = [plt.Line2D([], [], ls="", marker="o", color="0.7", mec="k", label="reflex onset"),
+             plt.Line2D([], [], ls="", marker="s", color="0.7", mec="k", label="task resumed"),
+             plt.Line2D([], [], ls=":", color="0.4", label="no reflex in that file"),
+             plt.Rectangle((0, 0), 1, 1, color=TOWARD_COLOR, alpha=0.15, lw=0, label="toward the contact")]
+    # The files on the first row(s), the marks on the last: the legend fills its columns top to bottom.
+    cols = 4
+    blank = plt.Line2D([], [], ls="", label=" ")
+    files += [blank] * (-len(files) % cols)
+    marks += [blank] * (cols - len(marks))
+    rows = [files[i:i + cols] for i in range(0, len(files), cols)] + [marks]
+    handles = [row[c] for c in range(cols) for row in rows]
+    fig.legend(handles=handles, loc="outside upper center", ncol=cols, fontsize=9)
+    return fig
+
+
 def figure(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]], model: RobotModel,
            path: Path) -> Path:
-    import matplotlib
+    """Write :func:`draw`'s figure to ``path`` (PNG)."""
+    from nwr.services.tools.figures import _pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    reflex_rows = [row for row in rows if any(t is not None and t.reflex_seq for t in row)]
-    n = max(1, len(reflex_rows))
-    fig, axes = plt.subplots(n, 2, figsize=(11, 2.6 * n), dpi=110, squeeze=False)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for r, row in enumerate(reflex_rows):
-        ax_q, ax_d = axes[r]
-        for c, (session, touch) in enumerate(zip(sessions, row)):
-            if touch is None or not touch.reflex_seq:
-                continue
-            onset = next((x.message.accepted_ns for x in session.records if x.key == "robot/state"
-                          and x.message.reflex_seq == touch.reflex_seq and x.message.accepted), None)
-            if onset is None:
-                continue
-            window = [x.message for x in session.records if x.key == "robot/state"
-                      and onset - 2e8 <= x.message.stamp_ns <= onset + 3e9]
-            t = np.array([s.stamp_ns - onset for s in window]) / 1e9
-            q = np.array([s.q for s in window])
-            color = colors[c % len(colors)]
-            for j in range(q.shape[1]):
-                ax_q.plot(t, q[:, j], color=color, lw=1, alpha=0.8, label=session.label if j == 0 else None)
-            q0 = q[np.argmin(np.abs(t))]
-            contact = model.pad_point(q0, touch.pad)
-            distance = [np.linalg.norm(model.pad_point(x, touch.pad) - contact) for x in q]
-            ax_d.plot(t, 1e3 * np.asarray(distance), color=color, lw=1.5, label=session.label)
-        first = next(t for t in row if t is not None)
-        ax_q.set_title(f"touch on {first.name}: joint positions (rad)", fontsize=9)
-        ax_d.set_title(f"touch on {first.name}: pad's distance from the contact (mm)", fontsize=9)
-        for ax in (ax_q, ax_d):
-            ax.set_xlabel("time from the reflex onset (s)", fontsize=8)
-            ax.tick_params(labelsize=7)
-        ax_d.legend(fontsize=7)
-    fig.tight_layout()
+    fig = draw(sessions, rows, model)
     fig.savefig(path)
-    plt.close(fig)
+    _pyplot().close(fig)
     return path
 
 

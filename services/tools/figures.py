@@ -4,14 +4,23 @@
   pain-level thresholds (the paper's Fig. 1, top right), computed with the
   gain estimator's own functions.
 - ``reflexes``: the arm in its home pose and the end pose of each reflex for
-  G(p) = 1 at touch points on three regions, one panel per reflex (the
-  paper's Fig. 5), each end pose computed by running the planner core on a
-  pain message, with the touch points and pad normals drawn.
+  G(p) = 1 at touch points on three regions, one column per reflex (the
+  paper's Fig. 5), each computed by running the planner core on a pain
+  message (within the profile's Cartesian limits, as a session plans it),
+  with the touch points and pad normals drawn. End poses that coincide (the
+  uniform reflex's, whatever was touched) are drawn striped in their touches'
+  colours and said to coincide. Below, per reflex, the touched pad's motion
+  along its outward normal at the onset and its speed over time (withdrawal
+  up, toward the contact down), where reflexes that end alike differ: the
+  smoothed Cartesian reflex ramps its speed in and out, the plain one steps
+  (drawn dashed under it). These are the strategies' motions as planned; a
+  session's planner also runs its retreat check on them.
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,11 +28,12 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection, profile_for
+from nwr.common.config import CartesianLimits, PlannerSection, profile_for
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services.gain.core import continuous_gain, discrete_gain
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies import names as strategy_names
+from nwr.services.tools.analysis import contact_motion
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"
@@ -73,49 +83,122 @@ def gain_figure(path: Path, thresholds: tuple[float, ...] = (2.0, 6.0, 12.0, 20.
     return path
 
 
-def reflex_end_pose(strategy: str, desc: RobotDescription, model: RobotModel, pad: str,
-                    cfg: PlannerSection | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Start and end pose of a G = 1 reflex on ``pad`` from home, by the planner core itself."""
+def reflex_motion(strategy: str, desc: RobotDescription, model: RobotModel, pad: str,
+                  cfg: PlannerSection | None = None, limits: CartesianLimits | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A G = 1 reflex on ``pad`` from home, by the planner core itself: times (s from the onset) and the
+    commanded poses, one row per control cycle from the onset pose (first) to the end pose (last).
+
+    ``limits``: the bridge's Cartesian limits, which the planner of a session
+    plans its joint-space reflexes within (None: the joint limits only).
+    """
     base = cfg or PlannerSection()
-    planner = Planner(msgspec.structs.replace(base, strategy=strategy), desc, model)
+    planner = Planner(msgspec.structs.replace(base, strategy=strategy), desc, model, limits=limits)
     planner.on_state(desc.home.copy(), following=True)
     while planner.mode != "TASK":
         planner.step(0)
-    start = planner.q.copy()
+    poses = [planner.q.copy()]
     info = desc.pad(pad)
     gains = [0.0] * len(desc.pads)
     gains[info.id] = 1.0
     contact = m.Contact(pad=info.id, name=info.name, region=info.region, change_hpa=25.0, level=4, gain=1.0)
     planner.on_pain(m.SkinPain(seq=1, stamp_ns=0, trace=m.Trace(1, 0), model="continuous",
                                level=[1] * len(gains), gain=gains, strongest=contact), 0)
+    poses.append(planner.q.copy())  # the reflex's first cycle runs on the pain message itself
     while planner.mode == "REFLEX":
-        planner.step(0)
-    return start, planner.q.copy()
+        if planner.step(0) is not None:  # None: the cycle the first one took the place of
+            poses.append(planner.q.copy())
+    return planner.dt * np.arange(len(poses)), np.array(poses)
 
 
-def _draw_arm(ax: Any, model: RobotModel, q: np.ndarray, color: str, lw: float, alpha: float = 1.0) -> None:
+def reflex_end_pose(strategy: str, desc: RobotDescription, model: RobotModel, pad: str,
+                    cfg: PlannerSection | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end pose of a G = 1 reflex on ``pad`` from home, by the planner core itself."""
+    _, poses = reflex_motion(strategy, desc, model, pad, cfg)
+    return poses[0], poses[-1]
+
+
+def coinciding(poses: list[np.ndarray], tol_rad: float = 1e-4) -> list[list[int]]:
+    """Groups of indices of ``poses`` that are the same pose (within ``tol_rad`` on every joint), in order."""
+    groups: list[list[int]] = []
+    for i, q in enumerate(poses):
+        group = next((g for g in groups if np.abs(poses[g[0]] - q).max() <= tol_rad), None)
+        if group is None:
+            groups.append([i])
+        else:
+            group.append(i)
+    return groups
+
+
+def _draw_arm(ax: Any, model: RobotModel, q: np.ndarray, color: str, lw: float, alpha: float = 1.0,
+              ls: Any = "-") -> None:
     pts = np.vstack([[0.0, 0.0, 0.0], model.joint_positions(q)])
-    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-o", color=color, lw=lw, ms=3, alpha=alpha)
+    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], ls=ls, marker="o", color=color, lw=lw, ms=3, alpha=alpha)
 
 
-def reflexes_figure(path: Path, strategies: tuple[str, ...] = strategy_names(),
-                    cfg: PlannerSection | None = None) -> Path:
+# A panel's reflex drawn faintly under another's time series: what the smoothing changed.
+REFERENCE = {"cartesian-smooth": "cartesian"}
+STRIPE = 4.0  # points: the dash of each of several end poses drawn on one another
+
+
+@dataclass
+class ReflexRun:
+    """One reflex of the figure: the touched pad's motion along its normal at the onset, over time."""
+
+    t: np.ndarray  # s from the onset
+    poses: np.ndarray  # rad, one row per control cycle
+    away_mm: np.ndarray  # + away from the contact, - toward it (analysis.contact_motion)
+    speed_m_s: np.ndarray  # its rate: + withdrawing
+
+
+def reflex_runs(strategies: tuple[str, ...], desc: RobotDescription, model: RobotModel,
+                cfg: PlannerSection | None = None, limits: CartesianLimits | None = None
+                ) -> dict[tuple[str, str], ReflexRun]:
+    """Every strategy's reflex on every pad of ``TOUCHES``, keyed (strategy, pad)."""
+    runs = {}
+    for strategy in strategies:
+        for pad in TOUCHES:
+            t, poses = reflex_motion(strategy, desc, model, pad, cfg, limits)
+            away, _, _ = contact_motion(model, poses, desc.pad(pad).id, poses[0])
+            runs[(strategy, pad)] = ReflexRun(t, poses, 1e3 * away, np.gradient(away, t))
+    return runs
+
+
+def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSection | None = None,
+                  limits: CartesianLimits | None = None) -> Any:
+    """The reflexes figure (a matplotlib Figure): per strategy, the end poses in 3-D, then the touched pad's
+    withdrawal along its normal and its speed over time."""
     desc = load_description()
     model = RobotModel(desc)
+    runs = reflex_runs(strategies, desc, model, cfg, limits)
     plt = _pyplot()
-    fig = plt.figure(figsize=(4.0 * len(strategies), 4.6), dpi=130)
+    fig = plt.figure(figsize=(4.0 * len(strategies), 9.4), dpi=130, layout="constrained")
+    grid = fig.add_gridspec(3, len(strategies), height_ratios=(2.3, 1, 1))
     for i, strategy in enumerate(strategies):
-        ax = fig.add_subplot(1, len(strategies), i + 1, projection="3d")
-        start = None
+        ax = fig.add_subplot(grid[0, i], projection="3d")
+        start = runs[(strategy, TOUCHES[0])].poses[0]
+        ends = [runs[(strategy, pad)].poses[-1] for pad in TOUCHES]
+        for group in coinciding(ends):
+            for k, touch in enumerate(group):  # poses drawn on one another: interleaved dashes, every colour shows
+                if len(group) == 1:
+                    _draw_arm(ax, model, ends[touch], TOUCH_COLORS[touch], 2.0, 0.9)
+                else:  # dash patterns scale with the line width: STRIPE / lw of it
+                    lw = 3.0
+                    ls = (k * STRIPE / lw, (STRIPE / lw, (len(group) - 1) * STRIPE / lw))
+                    _draw_arm(ax, model, ends[touch], TOUCH_COLORS[touch], lw, 1.0, ls)
         for pad, color in zip(TOUCHES, TOUCH_COLORS):
-            start, end = reflex_end_pose(strategy, desc, model, pad, cfg)
-            _draw_arm(ax, model, end, color, 2.0, 0.9)
             point, normal = model.pad_point(start, desc.pad(pad).id), model.pad_normal(start, desc.pad(pad).id)
             ax.scatter(*point, s=60, facecolors="none", edgecolors=color, linewidths=2)
             ax.quiver(*point, *(0.15 * normal), color=color, arrow_length_ratio=0.3)
-        assert start is not None
         _draw_arm(ax, model, start, "0.55", 3.5)
-        ax.set_title(TITLES.get(strategy, strategy), fontsize=11)
+        same = [g for g in coinciding(ends) if len(g) > 1]
+        if same:
+            which = "all three touches" if len(same[0]) == len(TOUCHES) else \
+                " and ".join(TOUCHES[k] for k in same[0])
+            ax.text2D(0.5, 0.97, f"{which}: the same end pose\n(drawn striped in their colours)",
+                      transform=ax.transAxes, ha="center", va="top", fontsize=9, fontweight="bold",
+                      bbox={"boxstyle": "round", "fc": "#fff8dc", "ec": "0.6"})
+        ax.set_title(TITLES.get(strategy, strategy), fontsize=12, fontweight="bold")
         ax.set_xlim(-0.3, 1.0)
         ax.set_ylim(-0.6, 0.7)
         ax.set_zlim(-0.2, 1.1)
@@ -125,13 +208,45 @@ def reflexes_figure(path: Path, strategies: tuple[str, ...] = strategy_names(),
         ax.set_ylabel("y (m)", fontsize=8)
         ax.set_zlabel("z (m)", fontsize=8)
         ax.tick_params(labelsize=7)
+
+        ax_d, ax_v = fig.add_subplot(grid[1, i]), fig.add_subplot(grid[2, i])
+        reference = REFERENCE.get(strategy)
+        if reference in strategies:
+            for pad, color in zip(TOUCHES, TOUCH_COLORS):
+                run = runs[(reference, pad)]
+                ax_d.plot(run.t, run.away_mm, "--", color=color, lw=1.0, alpha=0.7)
+                ax_v.plot(run.t, run.speed_m_s, "--", color=color, lw=1.0, alpha=0.7)
+        for pad, color in zip(TOUCHES, TOUCH_COLORS):
+            run = runs[(strategy, pad)]
+            ax_d.plot(run.t, run.away_mm, color=color, lw=1.8)
+            ax_v.plot(run.t, run.speed_m_s, color=color, lw=1.8)
+        for axis in (ax_d, ax_v):
+            axis.axhline(0.0, color="0.3", lw=0.8)
+            low, high = axis.get_ylim()
+            axis.set_ylim(min(low, -0.08 * (high - low)), high)
+            axis.axhspan(axis.get_ylim()[0], 0.0, color="#d62728", alpha=0.07, lw=0)
+            axis.grid(alpha=0.3)
+            axis.tick_params(labelsize=7)
+        compared = f" (dashed: {TITLES.get(reference, reference)})" if reference in strategies else ""
+        ax_d.set_title("touched pad along its normal" + compared, fontsize=9)
+        ax_v.set_title("its speed along the normal" + compared, fontsize=9)
+        ax_v.set_xlabel("time from the reflex onset (s)", fontsize=8)
+        if i == 0:
+            ax_d.set_ylabel("withdrawal (mm)\n(shaded: toward the contact)", fontsize=8)
+            ax_v.set_ylabel("speed (m/s)\n+ away from the contact", fontsize=8)
     handles = [plt.Line2D([], [], color="0.55", lw=3.5, label="initial pose")]
     handles += [plt.Line2D([], [], color=c, lw=2, label=f"touch on {p}") for p, c in zip(TOUCHES, TOUCH_COLORS)]
-    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=9)
-    fig.suptitle("End pose of each reflex for G(p) = 1 (circles: touch points, arrows: pad normals)", fontsize=11)
-    fig.tight_layout(rect=(0, 0.07, 1, 0.95))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=9)
+    fig.suptitle("Each reflex for G(p) = 1 from the same pose: its end pose (circles: touch points, arrows: pad "
+                 "normals) and how the touched pad withdraws", fontsize=11)
+    return fig
+
+
+def reflexes_figure(path: Path, strategies: tuple[str, ...] = strategy_names(),
+                    cfg: PlannerSection | None = None, limits: CartesianLimits | None = None) -> Path:
+    fig = draw_reflexes(strategies, cfg, limits)
     fig.savefig(path)
-    plt.close(fig)
+    _pyplot().close(fig)
     return path
 
 
@@ -143,7 +258,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.which == "gain":
         gain_figure(out, tuple(profile.gain.thresholds_hpa), profile.gain.k)
     else:
-        reflexes_figure(out, cfg=profile.planner)
+        reflexes_figure(out, cfg=profile.planner, limits=profile.bridge.limits)
     print(f"wrote {out}")
     return 0
 
