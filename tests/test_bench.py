@@ -188,4 +188,29 @@ def test_quick_bench_measures_every_configuration(tmp_path):
         assert latency["lower bound: onset"]["p50"] < latency["onset"]["p50"], name
         assert set(s["cpu_percent"]) >= {"gateway", "gain", "planner", "bridge", "recorder"}
         assert set(s["loops"]) == {"planner", "bridge"}
+        # The baseline, measured right after each run: the bare chain's three hops, and the ratio to them.
+        assert s["bare"]["p50"] > result["in_process_ms"]["p50"] > 0, name
+        assert s["bare"]["lost"] == 0, name
+        assert s["ratio_to_bare"]["p50"] > 0, name
+    assert "reflex onset against the bare zenoh chain" in proc.stdout
+    assert "Reflex onset against the baseline" in (out / "bench.md").read_text()
     assert result["recorder_soak"]["lost"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+@pytest.mark.parametrize("rate_hz", [25.0, 1000.0])
+def test_the_bare_chain_delivers_every_sample_through_three_hops(tmp_path, rate_hz):
+    from nwr.common.config import ZenohSection
+    from nwr.services.tools import bench_bare
+
+    run = bench_bare.measure(ZenohSection(base_port=18140 + int(rate_hz) % 7), rate_hz, 2.0, tmp_path)
+    assert run.sent == round(2.0 * rate_hz) and run.received == run.sent
+    assert all(0.0 < x < 1000.0 for x in run.latency_ms)
+
+
+def test_the_in_process_chain_is_the_floor():
+    from nwr.services.tools import bench_bare
+
+    floor = bench_bare.percentiles(bench_bare.in_process(200))
+    assert 0.0 < floor["p50"] <= floor["p99"] < 5.0  # encode, decode and build three messages

@@ -13,6 +13,13 @@ timing (from the Rate summaries the services log at exit). Each
 configuration runs ``--reps`` times, interleaved, and the table reports the
 median of each statistic over the repetitions.
 
+The baseline (:mod:`nwr.services.tools.bench_bare`): right after each run,
+the same three hops as a bare chain of zenoh-python processes with the
+pipeline's Zenoh configuration, messages and rate, and no other work; every
+onset figure is also given as a ratio to it, measured in the same
+repetition (on a shared machine the ratios hold better than the absolute
+figures), with the same chain as function calls in one process as the floor.
+
 A recorder soak test writes an hour of a busy session (a command every cycle,
 state at 125 Hz) through the recorder's own decode-and-write path in this
 process and samples its memory.
@@ -47,6 +54,7 @@ from nwr.common.recordings import SessionRecorder, read_recording, session_metad
 from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all
+from nwr.services.tools import bench_bare
 from nwr.services.tools.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
 
 log = logging.getLogger(__name__)
@@ -56,6 +64,7 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 # three such blocks so that a port in TIME_WAIT is never reused at once.
 PORTS_PER_RUN = 6
 PORT_BLOCKS = 3
+BARE_S = 10.0  # how long the bare chain runs after each run (every sample is measured, not only onsets)
 STARTUP_TIMEOUT_S = 60.0
 SETTLE_S = 1.0  # after the script: the last reflex's first commands, the recorder's last chunk
 LOOP_RE = re.compile(r"(planner|bridge): (\d+) ticks at (\d+) Hz, period p50 ([\d.]+) ms p99 ([\d.]+) ms "
@@ -258,6 +267,17 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
     }
 
 
+def bare_once(config: Config, base_port: int, work: Path, seconds: float, profile: Profile) -> dict[str, float]:
+    """The bare chain at ``config``'s rate and topology: latency p50/p99 (ms), samples lost, CPU %."""
+    router = config.topology == "router"
+    cfg = msgspec.structs.replace(profile.zenoh, base_port=base_port,
+                                  router=[f"tcp/127.0.0.1:{base_port + 5}"] if router else [])
+    run = bench_bare.measure(cfg, config.rate_hz, seconds, work,
+                             router_listen=f"tcp/127.0.0.1:{base_port + 5}" if router else None)
+    return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
+            "cpu_percent_total": run.cpu_percent_total}
+
+
 def _as_toml(data: dict[str, Any]) -> str:
     """A profile (plain data) as TOML: tables of scalars and lists (enough for a Profile)."""
     lines: list[str] = []
@@ -402,7 +422,30 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             "loops": loops,
             "matching": {k: int(sum(r["matching"][k] for r in mine)) for k in mine[0]["matching"]},
         }
+        bare = [r["bare"] for r in mine if r.get("bare")]
+        if bare:
+            out[name]["bare"] = median_over(bare)
+            # The ratio per repetition (pipeline and chain measured back to back), then the median.
+            out[name]["ratio_to_bare"] = {
+                q: statistics_median([r["latency_ms"]["onset"][q] / r["bare"][q] for r in mine if r.get("bare")])
+                for q in ("p50", "p99")}
     return out
+
+
+def baseline_table(summary: dict[str, dict[str, Any]], floor_p50: float) -> tuple[list[str], list[list[str]]]:
+    """Reflex onset against the bare chain of the same rate and topology (the ratios: the headline)."""
+    header = ["configuration", "onset p50", "bare p50", "x bare", "onset p99", "bare p99", "x bare",
+              "bare lost", "in-process p50"]
+    rows = []
+    for name, s in summary.items():
+        bare = s.get("bare")
+        if not bare:
+            continue
+        onset = s["latency_ms"]["onset"]
+        rows.append([name, _f(onset["p50"], ".3f"), _f(bare["p50"], ".3f"), _f(s["ratio_to_bare"]["p50"], ".2f"),
+                     _f(onset["p99"], ".3f"), _f(bare["p99"], ".3f"), _f(s["ratio_to_bare"]["p99"], ".2f"),
+                     _f(bare["lost"], ".0f"), _f(floor_p50, ".4f")])
+    return header, rows
 
 
 def statistics_median(values: list[float]) -> float:
@@ -472,6 +515,18 @@ def report_markdown(result: dict[str, Any]) -> str:
         "",
         markdown_table(header, rows),
         "",
+    ]
+    base_header, base_rows = baseline_table(result["summary"], result.get("in_process_ms", {}).get("p50", float("nan")))
+    if base_rows:
+        lines += [
+            "Reflex onset against the baseline: the same three hops as a bare chain of zenoh-python processes "
+            "(the pipeline's Zenoh configuration, messages and rate; no other work), run right after each "
+            "repetition; *x bare*: the ratio per repetition, median; *in-process*: the chain as function calls.",
+            "",
+            markdown_table(base_header, base_rows),
+            "",
+        ]
+    lines += [
         "Cost per service (CPU % of one core over the run, peak RSS) and the 500 Hz loops' timing (Rate summary "
         "over the last 4096 cycles):",
         "",
@@ -533,6 +588,19 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                 print(f" {time.monotonic() - t:.0f} s: onset p99 {_f(lat['onset']['p99'])} ms "
                       f"({lat['onset']['n']}), sample p99 {_f(lat['sample']['p99'])} ms ({lat['sample']['n']}), "
                       f"CPU {run['cpu_percent_total']:.0f} %", flush=True)
+                if config.onsets:
+                    bare_port = args.base_port + (PORT_BLOCKS + done % PORT_BLOCKS) * PORTS_PER_RUN
+                    try:
+                        run["bare"] = bare_once(config, bare_port, work / f"bare-{done}", args.bare_seconds,
+                                                profile)
+                    except (RuntimeError, OSError, ValueError) as exc:
+                        print(f"  the bare chain failed: {exc}", flush=True)
+                        result["failures"].append({"config": f"bare chain: {config.name}", "rep": rep,
+                                                   "error": str(exc)})
+                    else:
+                        print(f"  bare chain: p50 {_f(run['bare']['p50'], '.3f')} ms, p99 "
+                              f"{_f(run['bare']['p99'], '.3f')} ms, {run['bare']['lost']:.0f} lost; onset p50 "
+                              f"{lat['onset']['p50'] / run['bare']['p50']:.2f}x the chain's", flush=True)
         if args.soak_minutes > 0:
             print(f"recorder soak: {args.soak_minutes:g} simulated minutes ...", end="", flush=True)
             result["recorder_soak"] = recorder_soak(args.soak_minutes, work / "soak.mcap", profile)
@@ -542,11 +610,17 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     result["summary"] = aggregate(result["runs"])
+    result["in_process_ms"] = bench_bare.percentiles(bench_bare.in_process(2000))
     result["elapsed_s"] = time.monotonic() - t_start
     (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=_jsonable))
     md = report_markdown(result)
     (out_dir / "bench.md").write_text(md)
     header, rows, cost_header, cost = tables(result["summary"])
+    base_header, base_rows = baseline_table(result["summary"], result["in_process_ms"]["p50"])
+    if base_rows:
+        print("\nreflex onset against the bare zenoh chain of the same rate and topology (ms; x: ratio, per "
+              "repetition, median):")
+        print(text_table(base_header, base_rows))
     print()
     print(text_table(header, rows))
     print()
@@ -584,7 +658,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--soak-minutes", type=float, default=None,
                    help="simulated minutes of the recorder soak (default 60; --quick 0.5; 0 = none)")
     p.add_argument("--base-port", type=int, default=18050,
-                   help=f"first of the {PORTS_PER_RUN * PORT_BLOCKS} loopback ports the runs use (default 18050)")
+                   help=f"first of the {2 * PORTS_PER_RUN * PORT_BLOCKS} loopback ports the runs and the bare "
+                        "chain use (default 18050)")
+    p.add_argument("--bare-seconds", type=float, default=BARE_S,
+                   help=f"how long the bare chain runs after each run (default {BARE_S:g}; --quick 3)")
     p.add_argument("--output", "-o", help="directory for bench.json and bench.md (default: bench/<time>/)")
     p.add_argument("--keep", action="store_true", help="keep every run's recording, logs and profile")
     p.add_argument("--tracking", action="store_true",
@@ -623,6 +700,8 @@ def _handler_with_defaults(args: argparse.Namespace) -> int:
         return run_tracking(args)
     if args.soak_minutes is None:
         args.soak_minutes = 0.5 if args.quick else 60.0
+    if args.quick:
+        args.bare_seconds = min(args.bare_seconds, 3.0)
     if args.reps < 0 or args.onsets < 1:
         raise ConfigError(f"--reps ({args.reps}) must be >= 0 and --onsets ({args.onsets}) >= 1")
     return _handler(args)

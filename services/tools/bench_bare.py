@@ -1,0 +1,244 @@
+"""The bench's baseline: the pipeline's three hops as a bare chain of zenoh-python processes.
+
+What ``nwr bench`` holds the pipeline against, measured in the same run:
+four processes of the pipeline's shape (gateway -> gain -> planner ->
+bridge), opened with the pipeline's own Zenoh configuration
+(:func:`nwr.common.node.zenoh_config`: peers on loopback at the services'
+ports, or clients of a local router), sending the pipeline's own messages
+(the same sizes, encoded with msgspec) and doing nothing else: each stage
+decodes what it receives and publishes the next message from its Zenoh
+callback; the gateway publishes ten pads at the skin's rate. The bridge
+stamps each command's arrival: the chain's latency is the skin sample's
+stamp to that arrival, the three hops a reflex takes. :func:`in_process`
+is the same chain as function calls (the lower bound of any chain).
+
+Every process reads the same clock (``time.monotonic_ns``, one per machine
+on Linux), so stamps from different processes compare directly. A role is
+``python -m nwr.services.tools.bench_bare ROLE --profile P ...``; the
+bridge writes its figures as JSON when the gateway's end message arrives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import zenoh
+
+from nwr.common import messages as m
+from nwr.common.config import ZenohSection
+from nwr.common.node import zenoh_config
+
+ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source last
+N_PADS = 10
+KEY = "nwr-bare/{}"  # its own keys: a running pipeline's subscribers never see the chain
+ALIVE = "nwr-bare/alive/{}"
+END = "nwr-bare/end"
+STARTUP_TIMEOUT_S = 30.0
+
+
+def sample(seq: int, stamp_ns: int) -> m.SkinPressure:
+    pressures = [1013.0 + 0.01 * (seq % 7)] * N_PADS
+    return m.SkinPressure(seq=seq, stamp_ns=stamp_ns, absolute_hpa=pressures, baseline_hpa=[1013.0] * N_PADS,
+                          change_hpa=[0.01] * N_PADS, contact=[False] * N_PADS, valid=[True] * N_PADS)
+
+
+def pain(s: m.SkinPressure, now_ns: int) -> m.SkinPain:
+    return m.SkinPain(seq=s.seq, stamp_ns=now_ns, trace=m.Trace(s.seq, s.stamp_ns), model="continuous",
+                      level=[1] * N_PADS, gain=[0.0] * N_PADS)
+
+
+def command(p: m.SkinPain, now_ns: int) -> m.PositionCommand:
+    return m.PositionCommand(seq=p.seq, stamp_ns=now_ns, owner="bare", q=[0.1, -1.2, 1.3, -1.6, -1.57, 0.0],
+                             trace=p.trace)
+
+
+# ------------------------------------------------------------------------------ one role
+
+
+def run_role(role: str, cfg: ZenohSection, *, rate_hz: float, duration_s: float, out: Path | None) -> int:
+    """One process of the chain; the gateway publishes for ``duration_s`` once every other role is alive."""
+    encode = msgspec.msgpack.Encoder().encode
+    conf = zenoh_config(cfg, listen_slot=role)
+    with zenoh.open(conf) as session:
+        done = threading.Event()
+        arrivals: list[tuple[int, int, int]] = []  # (seq, sample stamp, arrival), the bridge's
+        subscribers: list[Any] = []
+        if role == "gain":
+            decode_s = msgspec.msgpack.Decoder(m.SkinPressure).decode
+            out_pub = session.declare_publisher(KEY.format("pain"), express=True)
+            subscribers.append(session.declare_subscriber(
+                KEY.format("pressure"), lambda z: out_pub.put(encode(pain(decode_s(z.payload.to_bytes()),
+                                                                          time.monotonic_ns())))))
+        elif role == "planner":
+            decode_p = msgspec.msgpack.Decoder(m.SkinPain).decode
+            out_pub = session.declare_publisher(KEY.format("command"), express=True)
+            subscribers.append(session.declare_subscriber(
+                KEY.format("pain"), lambda z: out_pub.put(encode(command(decode_p(z.payload.to_bytes()),
+                                                                         time.monotonic_ns())))))
+        elif role == "bridge":
+            decode_c = msgspec.msgpack.Decoder(m.PositionCommand).decode
+
+            def on_command(z: zenoh.Sample) -> None:
+                now = time.monotonic_ns()
+                c = decode_c(z.payload.to_bytes())
+                arrivals.append((c.trace.seq, c.trace.stamp_ns, now))
+
+            subscribers.append(session.declare_subscriber(KEY.format("command"), on_command))
+        if role != "gateway":
+            end: dict[str, Any] = {}
+
+            def on_end(z: zenoh.Sample) -> None:
+                end.update(json.loads(z.payload.to_bytes()))  # the gateway's figures
+                done.set()
+
+            subscribers.append(session.declare_subscriber(END, on_end))
+            token = session.liveliness().declare_token(ALIVE.format(role))
+            done.wait(duration_s + STARTUP_TIMEOUT_S + 30.0)
+            if role == "bridge" and out is not None:
+                time.sleep(0.1)  # the last commands on their way
+                out.write_text(json.dumps({"arrivals": arrivals, **end}))
+            token.undeclare()
+            return 0
+        return _publish(session, rate_hz, duration_s)
+
+
+def _publish(session: zenoh.Session, rate_hz: float, duration_s: float) -> int:
+    """The gateway: wait for the others, publish ``duration_s`` of samples at ``rate_hz``, then the end."""
+    from nwr.common.pacing import Rate
+
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while True:
+        alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in session.liveliness().get(ALIVE.format("*"))
+                 if r.ok is not None}
+        if alive >= {"gain", "planner", "bridge"}:
+            break
+        if time.monotonic() > deadline:
+            print(f"bare chain: {sorted({'gain', 'planner', 'bridge'} - alive)} did not start", file=sys.stderr)
+            return 1
+        time.sleep(0.05)
+    time.sleep(0.3)  # routes settle
+    encode = msgspec.msgpack.Encoder().encode
+    pub = session.declare_publisher(KEY.format("pressure"), express=True)
+    rate = Rate(rate_hz, "bare gateway")
+    n = int(round(duration_s * rate_hz))
+    t0 = time.monotonic()
+    for seq in range(n):
+        rate.sleep()
+        pub.put(encode(sample(seq, time.monotonic_ns())))
+    wall = time.monotonic() - t0
+    time.sleep(0.2)  # the last sample through the chain before the end stops it
+    session.put(END, json.dumps({"sent": n, "publish_wall_s": wall, "overruns": rate.overruns}))
+    return 0
+
+
+# ------------------------------------------------------------------------------ the whole chain
+
+
+@dataclass
+class BareRun:
+    latency_ms: list[float]  # per sample that arrived: stamp to the bridge
+    sent: int
+    received: int
+    cpu_percent_total: float  # the four processes, % of one core, over the run
+    wall_s: float
+
+
+def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
+            router_listen: str | None = None) -> BareRun:
+    """Start the four roles (and a router for ``router_listen``), run ``duration_s``, collect the bridge's figures."""
+    from nwr.services.tools.bench import proc_cost
+
+    work.mkdir(parents=True, exist_ok=True)
+    out = work / "bare.json"
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    base = [sys.executable, "-m", "nwr.services.tools.bench_bare"]
+    if cfg.secure:
+        raise ValueError("the bare chain runs without TLS: measure with an insecure profile")
+    zargs = ["--base-port", str(cfg.base_port), "--host", cfg.host, "--mode", cfg.mode]
+    if cfg.router:
+        zargs += ["--router", ",".join(cfg.router)]
+    try:
+        if router_listen is not None:
+            procs["router"] = _spawn([sys.executable, "-m", "nwr.services.cli", "router", "--listen", router_listen],
+                                     work / "router.log")
+            time.sleep(0.5)
+        for role in ROLES:
+            args = [*base, role, *zargs, "--rate", str(rate_hz), "--duration", str(duration_s)]
+            if role == "bridge":
+                args += ["--out", str(out)]
+            procs[role] = _spawn(args, work / f"{role}.log")
+        cpu0 = {n: proc_cost(p.pid)[0] for n, p in procs.items()}
+        t0 = time.monotonic()
+        if procs["gateway"].wait(duration_s + STARTUP_TIMEOUT_S + 30.0) != 0:
+            raise RuntimeError(f"the bare chain's gateway failed: {(work / 'gateway.log').read_text()[-500:]}")
+        cpu1 = {n: proc_cost(p.pid)[0] for n, p in procs.items() if p.poll() is None}
+        wall = time.monotonic() - t0
+        for role in ("bridge", "planner", "gain"):
+            procs[role].wait(10.0)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+                p.wait(5.0)
+    data = json.loads(out.read_text())
+    latency = [(arrival - stamp) / 1e6 for _seq, stamp, arrival in data["arrivals"]]
+    cpu = sum(cpu1.get(n, cpu0[n]) - cpu0[n] for n in cpu0)
+    return BareRun(latency, int(data.get("sent", 0)), len(latency), 100.0 * cpu / max(wall, 1e-9), wall)
+
+
+def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
+    with log.open("wb") as out:  # the child has its own descriptor
+        return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT)
+
+
+def in_process(n: int) -> list[float]:
+    """The same chain as function calls (encode, decode, the next message) in this process, ms per sample."""
+    encode = msgspec.msgpack.Encoder().encode
+    dec_s = msgspec.msgpack.Decoder(m.SkinPressure).decode
+    dec_p = msgspec.msgpack.Decoder(m.SkinPain).decode
+    dec_c = msgspec.msgpack.Decoder(m.PositionCommand).decode
+    out = []
+    for seq in range(n):
+        t = time.monotonic_ns()
+        c = dec_c(encode(command(dec_p(encode(pain(dec_s(encode(sample(seq, t))), time.monotonic_ns()))),
+                                 time.monotonic_ns())))
+        out.append((time.monotonic_ns() - c.trace.stamp_ns) / 1e6)
+    return out
+
+
+def percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"p50": float("nan"), "p99": float("nan")}
+    a = np.asarray(values)
+    return {"p50": float(np.median(a)), "p99": float(np.percentile(a, 99))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench_bare",
+                                     description="One role of the bench's bare chain (started by nwr bench).")
+    parser.add_argument("role", choices=ROLES)
+    parser.add_argument("--base-port", type=int, required=True)
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--mode", choices=("peer", "client"), default="peer")
+    parser.add_argument("--router", default="", help="comma-separated router endpoints (clients of a router)")
+    parser.add_argument("--rate", type=float, default=25.0)
+    parser.add_argument("--duration", type=float, default=10.0)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    cfg = ZenohSection(base_port=args.base_port, host=args.host, mode=args.mode,
+                       router=[e for e in args.router.split(",") if e])
+    return run_role(args.role, cfg, rate_hz=args.rate, duration_s=args.duration, out=args.out)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
