@@ -146,6 +146,18 @@ def test_compare_figure_plots_the_table_s_withdrawal_signed(short_sessions):
     np.testing.assert_allclose(motion.dq[np.searchsorted(motion.t, motion.onset_s)], 0.0)
 
 
+def test_a_touch_s_motion_ends_where_another_touch_s_reflex_begins(short_sessions):
+    """UR's forearm_top reflex never resumes the task before wrist_2's touch: its withdrawal took in wrist_2's
+    reflex to the end of the recording (550.8 mm in the table, 407 mm up to the next reflex)."""
+    ur = short_sessions[0]
+    forearm, wrist = (next(t for t in ur.touches if t.name == n) for n in ("forearm_top", "wrist_2"))
+    assert forearm.resumed_after_s is None and wrist.reflex_seq  # the case: no resumption in between
+    motion = compare.touch_motion(ur, forearm, MODEL)
+    assert motion is not None
+    before_next = (motion.t >= motion.onset_s) & (motion.t <= (wrist.start_ns - forearm.start_ns) / 1e9 + 0.1)
+    assert forearm.withdrawal_mm == pytest.approx(motion.away_mm[before_next].max(), rel=0.02)
+
+
 def test_compare_figure_names_the_joints_and_the_files(short_sessions):
     plt = figures._pyplot()
     rows = compare.line_up(short_sessions, 0.3)
@@ -161,3 +173,45 @@ def test_compare_figure_names_the_joints_and_the_files(short_sessions):
         assert any(w.startswith("touch 3: wrist_2") for w in words)
     finally:
         plt.close(fig)
+
+
+# --------------------------------------------------------------------------- the reflex quality table
+
+def _touch(pad, peak, gain, withdrawal, toward=0.0, other=0.0, jerk=None, withdraws=True):
+    from nwr.services.tools.analysis import TouchSummary
+
+    return TouchSummary(pad=pad, name=f"p{pad}", region="r", start_ns=0, end_ns=0, first_seq=0, last_seq=0,
+                        peak_hpa=peak, gain=gain, reflex_seq=1, withdrawal_mm=withdrawal, toward_mm=toward,
+                        other_approach_mm=other, peak_jerk_m_s3=jerk, withdraws=withdraws, strategy="s")
+
+
+def test_the_quality_row_counts_approaches_repeats_and_the_gain_ranking():
+    from nwr.services.tools.analysis import quality
+
+    touches = [
+        _touch(0, 6.0, 0.2, 10.0, toward=1.0, other=3.0, jerk=50.0),
+        _touch(0, 12.0, 0.5, 30.0, toward=6.0, other=2.0, jerk=70.0),  # the pad came 6 mm toward the contact
+        _touch(0, 20.0, 1.0, 60.0, other=8.5, jerk=90.0),
+        _touch(0, 20.4, 0.99, 58.0),  # the same touch repeated: 2 mm apart
+        _touch(1, 20.0, 1.0, 0.0, withdraws=False),  # a pad that cannot withdraw
+        _touch(2, 9.0, 0.3, 40.0), _touch(2, 14.0, 0.6, 30.0), _touch(2, 22.0, 1.0, 20.0),  # backwards
+    ]
+    q = quality(touches)
+    assert (q.strategy, q.reflexes, q.approached, q.worst_toward_mm, q.worst_other_mm) == ("s", 8, 1, 6.0, 8.5)
+    assert q.withdrawal_min_mm == 10.0 and q.withdrawal_median_mm == 30.0
+    assert (q.repeat_pairs, q.repeat_diff_mm) == (1, 2.0)
+    assert q.gain_rank_corr == pytest.approx(0.0)  # pad 0: +1, pad 2: -1; the median
+    assert q.peak_jerk_m_s3 == 70.0
+    assert quality([]).reflexes == 0
+
+
+def test_peak_jerk_tells_a_velocity_step_from_a_ramp():
+    from nwr.services.tools.analysis import peak_jerk
+
+    t = np.arange(0, 21) * 20_000_000  # states at 50 Hz
+    step = np.zeros((21, 3))
+    step[10:, 0] = 0.25
+    ramp = np.zeros((21, 3))
+    ramp[:, 0] = 0.25 * np.clip((np.arange(21) - 5) / 10, 0, 1)
+    assert peak_jerk(t, step) > 3 * peak_jerk(t, ramp) > 0
+    assert peak_jerk(t[:2], step[:2]) is None

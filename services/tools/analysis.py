@@ -65,6 +65,8 @@ class TouchSummary:
     back_mm: float | None = None
     # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
     return_speed_m_s: float | None = None
+    # The touched pad's peak jerk during the withdrawal, m/s^3 (from the robot states: at their rate).
+    peak_jerk_m_s3: float | None = None
 
 
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,
@@ -142,6 +144,12 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         # Up to the next reflex at most: a new touch during the return starts another one.
         later = [o.accepted_ns for o in onsets.values() if o.accepted_ns > t0]
         until = min([end, *later]) if later else end
+        # The touch's motion ends where another touch's reflex begins (this touch's own updates and restarts
+        # go on with it): without a resumption, the end of the recording would take in later touches' motions.
+        others = [o.accepted_ns for seq, o in onsets.items() if o.accepted_ns > t0 and seq in reflexes
+                  and not (reflexes[seq].contact.pad == touch.pad
+                           and touch.first_seq <= reflexes[seq].trace.seq <= touch.last_seq)]
+        end = min([end, *others])
         if resumed is not None:
             touch.resumed_after_s = (resumed.stamp_ns - t0) / 1e9
         window = (state_t >= t0) & (state_t <= end)
@@ -170,6 +178,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             velocities = [model.speed_jacobians(q) @ dq for q, dq in zip(state_q[moving], state_dq[moving])]
             touch.peak_speed_m_s = max(float(np.linalg.norm(v, axis=1).max()) for v in velocities)
             touch.peak_toward_m_s = max(0.0, max(float((v @ n0).max()) for v in velocities))
+            touch.peak_jerk_m_s3 = peak_jerk(state_t[moving], np.array([v[touch.pad] for v in velocities]))
             # Back toward the contact after the furthest withdrawal, while the touch lasted.
             pressed = np.flatnonzero(window & (state_t <= touch_end))
             if len(pressed):
@@ -216,6 +225,100 @@ def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[Tou
     done.extend(open_.values())
     done.sort(key=lambda t: t.start_ns)
     return done
+
+
+def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:
+    """The largest jerk of a point whose velocity is ``v`` (rows, m/s) at the times ``t_ns``, m/s^3.
+
+    Finite differences of the velocity: at the robot state's rate (50 Hz by
+    default) a jerk-limited ramp reads near its true jerk, a velocity step as
+    its size over two sample intervals squared (large either way)."""
+    if len(t_ns) < 3:
+        return None
+    t = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) / 1e9
+    dt = np.diff(t)
+    ok = dt > 0
+    if ok.sum() < 2:
+        return None
+    a = np.diff(v, axis=0)[ok] / dt[ok, None]
+    ta = (t[1:][ok] + t[:-1][ok]) / 2
+    dta = np.diff(ta)
+    if not (dta > 0).any():
+        return None
+    jerk = np.diff(a, axis=0)[dta > 0] / dta[dta > 0, None]
+    return float(np.linalg.norm(jerk, axis=1).max()) if len(jerk) else None
+
+
+@dataclass
+class Quality:
+    """How one strategy's reflexes did over a session's touches (those that started a reflex)."""
+
+    strategy: str
+    reflexes: int = 0
+    approached: int = 0  # touches whose pad moved more than APPROACH_MM toward the contact
+    worst_toward_mm: float | None = None  # the touched pad's largest move toward the contact
+    worst_other_mm: float | None = None  # any other pad's largest approach to the contact point
+    withdrawal_median_mm: float | None = None
+    withdrawal_min_mm: float | None = None  # of the pads that can withdraw
+    repeat_pairs: int = 0  # pairs of touches of one pad at the same pressure (within REPEAT_HPA)
+    repeat_diff_mm: float | None = None  # median |withdrawal difference| over those pairs
+    gain_rank_corr: float | None = None  # Spearman's rho of withdrawal with gain, per pad, median over pads
+    peak_jerk_m_s3: float | None = None  # the touched pads' largest jerk (median over touches)
+
+
+APPROACH_MM = 5.0  # a touched pad moving more than this toward the contact approached it
+REPEAT_HPA = 1.0  # touches of one pad this close in peak pressure count as the same touch repeated
+
+
+def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
+    """The reflex quality table's row for ``touches`` (one strategy's session)."""
+    from scipy.stats import spearmanr
+
+    done = [t for t in touches if t.reflex_seq and t.withdrawal_mm is not None]
+    q = Quality(strategy or next((t.strategy for t in done if t.strategy), ""), len(done))
+    if not done:
+        return q
+    toward = [t.toward_mm or 0.0 for t in done]
+    q.approached = sum(x > APPROACH_MM for x in toward)
+    q.worst_toward_mm = max(toward)
+    q.worst_other_mm = max(t.other_approach_mm or 0.0 for t in done)
+    withdrawals = [t.withdrawal_mm for t in done if t.withdrawal_mm is not None]
+    q.withdrawal_median_mm = float(np.median(withdrawals))
+    able = [t.withdrawal_mm for t in done if t.withdraws and t.withdrawal_mm is not None]
+    q.withdrawal_min_mm = min(able) if able else None
+    diffs = [abs(a.withdrawal_mm - b.withdrawal_mm) for i, a in enumerate(done) for b in done[i + 1:]
+             if a.pad == b.pad and abs(a.peak_hpa - b.peak_hpa) <= REPEAT_HPA
+             and a.withdrawal_mm is not None and b.withdrawal_mm is not None]
+    q.repeat_pairs = len(diffs)
+    q.repeat_diff_mm = float(np.median(diffs)) if diffs else None
+    # In proportion to the gain, pad by pad (across pads the joints behind each one dominate): Spearman's rho
+    # of each pad touched at three or more gains, the median over those pads.
+    rhos = []
+    for pad in {t.pad for t in done}:
+        mine = [(t.gain, t.withdrawal_mm) for t in done if t.pad == pad and t.withdraws]
+        if len({g for g, _ in mine}) >= 3 and len({w for _, w in mine}) > 1:
+            rhos.append(float(spearmanr(*zip(*mine)).statistic))
+    q.gain_rank_corr = float(np.median(rhos)) if rhos else None
+    jerks = [t.peak_jerk_m_s3 for t in done if t.peak_jerk_m_s3 is not None]
+    q.peak_jerk_m_s3 = float(np.median(jerks)) if jerks else None
+    return q
+
+
+QUALITY_HEADER = ["strategy", "reflexes", f"pad toward >{APPROACH_MM:g} mm", "worst toward (mm)",
+                  "worst other pad (mm)", "withdrawal p50 (mm)", "withdrawal min (mm)", "repeats",
+                  "repeat diff (mm)", "rho(gain, withdrawal)", "peak jerk (m/s^3)"]
+# pad toward: touches whose touched pad moved more than 5 mm toward the contact; worst other pad: any other
+# pad's largest approach to the contact point; withdrawal min: of the pads that can withdraw; repeats: pairs of
+# touches of one pad within 1 hPa of each other, repeat diff: their median withdrawal difference; rho: Spearman's
+# rank correlation of withdrawal with gain per pad (pads touched at three or more gains), the median over pads;
+# peak jerk: the touched pad's, median over the touches (at the state rate).
+
+
+def quality_rows(rows: list[Quality]) -> list[list[str]]:
+    f = cell
+    return [[q.strategy, str(q.reflexes), str(q.approached), f(q.worst_toward_mm, ".1f"), f(q.worst_other_mm, ".1f"),
+             f(q.withdrawal_median_mm, ".1f"), f(q.withdrawal_min_mm, ".1f"), str(q.repeat_pairs),
+             f(q.repeat_diff_mm, ".1f"), f(q.gain_rank_corr, ".2f"), f(q.peak_jerk_m_s3, ".1f")] for q in rows]
 
 
 def cell(x: float | None, fmt: str) -> str:

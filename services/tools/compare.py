@@ -344,6 +344,9 @@ def _run(args: argparse.Namespace) -> int:
     sessions = [load_session(Path(p), desc, model) for p in args.files]
     rows = line_up(sessions, args.window)
     print(table(sessions, rows))
+    print("\nreflex quality per file (every touch of the file that started a reflex):")
+    quality = [analysis.quality(session.touches, session.label) for session in sessions]
+    print(analysis.format_table(analysis.QUALITY_HEADER, analysis.quality_rows(quality)))
     if len(sessions) > 1:
         print("\ncommand streams (robot/command/<name>, decoded) against the first file's:")
         for session in sessions[1:]:

@@ -26,6 +26,9 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
             t.onset_latency_ms = None
     print(f"\nRecording {path}: {len(records)} messages")
     print(analysis.format_table(analysis.HEADER, analysis.table_rows(touches, first)))
+    if any(t.reflex_seq for t in touches):
+        print("\n" + analysis.format_table(analysis.QUALITY_HEADER,
+                                            analysis.quality_rows([analysis.quality(touches)])))
     if lockstep and latencies:
         print(f"\n{len(latencies)} reflexes on simulated time (lockstep): each began within the control cycle of "
               "its skin sample, by construction; no latency is measured here (`nwr demo` or `nwr bench` live)")
