@@ -97,11 +97,12 @@ def check(records: list[Any], capsys: pytest.CaptureFixture[str], where: str) ->
     forged = [r for r in records if r.key == keys.planner_status(STANDBY) and r.message.seq >= 10_000]
     assert len(forged) > 100  # the forged statuses were out there (the recorder saw them)
 
-    # Both handovers within a few cycles of the switch (the normal switch).
+    # Both handovers completed, each with the new owner's first command soon after the switch (a few cycles on
+    # a quiet machine; the bound leaves room for a loaded one: this test is about claims, not timing).
     handovers = {s.handover.owner: s.handover for s in states if s.handover is not None and s.handover.first_command_ns}
     assert set(handovers) == {ACTIVE, STANDBY}
     for h in handovers.values():
-        assert (h.first_command_ns - h.switched_ns) / 2e6 <= 5.0, h
+        assert 0 < (h.first_command_ns - h.switched_ns) / 2e6 <= 50.0, h
 
     path, task_peak = _task_path(Profile())
     before = np.array([s.q for s in states if s.stamp_ns < t0 + ATTACK_S * 1e9])

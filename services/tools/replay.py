@@ -113,7 +113,8 @@ def resimulated(profile: Profile, records: list[Recorded], chosen: list[Recorded
 
 def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, strategy: str, output: Path, *,
                     labels: dict[str, str], touches: list[m.SkinTouch] | None = None,
-                    start_time_iso: str = "", start_ns: int | None = None) -> tuple[Path, float, float]:
+                    start_time_iso: str = "", start_ns: int | None = None,
+                    settle_s: float = 2.0) -> tuple[Path, float, float]:
     """A lockstep run into the recording ``output``; returns it, the simulated and the wall-clock duration.
 
     Recorded samples given as a list are written as they are, on their own
@@ -145,7 +146,7 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
             recorder.write(keys.key(robot, key), message, stamp_ns)
 
         t = time.perf_counter()
-        report = lockstep.run(skin, emit, start_ns=start_ns)
+        report = lockstep.run(skin, emit, start_ns=start_ns, settle_s=settle_s)
         wall = time.perf_counter() - t
         recorder.finish()
     return output, report.simulated_s, wall
@@ -155,8 +156,14 @@ def run_fast(profile: Profile, records: list[Recorded], strategy: str, output: P
              source: Path, metadata: dict[str, dict[str, str]], *,
              chosen: list[Recorded] | None = None, resimulate: bool = False) -> tuple[Path, float, float]:
     """Lockstep replay of the ``chosen`` records (default: all) into ``output``; returns it, the simulated and
-    the wall-clock duration. ``resimulate``: the simulated skin's touches against the replay's arm."""
+    the wall-clock duration. ``resimulate``: the simulated skin's touches against the replay's arm.
+
+    A replay that reaches the recording's last skin sample ends there, as the recorded session did (its skin
+    went on at rest through its own settle, live or in lockstep); a replay of a window runs on 2 s after it,
+    so that its last reflex plays out."""
     chosen = records if chosen is None else chosen
+    last = next((r for r in reversed(records) if r.key == keys.SKIN_PRESSURE), None)
+    reaches_end = last is not None and any(r is last for r in reversed(chosen))
     labels = {"replay_of": str(source), "replay_mode": "fast"}
     skin: list[m.SkinPressure] | SkinSource
     touches: list[m.SkinTouch] = []
@@ -170,7 +177,7 @@ def run_fast(profile: Profile, records: list[Recorded], strategy: str, output: P
         touches = [r.message for r in records if r.key == keys.SKIN_TOUCH]
     return record_lockstep(profile, skin, strategy, output, labels=labels, touches=touches,
                            start_time_iso=metadata.get("session", {}).get("start_time", ""),
-                           start_ns=task_start_ns(records, chosen))
+                           start_ns=task_start_ns(records, chosen), settle_s=0.0 if reaches_end else 2.0)
 
 
 def task_start_ns(records: list[Recorded], chosen: list[Recorded]) -> int | None:
