@@ -25,7 +25,7 @@ Evolution rules
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import msgspec
 import numpy as np
@@ -390,21 +390,132 @@ def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:
     return np.asarray(values, dtype=np.float64)
 
 
-def json_schema(message_type: object) -> dict:
-    """JSON Schema of a message type with ``"type": "object"`` at the top.
+def json_schema(message_type: object) -> dict[str, Any]:
+    """JSON Schema of a message type, in the form Foxglove and Lichtblick load.
 
-    Foxglove plots fields only of object schemas, so a union (several
-    message kinds on one key) is wrapped in an object with ``anyOf``.
+    Both apps read the ``jsonschema`` of a ``json`` channel with one loader
+    (``parseJsonSchema`` of their ``mcap-support`` package), which drops a
+    channel whose schema it cannot read. It takes an object at the top whose
+    properties each have a ``type``: boolean, string, number, integer, an
+    object that lists its ``properties``, or an array of one of those (not of
+    arrays); no ``$ref``, no ``anyOf``. msgspec's schema is rewritten to that:
+
+    - definitions are inlined (no ``$ref``, no ``$defs``);
+    - an enum (a ``Literal``, the ``kind`` tag) gets its ``type``;
+    - an optional field gets the schema of its value (the apps read a
+      ``null`` there as the field's absence);
+    - a union of messages on one key (``nwr.Command``) becomes one object
+      with the properties of every kind, ``kind`` the enum of their tags;
+    - a field with no form in the loader (an array of arrays,
+      ``PositionCommand.ahead``; of array-like records, ``Journal.entries``)
+      is left out of ``properties`` and named in the object's ``$comment``,
+      and that object drops ``additionalProperties: false``: the messages
+      still carry it (the Raw Messages panel shows it), it just has no path
+      to plot.
+
+    The schema stays true of every message of the type as msgspec encodes it:
+    only what the schema says changes, not the messages.
     """
-    schema = msgspec.json.schema(message_type)
-    if "$ref" in schema and "anyOf" not in schema:
-        name = schema["$ref"].rsplit("/", 1)[-1]
-        defs = schema["$defs"]
-        top = dict(defs[name])
-        rest = {k: v for k, v in defs.items() if k != name}
-        if rest:
-            top["$defs"] = rest
-        return top
-    if "anyOf" in schema:
-        return {"type": "object", "anyOf": schema["anyOf"], "$defs": schema.get("$defs", {})}
+    raw = msgspec.json.schema(message_type)
+    schema = _loadable(raw, raw.get("$defs", {}))
+    if schema is None or schema.get("type") != "object":
+        raise TypeError(f"{message_type!r} has no JSON Schema Foxglove can load: its messages must be objects")
     return schema
+
+
+# What Foxglove's loader takes besides objects and arrays.
+_SCALARS = ("boolean", "string", "number", "integer")
+_ENUM_TYPES = ((bool, "boolean"), (str, "string"), (int, "integer"), (float, "number"))
+LEFT_OUT = "not described (no form in Foxglove's JSON Schema loader): "
+
+
+def _loadable(schema: dict[str, Any], defs: dict[str, Any]) -> dict[str, Any] | None:
+    """``schema`` (msgspec's) in the form :func:`json_schema` describes; None if it has none."""
+    if "$ref" in schema:
+        return _loadable(defs[schema["$ref"].rsplit("/", 1)[-1]], defs)
+    if "anyOf" in schema:
+        alternatives = [_loadable(a, defs) for a in schema["anyOf"] if a.get("type") != "null"]
+        loaded = [a for a in alternatives if a is not None]
+        if len(loaded) < len(alternatives):
+            return None
+        return loaded[0] if len(loaded) == 1 else _union(loaded)
+    out = {k: v for k, v in schema.items() if k not in ("$defs", "discriminator")}
+    if "enum" in out and "type" not in out:
+        types = {next((name for t, name in _ENUM_TYPES if isinstance(v, t)), None) for v in out["enum"]}
+        if len(types) != 1 or None in types:
+            return None
+        out = {"type": types.pop(), **out}
+    kind = out.get("type")
+    if kind == "object":
+        if "properties" not in out:
+            return None  # a dict: its keys are known only at run time
+        properties: dict[str, Any] = {}
+        for name, field in out["properties"].items():
+            described = _loadable(field, defs)
+            if described is not None:
+                properties[name] = described
+        return _with_properties(out, properties, [n for n in out["properties"] if n not in properties])
+    if kind == "array":
+        items = _loadable(out["items"], defs) if "items" in out else None  # prefixItems: a tuple, an array-like
+        if items is None or items["type"] == "array":
+            return None
+        return {**out, "items": items}
+    return out if kind in _SCALARS else None
+
+
+def undescribed(schema: dict[str, Any]) -> list[str]:
+    """The fields an object of :func:`json_schema` leaves out (named in its ``$comment``)."""
+    comment = schema.get("$comment", "")
+    return comment.removeprefix(LEFT_OUT).split(", ") if comment.startswith(LEFT_OUT) else []
+
+
+def _with_properties(schema: dict[str, Any], properties: dict[str, Any], left_out: list[str]) -> dict[str, Any]:
+    out = {**schema, "properties": properties}
+    if left_out:
+        out.pop("additionalProperties", None)
+        out["$comment"] = LEFT_OUT + ", ".join(left_out)
+    return out
+
+
+def _union(kinds: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """One object with the properties of every kind of a tagged union (the tag's enum holds every tag).
+
+    A property that two kinds describe differently (but for their enums and
+    defaults), or that one of them leaves out, is left out.
+    """
+    if not kinds or any(k["type"] != "object" for k in kinds):
+        return None
+    left_out = list(dict.fromkeys(name for kind in kinds for name in undescribed(kind)))
+    properties: dict[str, Any] = {}
+    for kind in kinds:
+        for name, field in kind["properties"].items():
+            if name in left_out:
+                continue
+            merged = _same_field(properties[name], field) if name in properties else field
+            if merged is None:
+                del properties[name]
+                left_out.append(name)
+            else:
+                properties[name] = merged
+    titles = [str(k.get("title", "?")) for k in kinds]
+    out: dict[str, Any] = {
+        "title": " | ".join(titles),
+        "description": f"one of {', '.join(titles)}, told apart by their tag: the properties of each",
+        "type": "object", "properties": {},
+        "required": [n for n in kinds[0].get("required", []) if all(n in k.get("required", []) for k in kinds)],
+    }
+    if all(k.get("additionalProperties") is False for k in kinds):
+        out["additionalProperties"] = False
+    return _with_properties(out, properties, left_out)
+
+
+def _same_field(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any] | None:
+    """One schema for a property two kinds share: enums joined, defaults dropped if they differ; else None."""
+    if a == b:
+        return a
+    a, b = ({k: v for k, v in s.items() if k != "default"} for s in (a, b))
+    if {k: v for k, v in a.items() if k != "enum"} != {k: v for k, v in b.items() if k != "enum"}:
+        return None
+    if "enum" in a and "enum" in b:
+        return {**a, "enum": list(dict.fromkeys(a["enum"] + b["enum"]))}
+    return a if a == b else None

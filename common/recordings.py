@@ -1,11 +1,12 @@
 """Recordings: decoded messages -> MCAP files, and MCAP -> messages.
 
 One channel per key (the full key expression is the topic), JSON messages
-with a JSON Schema derived from :mod:`nwr.common.messages` (``"type":
-"object"`` at the top, so Foxglove plots the fields). Log time is the time
-the message was received, publish time the source's stamp, sequence the
-message's own ``seq``. Sequence gaps are counted per key and per publisher
-and written to the file's metadata when it is closed.
+with a JSON Schema derived from :mod:`nwr.common.messages` in the form
+Foxglove and Lichtblick load (:func:`nwr.common.messages.json_schema`: an
+object of typed properties, so their panels show and plot the fields). Log
+time is the time the message was received, publish time the source's
+stamp, sequence the message's own ``seq``. Sequence gaps are counted per key
+and per publisher and written to the file's metadata when it is closed.
 
 Crash safety: besides the size limit of :class:`mcap.writer.Writer`, a chunk
 is closed once its first message is ``chunk_interval_ns`` old
@@ -1324,6 +1325,11 @@ class RecordingReader:
             yield item
 
 
+def recording_robot(metadata: dict[str, dict[str, str]]) -> str:
+    """The robot a recording's metadata names (its keys are under that robot's prefix)."""
+    return metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
+
+
 def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
     """Every message of a recording, decoded strictly, and the file's metadata.
 
@@ -1337,7 +1343,7 @@ def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Rec
     with RecordingReader(path) as reader:
         metadata = reader.metadata()
         if robot is None:
-            robot = metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
+            robot = recording_robot(metadata)
         head = keys.prefix(robot) + "/"
         for _schema, channel, msg in reader.messages():
             if not channel.topic.startswith(head):

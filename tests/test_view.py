@@ -24,6 +24,8 @@ from nwr.services.view.playback import Player
 DESC = load_description()
 MODEL = RobotModel(DESC)
 ROBOT = "ur10e"
+CHANNELS = c.channel_specs([p.name for p in DESC.pads])
+CHANNEL_BY_TOPIC = {spec.topic: spec for spec in CHANNELS}
 
 
 # -- helpers shared with the end-to-end test ------------------------------------------
@@ -279,7 +281,7 @@ def test_encoded_frame_decodes_against_its_schemas():
     core.apply(status(target_pad=5))
     outputs = {o.topic: o for o in c.encode_frame(core.frame(7_000_000_123))}
     decode = {s.topic: protobuf_decoder(s.schema_name, s.schema_encoding, s.schema)
-              for s in c.CHANNELS if s.message_encoding == "protobuf"}
+              for s in core.channels if s.message_encoding == "protobuf"}
     tf = decode["/tf"](outputs["/tf"].data)
     assert len(tf.transforms) == len(core.joints)
     assert tf.transforms[0].timestamp.seconds == 7 and tf.transforms[0].timestamp.nanos == 123
@@ -299,11 +301,23 @@ def test_encoded_frame_decodes_against_its_schemas():
     assert x_axis == pytest.approx(-DESC.pads[5].normal, abs=1e-9)
     reflex = decode["/nwr/reflex"](outputs["/nwr/reflex"].data)
     assert len(reflex.deletions) == 1 and not reflex.entities
-    for spec in c.CHANNELS:
+    for spec in core.channels:
         if spec.message_encoding == "json" and spec.topic in outputs:
             message = json.loads(outputs[spec.topic].data)
             schema = json.loads(spec.schema)
             assert schema["type"] == "object" and set(message) <= set(schema["properties"]), spec.topic
+    skin = json.loads(outputs["/nwr/skin"].data)
+    assert list(skin["gain"]) == core.names and skin["gain"]["forearm_top"] == pytest.approx(0.4)
+
+
+def test_skin_channel_has_a_property_per_pad_of_the_robot():
+    assert c.ViewCore(DESC, MODEL).channels == CHANNELS
+    assert {s.topic for s in c.channel_specs(["a", "b"])} == {s.topic for s in CHANNELS} == c.VIEW_TOPICS
+    skin = json.loads(CHANNEL_BY_TOPIC["/nwr/skin"].schema)
+    for field, value_type in (("change_hpa", "number"), ("level", "integer"), ("gain", "number")):
+        assert skin["properties"][field]["properties"] == {p.name: {"type": value_type} for p in DESC.pads}
+    other = json.loads({s.topic: s for s in c.channel_specs(["a", "b"])}["/nwr/skin"].schema)
+    assert list(other["properties"]["gain"]["properties"]) == ["a", "b"]
 
 
 # -- playback ----------------------------------------------------------------------------------
@@ -415,21 +429,23 @@ def test_shipped_layout_plots_fields_the_view_publishes():
     paths = [p["value"] for config in panels.values() for p in config.get("paths", [])]
     names = {p.name for p in DESC.pads}
     for path in paths:
-        topic, _, fields = path.partition(".")
-        schema = json.loads(c.CHANNEL_BY_TOPIC[topic].schema)
-        head, _, pad = fields.partition(".")
-        assert head in schema["properties"], path
-        assert not pad or pad in names, path
+        topic, *fields = path.split(".")
+        schema = json.loads(CHANNEL_BY_TOPIC[topic].schema)
+        for name in fields:  # every step of the path is a property its schema lists (what the panels resolve)
+            assert name in schema.get("properties", {}), path
+            schema = schema["properties"][name]
+        assert schema["type"] in ("number", "integer", "string", "boolean"), path
     for field in ("change_hpa", "gain"):
         assert {p.rsplit(".", 1)[1] for p in paths if p.startswith(f"/nwr/skin.{field}.")} == names
     assert "/nwr/planner.mode" in paths and "/nwr/onset.latency_ms" in paths
-    assert set(panels["3D!nwr"]["topics"]) <= set(c.CHANNEL_BY_TOPIC)
+    assert set(panels["3D!nwr"]["topics"]) <= set(CHANNEL_BY_TOPIC)
 
 
 def test_the_live_server_broadcasts_time_without_an_error(caplog):
     from nwr.services.view.server import ViewServer
 
-    view = ViewServer("127.0.0.1", 0, name="time test")  # as `nwr view` serves live: no capability asked
+    # As `nwr view` serves live: no capability asked.
+    view = ViewServer("127.0.0.1", 0, name="time test", channels=CHANNELS)
     try:
         with caplog.at_level("DEBUG"):
             for t in range(5):

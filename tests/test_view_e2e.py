@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 import websockets
-from test_view import DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
+from test_view import CHANNELS, DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
 
 from nwr.common import keys
 from nwr.common.recordings import read_recording
@@ -152,7 +152,7 @@ def test_live_view_and_recording_playback(tmp_path):
     assert "all 4 scripted touches as expected" in out, out + err
 
     # -- advertised channels and their schemas -------------------------------------------
-    for spec in c.CHANNELS:
+    for spec in CHANNELS:
         channel = live.channels[spec.topic]
         assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == \
             (spec.message_encoding, spec.schema_name, spec.schema_encoding), spec.topic
@@ -248,7 +248,7 @@ def test_live_view_and_recording_playback(tmp_path):
     try:
         async def script(client: Client, capture: Capture) -> None:
             await client.pump(lambda: "/tf" in capture.channels and capture.states == [] and len(
-                client.by_subscription) >= len(c.CHANNELS), 20.0)
+                client.by_subscription) >= len(CHANNELS), 20.0)
             await asyncio.sleep(0.3)
             await client.pump(lambda: False, 0.3)
             assert not capture.messages.get("/tf"), "paused at the start: nothing is sent"

@@ -22,7 +22,7 @@ from foxglove.websocket import Capability, PlaybackCommand, PlaybackState, Playb
 from nwr.common.config import profile_for
 from nwr.services.view import main as view_main
 from nwr.services.view.core import DEFAULT_RATE_HZ, Output
-from nwr.services.view.export import ExportError, export_foxglove, load_records, recording_timeline
+from nwr.services.view.export import ExportError, export_foxglove, load_records, make_core, recording_timeline
 from nwr.services.view.playback import Player
 from nwr.services.view.server import ViewServer
 
@@ -107,7 +107,8 @@ def serve_recording(path: Path, args: argparse.Namespace, description: str | Non
     if not records:
         raise ExportError(f"{path} holds no message of the pipeline: nothing to show")
     log.info("computing the view of %s (%d messages)...", path, len(records))
-    outputs: list[Output] = recording_timeline(records, args.rate, description)
+    core = make_core(description)
+    outputs: list[Output] = recording_timeline(records, core, args.rate)
     del records
     description_output = outputs[0]
     times = [o.log_time_ns for o in outputs]
@@ -125,7 +126,7 @@ def serve_recording(path: Path, args: argparse.Namespace, description: str | Non
         resend.append((start, stop))
 
     control = PlaybackControl(player, lock, on_seek)
-    view = ViewServer(args.host, args.port, name=f"nwr view {path.name}",
+    view = ViewServer(args.host, args.port, name=f"nwr view {path.name}", channels=core.channels,
                       capabilities=[Capability.PlaybackControl, Capability.Time],
                       playback_time_range=(player.start_ns, player.end_ns), listener=control)
     stop = threading.Event()

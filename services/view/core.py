@@ -7,7 +7,7 @@ of plain numbers (what the tests check); :func:`encode_frame` turns a frame
 into encoded channel messages (:class:`Output`), the same bytes for the live
 WebSocket server, ``nwr view FILE`` and ``nwr export --foxglove``.
 
-Channels (see :data:`CHANNELS`):
+Channels (see :func:`channel_specs`):
 
 - ``/robot_description``: the URDF with simple visual geometry (cylinders
   derived from the kinematics and the pad layout), as ``std_msgs/String``
@@ -19,7 +19,11 @@ Channels (see :data:`CHANNELS`):
   of the pads (a patch per pad coloured by its gain, ringed by its LEDs), the
   contact arrow and the reflex's ghost;
 - ``/nwr/skin``, ``/nwr/planner``, ``/nwr/robot``, ``/nwr/onset``: JSON with a
-  JSON Schema, for plots and state-transition panels.
+  JSON Schema, for plots and state-transition panels. Each schema is in the
+  form Foxglove's and Lichtblick's loader takes (every property typed, objects
+  with their properties listed: see :func:`nwr.common.messages.json_schema`),
+  so ``/nwr/skin``'s per-pad values, keyed by pad name, have a property per
+  pad of the robot description.
 
 Every stamp is the pipeline's clock (``time.monotonic_ns()`` live, log time
 in a recording): a frame's header stamps equal its log time, so the 3D panel
@@ -32,7 +36,7 @@ import bisect
 import json
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -403,7 +407,7 @@ class Frame:
 
 @dataclass(frozen=True)
 class Output:
-    """One encoded message on one of :data:`CHANNELS`."""
+    """One encoded message on one of the view's channels (:func:`channel_specs`)."""
 
     topic: str
     log_time_ns: int
@@ -424,6 +428,7 @@ class ViewCore:
         self.joints = urdf_joints(ET.fromstring(self.urdf))
         self.patches = pad_patches(desc)
         self.names = [p.name for p in desc.pads]
+        self.channels = channel_specs(self.names)
         self.state: m.RobotState | None = None
         self.pressure: m.SkinPressure | None = None
         self.pain: m.SkinPain | None = None
@@ -544,8 +549,9 @@ def _object(properties: dict[str, Any], title: str) -> bytes:
     return json.dumps({"title": title, "type": "object", "properties": properties}).encode()
 
 
-_NUMBER_MAP = {"type": "object", "additionalProperties": {"type": "number"}}
-_INT_MAP = {"type": "object", "additionalProperties": {"type": "integer"}}
+def _per_pad(pad_names: Sequence[str], value_type: str) -> dict[str, Any]:
+    """An object with one property per pad, by name (the loader needs an object's properties listed)."""
+    return {"type": "object", "properties": {name: {"type": value_type} for name in pad_names}}
 
 
 @dataclass(frozen=True)
@@ -563,39 +569,47 @@ def _protobuf(topic: str, message_type: Any, doc: str) -> ChannelSpec:
     return ChannelSpec(topic, "protobuf", schema.name, schema.encoding, bytes(schema.data), doc)
 
 
-CHANNELS: tuple[ChannelSpec, ...] = (
-    ChannelSpec(ROBOT_DESCRIPTION, "json", "std_msgs/String", "jsonschema",
-                _object({"data": {"type": "string"}}, "std_msgs/String"),
-                "the URDF with simple visual geometry (the 3D panel loads it from this topic)"),
-    _protobuf("/tf", FrameTransforms, "every URDF joint's transform, parent link -> child link"),
-    _protobuf("/nwr/pads", SceneUpdate, "pads coloured by gain, LED rings (red: the study's target)"),
-    _protobuf("/nwr/contact", SceneUpdate, "the strongest contact: an arrow into the pad, length ~ gain"),
-    _protobuf("/nwr/reflex", SceneUpdate, "the reflex's planned end (ghost arm or Cartesian displacement)"),
-    ChannelSpec("/nwr/skin", "json", "nwr.view.Skin", "jsonschema", _object({
-        "pressure_seq": {"type": "integer"}, "pain_seq": {"type": "integer"}, "stamp_ns": {"type": "integer"},
-        "change_hpa": _NUMBER_MAP, "level": _INT_MAP, "gain": _NUMBER_MAP,
-        "strongest": {"type": "object", "properties": {"pad": {"type": "string"}, "gain": {"type": "number"},
-                                                       "level": {"type": "integer"}}},
-    }, "nwr.view.Skin"), "per pad (by name): pressure change (hPa), pain level, gain"),
-    ChannelSpec("/nwr/planner", "json", "nwr.view.Planner", "jsonschema", _object({
-        "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"}, "name": {"type": "string"},
-        "strategy": {"type": "string"}, "mode": {"type": "string", "enum": list(m.MODES)},
-        "mode_index": {"type": "integer"}, "active": {"type": "boolean"}, "active_planner": {"type": "string"},
-        "target_pad": {"type": "integer"}, "target_name": {"type": "string"}, "reflex_seq": {"type": "integer"},
-        "task_time_s": {"type": "number"},
-    }, "nwr.view.Planner"), "each planner's mode (TASK 0, REFLEX 1, RETURNING 2, HOLDING 3), strategy, target pad"),
-    ChannelSpec("/nwr/robot", "json", "nwr.view.Robot", "jsonschema", _object({
-        "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"},
-        "q": {"type": "array", "items": {"type": "number"}}, "status": {"type": "string"},
-        "active_planner": {"type": "string"}, "command_mode": {"type": "string"}, "reflex_seq": {"type": "integer"},
-    }, "nwr.view.Robot"), "the joint state the frame's /tf was computed from; the active planner"),
-    ChannelSpec("/nwr/onset", "json", "nwr.view.Onset", "jsonschema", _object({
-        "reflex_seq": {"type": "integer"}, "skin_seq": {"type": "integer"}, "skin_stamp_ns": {"type": "integer"},
-        "accepted_ns": {"type": "integer"}, "latency_ms": {"type": "number"}, "pad": {"type": "string"},
-        "gain": {"type": "number"}, "strategy": {"type": "string"},
-    }, "nwr.view.Onset"), "each reflex's onset latency: skin sample stamped -> first command accepted"),
-)
-CHANNEL_BY_TOPIC = {spec.topic: spec for spec in CHANNELS}
+def channel_specs(pad_names: Sequence[str]) -> tuple[ChannelSpec, ...]:
+    """The view's channels for a robot whose pads are ``pad_names`` (in pad id order)."""
+    return (
+        ChannelSpec(ROBOT_DESCRIPTION, "json", "std_msgs/String", "jsonschema",
+                    _object({"data": {"type": "string"}}, "std_msgs/String"),
+                    "the URDF with simple visual geometry (the 3D panel loads it from this topic)"),
+        _protobuf("/tf", FrameTransforms, "every URDF joint's transform, parent link -> child link"),
+        _protobuf("/nwr/pads", SceneUpdate, "pads coloured by gain, LED rings (red: the study's target)"),
+        _protobuf("/nwr/contact", SceneUpdate, "the strongest contact: an arrow into the pad, length ~ gain"),
+        _protobuf("/nwr/reflex", SceneUpdate, "the reflex's planned end (ghost arm or Cartesian displacement)"),
+        ChannelSpec("/nwr/skin", "json", "nwr.view.Skin", "jsonschema", _object({
+            "pressure_seq": {"type": "integer"}, "pain_seq": {"type": "integer"}, "stamp_ns": {"type": "integer"},
+            "change_hpa": _per_pad(pad_names, "number"), "level": _per_pad(pad_names, "integer"),
+            "gain": _per_pad(pad_names, "number"),
+            "strongest": {"type": "object", "properties": {"pad": {"type": "string"}, "gain": {"type": "number"},
+                                                           "level": {"type": "integer"}}},
+        }, "nwr.view.Skin"), "per pad (a property per pad name): pressure change (hPa), pain level, gain"),
+        ChannelSpec("/nwr/planner", "json", "nwr.view.Planner", "jsonschema", _object({
+            "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"}, "name": {"type": "string"},
+            "strategy": {"type": "string"}, "mode": {"type": "string", "enum": list(m.MODES)},
+            "mode_index": {"type": "integer"}, "active": {"type": "boolean"}, "active_planner": {"type": "string"},
+            "target_pad": {"type": "integer"}, "target_name": {"type": "string"}, "reflex_seq": {"type": "integer"},
+            "task_time_s": {"type": "number"},
+        }, "nwr.view.Planner"),
+            "each planner's mode (TASK 0, REFLEX 1, RETURNING 2, HOLDING 3), strategy, target pad"),
+        ChannelSpec("/nwr/robot", "json", "nwr.view.Robot", "jsonschema", _object({
+            "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"},
+            "q": {"type": "array", "items": {"type": "number"}}, "status": {"type": "string"},
+            "active_planner": {"type": "string"}, "command_mode": {"type": "string"},
+            "reflex_seq": {"type": "integer"},
+        }, "nwr.view.Robot"), "the joint state the frame's /tf was computed from; the active planner"),
+        ChannelSpec("/nwr/onset", "json", "nwr.view.Onset", "jsonschema", _object({
+            "reflex_seq": {"type": "integer"}, "skin_seq": {"type": "integer"}, "skin_stamp_ns": {"type": "integer"},
+            "accepted_ns": {"type": "integer"}, "latency_ms": {"type": "number"}, "pad": {"type": "string"},
+            "gain": {"type": "number"}, "strategy": {"type": "string"},
+        }, "nwr.view.Onset"), "each reflex's onset latency: skin sample stamped -> first command accepted"),
+    )
+
+
+# The view's topics, whatever the robot (an exported file that has one was exported already).
+VIEW_TOPICS = frozenset(spec.topic for spec in channel_specs(()))
 
 
 def _ts(ns: int) -> Timestamp:

@@ -1,12 +1,20 @@
 """``nwr export --foxglove IN OUT``: a recording plus the view's channels, for Foxglove.
 
-OUT holds every record of IN unchanged (schemas, channels, messages with
-their log and publish times and sequence numbers, metadata) and, merged in
-log-time order, the view's channels (:data:`nwr.services.view.core.CHANNELS`):
-the robot description, the link transforms, the pad, contact and reflex
-scene updates (Foxglove's protobuf schemas, as the foxglove-sdk encodes
-them) and the plottable JSON signals. A ``foxglove_export`` metadata record
+OUT holds every record of IN unchanged (channels, messages with their log
+and publish times and sequence numbers, metadata; schemas but for those of
+the pipeline's keys, below) and, merged in log-time order, the view's
+channels (:func:`nwr.services.view.core.channel_specs`): the robot
+description, the link transforms, the pad, contact and reflex scene updates
+(Foxglove's protobuf schemas, as the foxglove-sdk encodes them) and the
+plottable JSON signals. A ``foxglove_export`` metadata record
 says where they came from.
+
+The pipeline's channels get the JSON Schema this version writes
+(:func:`nwr.common.recordings.schema_for`), in the form Foxglove and
+Lichtblick load, whatever the recording had: an older recording's schema
+may be one their loader rejects (the channel would not show). It is true of
+the older messages too: they all decoded into this version's types before
+the export began, and those only ever gain fields with defaults.
 """
 
 from __future__ import annotations
@@ -19,12 +27,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
+from nwr.common import keys
 from nwr.common.errors import NwrError
-from nwr.common.recordings import Recorded, RecordingReader, new_file, read_recording
+from nwr.common.recordings import Recorded, RecordingReader, new_file, read_recording, recording_robot, schema_for
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.view.core import CHANNEL_BY_TOPIC, CHANNELS, DEFAULT_RATE_HZ, Output, ViewCore, timeline
+from nwr.services.view.core import DEFAULT_RATE_HZ, VIEW_TOPICS, ChannelSpec, Output, ViewCore, timeline
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +58,8 @@ def make_core(description: str | None = None) -> ViewCore:
     return ViewCore(desc, RobotModel(desc))
 
 
-def recording_timeline(records: list[Recorded], rate_hz: float = DEFAULT_RATE_HZ,
-                       description: str | None = None) -> list[Output]:
-    return list(timeline(records, make_core(description), rate_hz))
+def recording_timeline(records: list[Recorded], core: ViewCore, rate_hz: float = DEFAULT_RATE_HZ) -> list[Output]:
+    return list(timeline(records, core, rate_hz))
 
 
 @dataclass
@@ -77,42 +86,52 @@ def export_foxglove(src: Path, dst: Path, *, rate_hz: float = DEFAULT_RATE_HZ,
                           "export the original recording instead")
     if not records:
         raise ExportError(f"{src} holds no message of the pipeline: nothing to draw")
-    outputs = recording_timeline(records, rate_hz, description)
+    core = make_core(description)
+    outputs = recording_timeline(records, core, rate_hz)
     del records
     with new_file(dst, "the export") as fout, RecordingReader(src) as reader:
-        report = _write_export(reader, fout, outputs, src, rate_hz)
+        report = _write_export(reader, fout, outputs, core.channels, src, rate_hz, recording_robot(metadata))
     log.info("exported %s -> %s", src, dst)
     return report
 
 
-def _write_export(reader: RecordingReader, fout: IO[bytes], outputs: list[Output], src: Path,
-                  rate_hz: float) -> ExportReport:
-    """Every record of ``reader`` and the view's ``outputs``, merged in log-time order, into ``fout``."""
+def _write_export(reader: RecordingReader, fout: IO[bytes], outputs: list[Output], channels: tuple[ChannelSpec, ...],
+                  src: Path, rate_hz: float, robot: str) -> ExportReport:
+    """Every record of ``reader`` and the view's ``outputs`` on its ``channels``, merged in log-time order, into
+    ``fout``; the pipeline's channels (under ``robot``'s prefix) with their current JSON Schema."""
     added: dict[str, int] = {}
     copied = 0
     writer = Writer(fout, compression=CompressionType.ZSTD)
     writer.start(profile="nwr", library="nwr view export")
     for name, data in reader.metadata_records():
         writer.add_metadata(name, data)
-    schema_ids: dict[int, int] = {}
+    schema_ids: dict[tuple[str, str, bytes], int] = {}
     channel_ids: dict[int, int] = {}
     view_ids: dict[str, int] = {}
-    for spec in CHANNELS:
+    for spec in channels:
         sid = writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema)
         view_ids[spec.topic] = writer.register_channel(spec.topic, spec.message_encoding, sid)
 
+    head = keys.prefix(robot) + "/"
+
+    def schema_id(channel: Channel, schema: Schema | None) -> int:
+        if schema is None:
+            return 0
+        name, encoding, data = schema.name, schema.encoding, schema.data
+        if encoding == "jsonschema" and channel.topic.startswith(head):
+            name, data = schema_for(keys.relative_key(robot, channel.topic))
+        found = schema_ids.get((name, encoding, data))
+        if found is None:
+            found = schema_ids[(name, encoding, data)] = writer.register_schema(name, encoding, data)
+        return found
+
     def originals() -> Iterator[tuple[int, int, Any]]:
         for schema, channel, msg in reader.messages():
-            if channel.topic in CHANNEL_BY_TOPIC:
+            if channel.topic in VIEW_TOPICS:
                 raise ExportError(f"{src} already has a channel {channel.topic!r}: export the original recording")
             if channel.id not in channel_ids:
-                sid = 0
-                if schema is not None:
-                    if schema.id not in schema_ids:
-                        schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                    sid = schema_ids[schema.id]
                 channel_ids[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, sid, dict(channel.metadata))
+                    channel.topic, channel.message_encoding, schema_id(channel, schema), dict(channel.metadata))
             yield msg.log_time, 0, msg
 
     def views() -> Iterator[tuple[int, int, Any]]:
@@ -129,7 +148,7 @@ def _write_export(reader: RecordingReader, fout: IO[bytes], outputs: list[Output
             added[item.topic] = added.get(item.topic, 0) + 1
     writer.add_metadata(EXPORT_METADATA, {
         "source": src.name, "scene_rate_hz": f"{rate_hz:g}",
-        "channels": json.dumps({spec.topic: spec.schema_name for spec in CHANNELS}),
+        "channels": json.dumps({spec.topic: spec.schema_name for spec in channels}),
     })
     writer.finish()
     return ExportReport(copied, added)

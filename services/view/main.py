@@ -48,7 +48,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     check_arguments(args)
     desc = load_description(profile.robot.description or None)
     core = ViewCore(desc, RobotModel(desc))
-    view = ViewServer(args.host, args.port, name=f"nwr view {profile.robot.name}")
+    view = ViewServer(args.host, args.port, name=f"nwr view {profile.robot.name}", channels=core.channels)
     try:
         with Node("view", profile.robot.name, profile.zenoh, door=Door.of(profile)) as node:
             node.install_signal_handlers()

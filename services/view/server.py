@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 from typing import Any
 
 import foxglove
 from foxglove.websocket import Capability, ChannelView, Client, ServerListener
 
-from nwr.services.view.core import CHANNELS, ROBOT_DESCRIPTION, Output
+from nwr.services.view.core import ROBOT_DESCRIPTION, ChannelSpec, Output
 
 log = logging.getLogger(__name__)
 
@@ -38,14 +39,16 @@ def warn_if_exposed(host: str) -> None:
 
 
 class ViewServer(ServerListener):
-    """A foxglove-sdk server with the view's channels in a context of their own.
+    """A foxglove-sdk server with the view's ``channels`` (:func:`~nwr.services.view.core.channel_specs`, the
+    core's) in a context of their own.
 
     The robot description is logged once per subscription to it (a late
     client must get it too): ``on_subscribe`` only raises a flag, the owner's
     loop logs it, so no logging happens on the server's thread.
     """
 
-    def __init__(self, host: str, port: int, *, name: str, capabilities: list[Capability] | None = None,
+    def __init__(self, host: str, port: int, *, name: str, channels: Sequence[ChannelSpec],
+                 capabilities: list[Capability] | None = None,
                  playback_time_range: tuple[int, int] | None = None, listener: Any = None) -> None:
         warn_if_exposed(host)
         self.context = foxglove.Context()
@@ -53,7 +56,7 @@ class ViewServer(ServerListener):
             spec.topic: foxglove.Channel(
                 spec.topic, message_encoding=spec.message_encoding, context=self.context,
                 schema=foxglove.Schema(name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema))
-            for spec in CHANNELS
+            for spec in channels
         }
         self.stats = foxglove.Channel(STATS_TOPIC, schema=STATS_SCHEMA, context=self.context)
         self.description_wanted = threading.Event()
