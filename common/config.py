@@ -197,14 +197,36 @@ class LocationWeights(_Section):
         [0.5, 1.0, 0.7, 0.1], [0.5, 1.0, 0.7, 0.1], [0.0, 0.8, 1.0, 0.4], [0.0, 0.8, 1.0, 0.4], [0.0, 0.6, 0.8, 1.0]))
 
 
+class WholeArmSection(_Section):
+    # The whole-arm withdrawal ("whole-arm"): every control cycle a small QP
+    # finds the joint velocity that moves the touched pad away from the
+    # contact while no other sampled point of the arm comes closer to it
+    # (docs/reflexes.md). Its stream lasts duration_s, ramped in and out
+    # (raised cosine, ramp_s each, at most half of duration_s).
+    duration_s: Annotated[float, msgspec.Meta(gt=0, le=2.0)] = 1.0
+    ramp_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.3
+    # How far the touched pad withdraws at G(p) = 1 when nothing limits it, m
+    # (in proportion to the gain below; the Cartesian reflex's 0.125 m).
+    distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.3)] = 0.125
+    # No sampled point of the arm (pads, joints, points along the links,
+    # flange) faster than this, m/s: the whole motion is scaled down to it.
+    point_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.5
+    # Weight of the arm's mean squared point speed beside the pad's squared
+    # speed error: the rest of the arm as still as the withdrawal lets it.
+    motion_weight: Annotated[float, msgspec.Meta(ge=0, le=1.0)] = 0.02
+    # Weight of |q_dot|^2 (m^2/rad^2): makes the solution unique.
+    regularization: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 1e-4
+
+
 class PlannerSection(_Section):
     # Instance name: the planner publishes reflex/<name>/status and signs its
     # commands with it; the bridge follows the planner named active_planner.
     name: Name = "cartesian"
-    # Reflex: "uniform" (UR), "location" (LR), "cartesian" (CR) or
-    # "cartesian-smooth" (CR with its velocity ramped in and out): the name of
-    # one of the planner's strategies (services/planner/strategies/), checked
-    # where the planner starts.
+    # Reflex: "uniform" (UR), "location" (LR), "cartesian" (CR),
+    # "cartesian-smooth" (CR with its velocity ramped in and out) or
+    # "whole-arm" (a QP each cycle; [planner.whole_arm]): the name of one of
+    # the planner's strategies (services/planner/strategies/), checked where
+    # the planner starts.
     strategy: str = "cartesian"
     # Command rate, Hz (the UR e-Series control period is 2 ms).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
@@ -278,6 +300,7 @@ class PlannerSection(_Section):
     # priority (1-99), as on a lab PC with a real-time kernel; 0 = off. Needs
     # CAP_SYS_NICE or an rtprio limit; without it, a warning and no change.
     realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
+    whole_arm: WholeArmSection = msgspec.field(default_factory=WholeArmSection)
     task: TaskSection = msgspec.field(default_factory=TaskSection)
 
 
@@ -733,6 +756,9 @@ GUARDS: dict[str, Guard] = {
     "planner.v_max_m_s": Guard("above", "m/s"),
     "planner.reflex_duration_s": Guard("above", "s"),
     "planner.speed_fraction": Guard("above"),
+    "planner.whole_arm.duration_s": Guard("below", "s"),
+    "planner.whole_arm.distance_m": Guard("above", "m"),
+    "planner.whole_arm.point_speed_m_s": Guard("above", "m/s"),
     # Sustained contact: when and how the arm comes back.
     "planner.sustained_contact": Guard("other"),
     "planner.release_s": Guard("below", "s"),

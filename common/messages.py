@@ -286,6 +286,12 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     # False: no motion of the joints can move the touched pad away from the contact in this pose (its
     # normal speed is below a centimetre a second at the joint limits); the arm holds still instead.
     withdraws: bool = True
+    # Why the motion is not the strategy's plain withdrawal, when it is not ("" when it is): "sideways" (the
+    # pad's joints cannot move it along its normal without another part of the arm coming toward the contact:
+    # it withdraws across the normal, away from the contact point, along ``direction``), "blocked" (nothing
+    # withdraws it without that: the arm holds still), "failed" (the strategy's computation failed: stand-still
+    # commands). Set by the whole-arm withdrawal.
+    reason: str = ""
 
 
 class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):

@@ -16,6 +16,7 @@ from nwr.services.planner.core import Planner
 DESC = load_description()
 MODEL = RobotModel(DESC)
 PAPER = ("uniform", "location", "cartesian", "cartesian-smooth")
+ALL = (*PAPER, "whole-arm")  # the paper's four, then this project's whole-arm withdrawal
 
 # A strategy as a new module would define it: lift the upper arm a little (ranked between location and cartesian).
 LIFT = '''
@@ -49,11 +50,11 @@ def dropped(tmp_path, monkeypatch):
         vars(strategies).pop(module.stem, None)
 
 
-def test_the_registry_lists_the_papers_strategies_in_order():
-    assert strategies.names() == PAPER
+def test_the_registry_lists_the_papers_strategies_then_the_projects_in_order():
+    assert strategies.names() == ALL
 
 
-@pytest.mark.parametrize("name", PAPER)
+@pytest.mark.parametrize("name", ALL)
 def test_each_strategy_is_built_under_its_name(name):
     strategy = strategies.build(PlannerSection(strategy=name), DESC, MODEL, 0.9 * DESC.v_max)
     assert strategy.name == name and strategy.mode in ("position", "velocity")
@@ -62,7 +63,7 @@ def test_each_strategy_is_built_under_its_name(name):
 def test_an_unknown_strategy_is_a_configuration_error_naming_the_known_ones():
     with pytest.raises(ConfigError) as err:
         strategies.build(PlannerSection(strategy="cartesain"), DESC, MODEL, 0.9 * DESC.v_max)
-    assert "'cartesain'" in str(err.value) and "uniform, location, cartesian, cartesian-smooth" in str(err.value)
+    assert "'cartesain'" in str(err.value) and ", ".join(ALL) in str(err.value)
 
 
 def test_the_planner_process_checks_the_strategy_before_it_starts():
@@ -74,7 +75,7 @@ def test_the_planner_process_checks_the_strategy_before_it_starts():
 
 def test_a_module_dropped_into_the_package_is_a_strategy(dropped):
     (dropped / "lift.py").write_text(LIFT)
-    assert strategies.names() == ("uniform", "location", "lift", "cartesian", "cartesian-smooth")
+    assert strategies.names() == ("uniform", "location", "lift", "cartesian", "cartesian-smooth", "whole-arm")
     planner = Planner(PlannerSection(strategy="lift"), DESC, MODEL)
     planner.on_state(DESC.home.copy(), following=True)
     while planner.mode != "TASK":

@@ -9,7 +9,7 @@ import pytest
 
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import read_recording
-from nwr.services.tools.study import ORDERS, block_path, order_of
+from nwr.services.tools.study import ORDERS, block_path, conditions_of, order_of
 
 
 def test_orders_are_a_latin_square():
@@ -20,19 +20,37 @@ def test_orders_are_a_latin_square():
         order_of(4)
 
 
+def test_other_conditions_are_compared_in_a_latin_square_of_their_own():
+    conditions = conditions_of("uniform,cartesian,whole-arm,location")
+    square = [order_of(n, conditions) for n in range(1, 5)]
+    assert square[0] == ("uniform", "cartesian", "whole-arm", "location")
+    for position in range(4):
+        assert sorted(order[position] for order in square) == sorted(conditions)
+    assert conditions_of(None) == conditions_of("") == ("uniform", "location", "cartesian")
+    for bad, why in (("uniform,cartesain", "not a reflex strategy"), ("uniform", "two or more"),
+                     ("uniform,uniform", "each once")):
+        with pytest.raises(ConfigError, match=why):
+            conditions_of(bad)
+
+
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_study_session(tmp_path):
+@pytest.mark.parametrize(("conditions", "order", "port"), [
+    (None, 3, 17880),  # the paper's
+    ("cartesian,whole-arm", 2, 17890),  # this project's whole-arm withdrawal against CR
+])
+def test_study_session(tmp_path, conditions, order, port):
     profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = 17880\n[recorder]\ndirectory = "{tmp_path}"\n')
+    profile.write_text(f'[zenoh]\nbase_port = {port}\n[recorder]\ndirectory = "{tmp_path}"\n')
     proc = subprocess.run(
         [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "study", "--participant", "P07",
-         "--order", "3", "--block-s", "6", "--follow-target", "1.5"],
+         "--order", str(order), "--block-s", "6", "--follow-target", "1.5",
+         *(["--conditions", conditions] if conditions else [])],
         capture_output=True, text=True, timeout=180,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     targets: set[int] = set()
-    for block, condition in enumerate(ORDERS[2], start=1):
+    for block, condition in enumerate(order_of(order, conditions_of(conditions)), start=1):
         records, metadata = read_recording(block_path(tmp_path, "P07", block, condition))
         session = metadata["session"]
         assert (session["label.participant"], session["label.condition"], session["label.block"]) == \

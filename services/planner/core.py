@@ -7,7 +7,7 @@
 - REFLEX: the strategy's motion runs (:mod:`.strategies`): in position
   mode a jerk-limited trajectory (ruckig) to its joint target, ending when
   the target is reached; in velocity mode its joint velocity stream, for
-  ``reflex_duration_s``.
+  the strategy's ``duration_s`` (``reflex_duration_s`` unless it has its own).
   A *new* contact (a pad that had no gain in the previous pain message) or a
   *stronger* one (gain above the current reflex's by ``update_margin``)
   updates the reflex: new target or direction from the current motion state
@@ -27,7 +27,10 @@
   left the arm, velocity included, back to the saved pose, no point of the
   arm faster than ``return_speed_m_s``; its last ``approach_distance_m`` (of
   the touched pad's way back to where it was touched, or of the point that
-  travels farthest) at ``approach_speed_m_s``. A new or stronger contact
+  travels farthest) at ``approach_speed_m_s``. A retracing strategy's
+  (``ReflexStrategy.retraces``: the whole-arm withdrawal) goes back through
+  poses on its own withdrawal's path instead of on the straight line in
+  joint space, without a stop between the legs. A new or stronger contact
   here starts a new reflex but keeps the saved pose: the arm always goes
   back to where the task paused. In hold mode a touch felt on a pad the
   return brings closer to it stops the return (a jerk-limited brake) and
@@ -82,6 +85,14 @@ NOTE_EVERY_NS = 5_000_000_000
 CARTESIAN_MARGIN = 0.9
 # A joint that need not move still gets this speed limit, rad/s (ruckig needs one > 0).
 MIN_JOINT_SPEED = 1e-3
+# A retracing strategy's return passes through this many poses of its withdrawal, evenly along its way in joint
+# space, when the arm is within RETRACE_OFF_RAD (every joint) of where the withdrawal ended and it moved more
+# than RETRACE_MIN_RAD.
+RETRACE_VIAS = 3
+RETRACE_OFF_RAD = 0.05
+RETRACE_MIN_RAD = 0.01
+# The share of the next leg's cruise speed (and this leg's limit) a leg of the return ends at.
+HANDOFF = 0.999
 # A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
 FELT_LEVEL = 2
 # A reflex whose planned motion withdraws the touched pad less than this times its gain (at least
@@ -107,6 +118,12 @@ class Reflex:
     # Hold mode: the motion ends here (s from its start), where the touched pad is furthest from the contact,
     # when the strategy's motion would bring it back toward the contact afterwards.
     stop_at_s: float | None = None
+    # The strategy withdraws the pad across its normal (its joints cannot move it along it): whether it
+    # withdraws is judged by its distance from the contact point.
+    sideways: bool = False
+    reason: str = ""  # ReflexInfo.reason: why the motion is not the strategy's plain withdrawal
+    # A retracing strategy's withdrawal: the commanded poses of its stream, from the onset (one a cycle).
+    path: list[np.ndarray] = field(default_factory=list)
 
 
 @dataclass
@@ -356,7 +373,8 @@ class Planner:
         self.notes.append(("warning", code, message))
 
     def drain_notes(self) -> list[tuple[str, str, str]]:
-        notes, self.notes = self.notes, []
+        notes, self.notes = self.notes + self.strategy.notes, []
+        self.strategy.notes = []
         return notes
 
     def _peer_task_time(self, now_ns: int) -> float:
@@ -582,6 +600,7 @@ class Planner:
         """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction."""
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
+        reflex.sideways, reflex.reason = onset.sideways, onset.reason
 
     def _withdrawal_speeds(self, target: np.ndarray, contact: m.Contact | None) -> np.ndarray:
         """Joint speed limits of a joint-space withdrawal to ``target``: every point within the withdrawal
@@ -667,24 +686,49 @@ class Planner:
         return result == Result.Finished
 
     def _begin_return(self, target: np.ndarray | None = None) -> None:
-        """Back to the saved pose (or ``target``, a partial return), the last stretch at the approach speed."""
+        """Back to the saved pose (or ``target``, a partial return), the last stretch at the approach speed; a
+        retracing strategy's withdrawal back along its own path (:meth:`_retrace`)."""
         assert self.saved is not None
-        self._legs = self._return_legs(self.saved if target is None else target)
-        goal, speeds = self._legs.pop(0)
-        velocity = None
-        if self._legs:  # arrive at the approach's start at its cruise velocity: no stop between the legs
-            after, slow = self._legs[0]
-            d = after - goal
-            moving = np.abs(d) > 1e-9
-            if moving.any():
-                velocity = d * float(np.min(slow[moving] / np.abs(d[moving])))
-        self._ruckig_to(goal, speeds=speeds, velocity=velocity)
+        vias = self._retrace() if target is None else []
+        self._legs = self._return_legs(self.saved if target is None else target, vias)
+        self._next_leg()
         self.braking = False
         self.mode = "RETURNING"
         self.changed = True
 
-    def _return_legs(self, target: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The return's legs on the straight line to ``target``: (end, joint speed limits) each.
+    def _next_leg(self) -> None:
+        """Start the return's next leg, arriving at the following leg's start at that leg's cruise velocity:
+        no stop between the legs."""
+        goal, speeds = self._legs.pop(0)
+        velocity = None
+        if self._legs:
+            after, slow = self._legs[0]
+            d = after - goal
+            moving = np.abs(d) > 1e-9
+            if moving.any():  # within this leg's speed limits too (ruckig refuses a target on the limit)
+                velocity = d * float(np.min(np.minimum(slow, speeds)[moving] / np.abs(d[moving]))) * HANDOFF
+        self._ruckig_to(goal, speeds=speeds, velocity=velocity)
+
+    def _retrace(self) -> list[np.ndarray]:
+        """Poses on the current reflex's withdrawal, last to first, that a retracing strategy's return passes
+        through (none when the arm is no longer where that withdrawal ended)."""
+        reflex = self.reflex
+        if not self.strategy.retraces or reflex is None or len(reflex.path) < 2:
+            return []
+        path = np.asarray(reflex.path)
+        if np.max(np.abs(path[-1] - self.q)) > RETRACE_OFF_RAD:
+            return []
+        steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        length = np.concatenate([[0.0], np.cumsum(steps)])
+        if length[-1] <= RETRACE_MIN_RAD:
+            return []
+        marks = length[-1] * np.arange(RETRACE_VIAS, 0, -1) / (RETRACE_VIAS + 1)
+        return [path[int(np.searchsorted(length, mark))].copy() for mark in marks]
+
+    def _return_legs(self, target: np.ndarray, vias: list[np.ndarray] | None = None
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The return's legs on the straight lines to ``target`` (through ``vias``): (end, joint speed limits)
+        each.
 
         Every point of the arm within the return speed; over the last
         ``approach_distance_m`` of the approaching point's way (the touched
@@ -692,25 +736,36 @@ class Planner:
         flange that travels farthest) that point within the approach speed.
         """
         cfg = self.cfg
-        q0 = self.q.copy()
         approach = min(cfg.approach_speed_m_s, self.return_speed)
-        row, at = self._approaching_point(q0, target)
+        row, at = self._approaching_point(self.q, target)
         goal = at(target)
-        if np.linalg.norm(at(q0) - goal) <= cfg.approach_distance_m:
-            return [(target, self._joint_speeds_for(target, self.return_speed, start=q0, point=row,
-                                                    point_m_s=approach))]
-        d = target - q0
-        lo, hi = 0.0, 1.0  # the fraction of the way where the approach begins (bisection: the distance shrinks)
-        for _ in range(14):
-            mid = 0.5 * (lo + hi)
-            if np.linalg.norm(at(q0 + mid * d) - goal) > cfg.approach_distance_m:
-                lo = mid
-            else:
-                hi = mid
-        start = q0 + lo * d
-        slow = self._joint_speeds_for(target, self.return_speed, start=start, point=row, point_m_s=approach)
-        fast = self._joint_speeds_for(start, self.return_speed, start=q0)
-        return [(start, np.maximum(fast, slow)), (target, slow)]
+
+        def near(q: np.ndarray) -> bool:
+            return bool(np.linalg.norm(at(q) - goal) <= cfg.approach_distance_m)
+
+        legs = []
+        corners = [self.q.copy(), *(vias or []), target]
+        for q0, q1 in zip(corners, corners[1:]):
+            if near(q0):
+                legs.append((q1, self._joint_speeds_for(q1, self.return_speed, start=q0, point=row,
+                                                        point_m_s=approach)))
+                continue
+            if not near(q1):
+                legs.append((q1, self._joint_speeds_for(q1, self.return_speed, start=q0)))
+                continue
+            d = q1 - q0
+            lo, hi = 0.0, 1.0  # the fraction of the way where the approach begins (bisection: the distance shrinks)
+            for _ in range(14):
+                mid = 0.5 * (lo + hi)
+                if not near(q0 + mid * d):
+                    lo = mid
+                else:
+                    hi = mid
+            start = q0 + lo * d
+            slow = self._joint_speeds_for(q1, self.return_speed, start=start, point=row, point_m_s=approach)
+            fast = self._joint_speeds_for(start, self.return_speed, start=q0)
+            legs += [(start, np.maximum(fast, slow)), (q1, slow)]
+        return legs
 
     def _approaching_point(self, q0: np.ndarray, target: np.ndarray) -> tuple[int, Any]:
         """The point whose approach is slowed (its row in the speed Jacobians, and its position function):
@@ -862,9 +917,8 @@ class Planner:
         if self.mode == "RETURNING":
             if not self._ruckig_step():
                 return self._position_command(now_ns)
-            if self._legs:  # on to the approach, at the speed this leg arrived with
-                target, speeds = self._legs.pop(0)
-                self._ruckig_to(target, speeds=speeds)
+            if self._legs:  # on to the next leg, at the speed this leg arrived with
+                self._next_leg()
                 self._ruckig_step()
                 return self._position_command(now_ns)
             if self.partial:
@@ -907,7 +961,7 @@ class Planner:
                 return None
             reflex.elapsed_s += self.dt
             return self._position_command(now_ns)
-        if reflex.elapsed_s >= self.cfg.reflex_duration_s:
+        if reflex.elapsed_s >= self.strategy.duration_s:
             self._withdrawal_over(now_ns)
             return None
         return self._velocity_command(now_ns)
@@ -916,6 +970,8 @@ class Planner:
         """The strategy's velocity stream, acceleration-limited from the current velocity."""
         assert self.reflex is not None
         target = self.strategy.velocity(self.q, self.reflex.elapsed_s)
+        if self.strategy.retraces and not self.reflex.path:
+            self.reflex.path.append(self.q.copy())
         self.reflex.elapsed_s += self.dt
         delta = target - self.dq
         ratio = float(np.max(np.abs(delta) / (self.a_limit * self.dt)))
@@ -928,6 +984,8 @@ class Planner:
             dq[low | high] = 0.0
         self.ddq = (dq - self.dq) / self.dt
         self.q, self.dq = q, dq
+        if self.strategy.retraces:
+            self.reflex.path.append(q)
         msg = m.VelocityCommand(
             seq=self.seq, stamp_ns=now_ns, owner=self.name, dq=dq.tolist(), trace=self.trace,
             reflex_seq=self.reflex.seq, phase="REFLEX",
@@ -954,7 +1012,7 @@ class Planner:
             return RetreatCheck(reflex, path, dt, None, self.q.copy(), 0.0, self.cfg.reflex_duration_s,
                                 self.desc.q_min, self.desc.q_max)
         return RetreatCheck(reflex, None, 0.0, self.strategy.snapshot(), self.q.copy(), reflex.elapsed_s,
-                            self.cfg.reflex_duration_s, self.desc.q_min, self.desc.q_max)
+                            self.strategy.duration_s, self.desc.q_min, self.desc.q_max)
 
     def apply_retreat(self, check: RetreatCheck, assessment: retreat.Assessment) -> bool:
         """Store a check's figures on its reflex; False if a newer reflex has replaced it meanwhile."""
@@ -983,7 +1041,8 @@ class Planner:
     @staticmethod
     def _withdraws(reflex: Reflex, assessment: retreat.Assessment) -> bool:
         """Whether the reflex's motion moves the touched pad away from the contact at all (for its gain)."""
-        return assessment.furthest_m >= WITHDRAW_MIN_M * max(reflex.contact.gain, MIN_GAIN_SCALE)
+        moved = max(assessment.furthest_m, assessment.leaves_m) if reflex.sideways else assessment.furthest_m
+        return moved >= WITHDRAW_MIN_M * max(reflex.contact.gain, MIN_GAIN_SCALE)
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:
         """Joint positions over the rest of the current reflex, from its planned motion."""
@@ -997,7 +1056,7 @@ class Planner:
 
     def _integrate_stream(self, q0: np.ndarray, t0: float, samples: int = 40) -> tuple[np.ndarray, float]:
         """The strategy's velocity stream from ``t0`` to its end, integrated from ``q0``."""
-        return integrate_stream(self.strategy, q0, t0, self.cfg.reflex_duration_s, self.desc.q_min,
+        return integrate_stream(self.strategy, q0, t0, self.strategy.duration_s, self.desc.q_min,
                                 self.desc.q_max, samples)
 
     def _position_command(self, now_ns: int) -> m.PositionCommand:
@@ -1024,13 +1083,13 @@ class Planner:
         reflex = None
         r = self.reflex if self.active else self.shadow
         if r is not None:
-            duration = self.cfg.reflex_duration_s if self.strategy.mode == "velocity" or not self.active \
+            duration = self.strategy.duration_s if self.strategy.mode == "velocity" or not self.active \
                 else self._otg_out.trajectory.duration
             reflex = m.ReflexInfo(
                 reflex_seq=r.seq, strategy=self.strategy.name, contact=r.contact, trace=r.trace,
                 started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
                 target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
-                shadow=not self.active, withdraws=r.withdraws,
+                shadow=not self.active, withdraws=r.withdraws, reason=r.reason,
             )
         msg = m.PlannerStatus(
             seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy.name,

@@ -43,6 +43,7 @@ class Assessment:
     approach_m: np.ndarray  # per pad, >= 0
     furthest_m: float = 0.0  # the furthest the touched pad gets from the contact along the way, m
     furthest_at_s: float = 0.0  # when, from the path's first sample, s
+    leaves_m: float = 0.0  # the furthest the touched pad's point gets from the contact point (any direction), m
 
     def to_message(self, pad: int, corrected: bool) -> m.Retreat:
         others = self.approach_m.copy()
@@ -70,9 +71,11 @@ def assess(model: RobotModel, path: np.ndarray, dt: float, pad: int) -> Assessme
     d0 = np.linalg.norm(model.pad_points(q0) - contact, axis=1)
     along = np.empty(len(path))
     closest = d0.copy()
+    leaves = 0.0
     for i, q in enumerate(path):
         points = model.pad_points(q)
         along[i] = (points[pad] - p0) @ n0
+        leaves = max(leaves, float(np.linalg.norm(points[pad] - p0)))
         closest = np.minimum(closest, np.linalg.norm(points - contact, axis=1))
     speed = np.diff(along) / dt if len(path) > 1 else np.zeros(0)
     return Assessment(
@@ -83,6 +86,7 @@ def assess(model: RobotModel, path: np.ndarray, dt: float, pad: int) -> Assessme
         approach_m=np.maximum(0.0, d0 - closest),
         furthest_m=float(max(0.0, -along.min())),
         furthest_at_s=float(np.argmin(along)) * dt,
+        leaves_m=leaves,
     )
 
 

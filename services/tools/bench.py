@@ -668,6 +668,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="instead: how the bridge's tracker follows the planner (jerk, acceleration, tracking error, "
                         "the task's fastest point, reflex onsets, stops, cost per cycle), in this process on "
                         "simulated time (a minute)")
+    p.add_argument("--strategies", action="store_true",
+                   help="instead: what each reflex strategy costs the planner per control cycle (every pad at "
+                        "three gains from three poses, in this process; medians as ratios to the Cartesian "
+                        "reflex's)")
     p.add_argument("--against", metavar="TRACKING_PY",
                    help="with --tracking: compare with another version of services/bridge/tracking.py, "
                         "e.g. git show REV:services/bridge/tracking.py > old.py")
@@ -695,9 +699,29 @@ def run_tracking(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_strategies(args: argparse.Namespace) -> int:
+    """``nwr bench --strategies``: each strategy's cost per planner cycle (:mod:`.bench_strategies`)."""
+    from nwr.services.tools import bench_strategies
+
+    profile = load_profile(args.profile)
+
+    def show(row: dict[str, Any]) -> None:
+        print(", ".join(f"{k} {_f(v, '.3g') if isinstance(v, float) else v}" for k, v in row.items()), flush=True)
+
+    rows = bench_strategies.run(profile, print_row=show)
+    if args.output:
+        out = Path(args.output)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "strategies.json").write_text(json.dumps(rows, indent=1, default=_jsonable))
+        print(f"raw numbers: {out / 'strategies.json'}")
+    return 0
+
+
 def _handler_with_defaults(args: argparse.Namespace) -> int:
     if args.tracking:
         return run_tracking(args)
+    if args.strategies:
+        return run_strategies(args)
     if args.soak_minutes is None:
         args.soak_minutes = 0.5 if args.quick else 60.0
     if args.quick:

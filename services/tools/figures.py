@@ -57,7 +57,7 @@ def _pyplot() -> Any:
 
 
 TITLES = {"uniform": "Uniform (UR)", "location": "Location-dependent (LR)", "cartesian": "Cartesian (CR)",
-          "cartesian-smooth": "Cartesian, smoothed"}
+          "cartesian-smooth": "Cartesian, smoothed", "whole-arm": "Whole-arm (QP)"}
 
 
 def gain_figure(path: Path, thresholds: tuple[float, ...] = (2.0, 6.0, 12.0, 20.0), k: float = 3.0) -> Path:

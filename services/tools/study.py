@@ -2,7 +2,9 @@
 
 Three conditions, uniform (UR), location-dependent (LR) and Cartesian (CR),
 in one of three counterbalanced orders (a Latin square: every condition once
-in every position). All three planners run from the start; between blocks
+in every position); ``--conditions`` runs others (any reflex strategies,
+e.g. ``uniform,cartesian,whole-arm``), in as many orders as there are
+conditions. All the planners run from the start; between blocks
 the active one is switched (``control/active``) without restarting
 anything, and each block is recorded to its own file,
 ``recordings/<participant>/<participant>-b<block>-<condition>.mcap``, with
@@ -30,22 +32,42 @@ from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
+from nwr.services.planner import strategies
 
 log = logging.getLogger(__name__)
 
-# The three counterbalanced orders of the study (a 3 x 3 Latin square).
-ORDERS: tuple[tuple[str, str, str], ...] = (
-    ("uniform", "location", "cartesian"),
-    ("location", "cartesian", "uniform"),
-    ("cartesian", "uniform", "location"),
-)
+# The paper's conditions: UR, LR, CR.
+PAPER_CONDITIONS = ("uniform", "location", "cartesian")
 
 
-def order_of(n: int) -> tuple[str, str, str]:
-    if not 1 <= n <= len(ORDERS):
-        raise ConfigError(f"--order {n}: the study has orders 1 to {len(ORDERS)}: "
-                          + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
-    return ORDERS[n - 1]
+def orders(conditions: tuple[str, ...]) -> tuple[tuple[str, ...], ...]:
+    """The counterbalanced orders of ``conditions``: a cyclic Latin square (every condition once in every
+    position), the first order the conditions as given."""
+    return tuple(conditions[i:] + conditions[:i] for i in range(len(conditions)))
+
+
+# The three counterbalanced orders of the paper's study (a 3 x 3 Latin square).
+ORDERS = orders(PAPER_CONDITIONS)
+
+
+def order_of(n: int, conditions: tuple[str, ...] = PAPER_CONDITIONS) -> tuple[str, ...]:
+    square = orders(conditions)
+    if not 1 <= n <= len(square):
+        raise ConfigError(f"--order {n}: the study has orders 1 to {len(square)}: "
+                          + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(square)))
+    return square[n - 1]
+
+
+def conditions_of(text: str | None) -> tuple[str, ...]:
+    """``--conditions``: reflex strategies, comma-separated, two or more, each once (default: the paper's)."""
+    if not text:
+        return PAPER_CONDITIONS
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    for name in names:
+        strategies.check(name)
+    if len(names) < 2 or len(set(names)) != len(names):
+        raise ConfigError(f"--conditions {text!r}: two or more reflex strategies, each once")
+    return names
 
 
 def block_path(directory: Path, participant: str, block: int, condition: str) -> Path:
@@ -78,7 +100,8 @@ class Switcher:
 
 def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
-    order = order_of(args.order)
+    conditions = conditions_of(args.conditions)
+    order = order_of(args.order, conditions)
     if not args.participant.replace("-", "").replace("_", "").isalnum():
         raise ConfigError(f"--participant {args.participant!r}: letters, digits, '-' and '_' only (it names a folder)")
     directory = Path(profile.recorder.directory)
@@ -89,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     paths[0].parent.mkdir(parents=True, exist_ok=True)
 
     # The gateway starts once the others are alive; each block has its own recorder.
-    layout = Layout(planners=list(ORDERS[0]), active=order[0], gateway=None)
+    layout = Layout(planners=list(conditions), active=order[0], gateway=None)
     procs = {u.label: spawn(u, args.profile, args.log_level) for u in units(layout)}
     done: list[tuple[int, str, Path]] = []
     try:
@@ -106,7 +129,8 @@ def _run(args: argparse.Namespace) -> int:
                 if not switcher.switch(condition):
                     log.error("the bridge did not switch to %r within 15 s: stopping the study", condition)
                     return 1
-                log.info("block %d of 3: %s, %.0f s, recording to %s", block, condition, args.block_s, path)
+                log.info("block %d of %d: %s, %.0f s, recording to %s", block, len(order), condition, args.block_s,
+                         path)
                 labels = {"participant": args.participant, "order": str(args.order), "block": str(block),
                           "condition": condition}
                 recorder = spawn(Unit("recorder", "recorder", tuple(recorder_args(path, path.stem, condition, labels))),
@@ -150,13 +174,17 @@ def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("study", help="run the paper's three-condition study protocol, one recording per block",
+    p = sub.add_parser("study", help="run the paper's three-condition study protocol (or other conditions), one "
+                                     "recording per block",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--participant", required=True, help="participant ID (names the recordings' folder)")
     p.add_argument("--order", type=int, required=True,
-                   help="counterbalanced order: "
+                   help="counterbalanced order (a cyclic Latin square of the conditions); the paper's: "
                         + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
+    p.add_argument("--conditions", metavar="R1,R2,...",
+                   help="the reflex strategies to compare, comma-separated (default: the paper's "
+                        f"{','.join(PAPER_CONDITIONS)}; e.g. uniform,cartesian,whole-arm)")
     p.add_argument("--block-s", type=float, default=300.0, help="duration of each block, s (the study: about 5 min)")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the target pad every SECONDS (simulated skin)")

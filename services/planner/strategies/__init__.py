@@ -13,7 +13,8 @@ strategy's command ``mode``:
 - ``"position"``: the onset's joint ``target``, which the core reaches with a
   jerk-limited trajectory (ruckig); the reflex ends on arrival;
 - ``"velocity"``: a joint velocity every control cycle
-  (:meth:`ReflexStrategy.velocity`), streamed for ``planner.reflex_duration_s``.
+  (:meth:`ReflexStrategy.velocity`), streamed for the strategy's
+  ``duration_s`` (``planner.reflex_duration_s`` unless it sets its own).
 """
 
 from __future__ import annotations
@@ -45,6 +46,11 @@ class Onset:
     target: np.ndarray | None = None  # position mode: the joint target, rad
     direction: list[float] = field(default_factory=list)  # velocity mode: the pad's Cartesian velocity, m/s
     corrected: bool = False  # guarded mode changed the planned motion
+    # Velocity mode: the pad withdraws across its normal, away from the contact point (its joints cannot move
+    # it along the normal); the retreat check then judges the withdrawal by the distance from that point.
+    sideways: bool = False
+    # Why the motion is not the strategy's plain withdrawal ("" when it is): ReflexInfo.reason.
+    reason: str = ""
 
 
 class ReflexStrategy(ABC):
@@ -54,11 +60,20 @@ class ReflexStrategy(ABC):
     rank: ClassVar[int]  # place among the strategies (names())
     mode: ClassVar[CommandMode]
 
+    # Velocity mode: the return to the saved pose goes back along the withdrawal's own path (through poses
+    # on it), not on the straight line in joint space, which can swing another part of the arm closer to the
+    # contact than the withdrawal ever brought it.
+    retraces = False
+
     def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
         self.model = model
+        # Velocity mode: how long the core streams velocity(), s.
+        self.duration_s = cfg.reflex_duration_s
         # Control cycles of the current reflex whose velocity the guard
         # corrected (a position target's correction is in its Onset).
         self.corrections = 0
+        # Diagnostics for the planner to publish (level, code, message); live cycles only.
+        self.notes: list[tuple[str, str, str]] = []
 
     @abstractmethod
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
@@ -99,7 +114,7 @@ def _registry() -> dict[str, type[ReflexStrategy]]:
 
 
 def names() -> tuple[str, ...]:
-    """The strategies' names, in rank order: uniform, location, cartesian, cartesian-smooth."""
+    """The strategies' names, in rank order: uniform, location, cartesian, cartesian-smooth, whole-arm."""
     return tuple(_registry())
 
 

@@ -1,0 +1,351 @@
+"""Whole-arm withdrawal: a small quadratic programme every control cycle (velocity mode).
+
+This project's reflex for an arm next to people, beside the paper's four.
+Every control cycle, at the current pose q, it solves for the joint velocity
+q_dot (one variable per joint)::
+
+    minimise    (a . q_dot - v(t))^2 + m mean_i |J_i q_dot|^2 + r |q_dot|^2          a = J_p^T w
+    subject to  n0 . J_p q_dot <= 0                          the touched pad: never toward the contact
+                u_i . J_i q_dot >= 0  for every sampled point i of the arm (u_i: unit, from the contact to it)
+                lo <= q_dot <= hi                            joint speed, joint range, acceleration
+
+- ``w`` is the direction the touched pad withdraws along: minus its outward
+  normal n0 (taken at the onset, as the Cartesian reflex's). A pad whose
+  joints cannot move it along its normal (the shoulder pads: their normals
+  are perpendicular to every motion the base joint gives them) withdraws
+  along the best direction they allow: at the onset the direction its
+  joints move it fastest (the larger of the two senses, ties broken by the
+  robot description's reflex_direction), then straight away from the
+  contact point (maximising its distance rate). The onset's log line says
+  so, and the status's ``direction`` is that direction.
+- ``v(t)`` is the pad's speed: G(p) ``distance_m`` / T times a raised-cosine
+  profile (:func:`~nwr.services.planner.reflexes.smooth_profile`, ramps of
+  ``ramp_s``), over T = ``duration_s``: the pad withdraws ``distance_m``
+  at G = 1, in proportion to the gain, and the motion ramps in and out.
+- The sampled points: every pad, every joint's origin, points a quarter,
+  half and three quarters along each link between them, and the flange.
+  Points within :data:`NEAR_M` of the contact (the touched pad's own
+  surface) are not constrained; their Jacobians come from pinocchio's
+  joint Jacobians through :class:`~nwr.common.robot.RobotModel`.
+- ``m mean_i |J_i q_dot|^2`` (``motion_weight``: the sampled points' mean
+  squared speed) keeps the rest of the arm as still as the withdrawal lets
+  it: without it, a pad the constraints slow down would be "helped" by large
+  motions of the whole arm for a millimetre more along its normal. It costs
+  the free withdrawal about 4 % of its speed at the default weight.
+  ``r |q_dot|^2`` (``regularization``) makes the solution unique, the same
+  for the same touch in the same pose (the solver, quadprog, is a
+  deterministic active-set method).
+- Bounds: ``speed_fraction`` of each joint's speed limit; no faster toward a
+  joint limit (less :data:`MARGIN_RAD`) than it can brake before it. The
+  planner's core then limits the change of the commanded velocity per cycle
+  to the acceleration limits (as for every velocity stream), and the bridge's
+  tracker to the jerk limit.
+- The solution is then scaled down uniformly so that no sampled point
+  moves faster than ``point_speed_m_s`` (the constraints are cones through
+  zero and the bounds contain it: a shorter q_dot keeps to them).
+
+A pose in which nothing can withdraw the pad without bringing another part
+of the arm toward the contact gives q_dot = 0: the arm holds still (the
+retreat check then reports ``withdraws = false`` and, with
+``sustained_contact = "hold"``, the planner holds), logged once per reflex.
+A solver failure, an exception or a non-finite result gives q_dot = 0 for
+that cycle, counted in :attr:`WholeArm.failures` and reported once per
+reflex (a warning, on ``diag/planner-<name>``). Cycles whose motion the
+constraints changed (the free withdrawal would have brought a point closer
+to the contact) count as corrections: the status's ``retreat.corrected``.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+
+import numpy as np
+import pinocchio as pin
+import quadprog
+
+from nwr.common import messages as m
+from nwr.common.config import PlannerSection
+from nwr.common.errors import ConfigError
+from nwr.common.robot import RobotDescription, RobotModel
+from nwr.services.planner.reflexes import smooth_profile
+from nwr.services.planner.strategies import Onset, ReflexStrategy
+
+log = logging.getLogger(__name__)
+
+# Sampled points closer than this to the contact point at the onset are the touched pad's own surface: not
+# constrained, m.
+NEAR_M = 0.02
+# The motion keeps this far inside each joint's range, rad.
+MARGIN_RAD = 0.05
+# Points along each link, as fractions of the way between its two ends.
+ALONG = (0.25, 0.5, 0.75)
+# No sampled point comes closer to the contact point than it was at the onset by more than this, m: the
+# linearised constraint each cycle is a velocity damper, u_i . J_i q_dot >= -(d_i - d_i0 + budget) / TAU_S,
+# so a point may take up second-order motion (a turn about the base) and rounding, never more. The touched
+# pad moves toward the contact along its normal by at most TOWARD_BUDGET_M.
+APPROACH_BUDGET_M = 0.003
+TOWARD_BUDGET_M = 0.0005
+TAU_S = 0.5
+# At the onset a pad that can move along its normal at less than this share of its speed (within the budgets)
+# withdraws along the best direction across the normal its joints allow.
+NORMAL_SHARE = 0.25
+# Directions across the normal tried at the onset (evenly around it).
+SIDEWAYS_DIRECTIONS = 8
+# Below this share of its speed in every direction the pad cannot withdraw at all: the arm holds still.
+HOLD_SHARE = 0.05
+# A sideways withdrawal follows the direction away from the contact point once this far from it, m.
+AWAY_M = 0.002
+# A constraint row this small (no joint moves that point) is left out.
+ZERO_ROW = 1e-9
+# This slack (per unit row) keeps a feasible set whose only point is q_dot = 0 (every budget spent) from
+# reading as inconsistent constraints to the solver.
+SLACK = 1e-7
+# A cycle whose pad withdraws at under this share of its speed because of the no-approach constraints counts
+# as a correction.
+CORRECTED_SHARE = 0.9
+
+
+class WholeArm(ReflexStrategy):
+    """The touched pad away from the contact, no other point of the arm toward it: a QP each cycle."""
+
+    name = "whole-arm"
+    rank = 50
+    mode = "velocity"
+    retraces = True
+
+    def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
+        super().__init__(cfg, desc, model, v_limit)
+        p = cfg.whole_arm
+        if p.ramp_s > p.duration_s / 2:
+            raise ConfigError(f"planner.whole_arm.ramp_s = {p.ramp_s} s is more than half of "
+                              f"planner.whole_arm.duration_s = {p.duration_s} s: the ramps in and out would overlap")
+        self.duration_s = p.duration_s
+        self.ramp_s = p.ramp_s
+        self.distance_m = p.distance_m
+        self.point_speed = p.point_speed_m_s
+        self.regularization = p.regularization
+        self.motion_weight = p.motion_weight
+        self.v_limit = np.asarray(v_limit, dtype=float)
+        self.a_limit = cfg.speed_fraction * np.asarray(desc.a_max, dtype=float)
+        self.dt = 1.0 / cfg.rate_hz
+        self.q_lo = desc.q_min + MARGIN_RAD
+        self.q_hi = desc.q_max - MARGIN_RAD
+        self.sign = np.asarray(desc.reflex_direction, dtype=float)
+        self.pad_names = [pad.name for pad in desc.pads]
+        self.n_pads = len(desc.pads)
+        n = len(desc.joints)
+        # pinocchio's joint Jacobians have the root's axes; the model's results the base frame's (a constant turn).
+        self._root = np.array(model.frame_pose(desc.home, "universe")[:3, :3])
+        self._eye = np.eye(n)
+        self._box = np.vstack([-np.eye(n), np.eye(n)])  # -x >= -hi, x >= lo
+        # The current reflex (start() replaces these, never changes them in place: a snapshot is a shallow copy).
+        self.pad = -1
+        self.gain = 0.0
+        self.contact = np.zeros(3)
+        self.normal = np.zeros(3)
+        self.away = np.zeros(3)  # the withdrawal direction w
+        self.sideways = False  # the pad cannot move along its normal: it withdraws along w, then from the contact
+        self.blocked = False  # nothing can withdraw it: the stream is zero
+        self.speed_m_s = 0.0  # the pad's mean speed, G distance_m / T; the profile's plateau is T / (T - ramp) of it
+        # Counts of the current reflex's live cycles (never of a retreat check's integration).
+        self.failures = 0  # solver failures, exceptions, non-finite results: a zero command instead
+        self.stalled = 0  # cycles in which the constraints let the pad withdraw at under HOLD_SHARE of its speed
+        self._said: set[str] = set()  # what this reflex has reported (once each)
+        self._d0 = np.zeros(0)  # each sampled point's distance from the contact point at the onset, m
+        self._free = np.zeros(0, dtype=bool)  # sampled points not constrained (the touched pad's own surface)
+
+    # -- the reflex's onset -------------------------------------------------------------------
+    def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
+        """Begin (or update) a reflex: the contact point and normal at ``q``, and the withdrawal direction."""
+        model = self.model
+        self.pad = contact.pad
+        self.gain = max(0.0, float(contact.gain)) if np.isfinite(contact.gain) else 0.0
+        self.corrections = self.failures = self.stalled = 0
+        self._said = set()
+        self.contact = model.pad_point(q, contact.pad)
+        self.normal = model.pad_normal(q, contact.pad)
+        self.away = -self.normal
+        self.sideways = self.blocked = False
+        self.speed_m_s = self.gain * self.distance_m / self.duration_s
+        samples = self._samples(q)
+        self._d0 = np.linalg.norm(samples[0] - self.contact, axis=1)
+        self._free = self._d0 <= NEAR_M  # the touched pad's own surface: not constrained
+        self._free[self.pad] = True
+        if self.speed_m_s <= 0.0:
+            return Onset(direction=[0.0, 0.0, 0.0])
+        name = self.pad_names[contact.pad]
+        try:
+            along = self._probe(q, self.away, samples)
+            if along < NORMAL_SHARE * self.speed_m_s:
+                side, rate = self._sideways(q, samples)
+                if rate > along:
+                    self.away, self.sideways, along = side, True, rate
+        except Exception as exc:  # the stream then tries every cycle; each failure gives a zero command
+            self._say("warning", "whole_arm_failed", f"reflex on pad {name}: the withdrawal's QP failed at the "
+                      f"onset ({exc!r}): every cycle it fails the arm is commanded to stand still")
+            return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="failed")
+        if along < HOLD_SHARE * self.speed_m_s:
+            self.blocked, self.sideways = True, False
+            self._say("info", "whole_arm_blocked",
+                      f"reflex on pad {name}: no joint motion moves it away from the contact without bringing "
+                      "another part of the arm closer to it: holding still")
+            return Onset(direction=[0.0, 0.0, 0.0], reason="blocked")
+        if self.sideways:
+            self._say("info", "whole_arm_sideways",
+                      f"reflex on pad {name}: its joints cannot move it along its normal without bringing another "
+                      f"part of the arm closer to the contact; it withdraws sideways, along "
+                      f"{np.round(self.away, 3).tolist()} (base frame), away from the contact point")
+        return Onset(direction=(self.speed_m_s * self.away).tolist(), sideways=self.sideways,
+                     reason="sideways" if self.sideways else "")
+
+    def _probe(self, q: np.ndarray, away: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> float:
+        """How fast the pad can withdraw along ``away`` at the profile's plateau within the approach budgets
+        (after the speed cap), m/s."""
+        plateau = self.speed_m_s * self.duration_s / (self.duration_s - self.ramp_s)
+        dq, _, _ = self._solve(q, plateau, away, samples=samples)
+        return float(away @ (samples[1][self.pad] @ dq))
+
+    def _sideways(self, q: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
+        """The best direction across the pad's normal that its joints allow, and its speed along it (m/s).
+
+        SIDEWAYS_DIRECTIONS directions evenly around the normal, from the one along which the joints move
+        the pad fastest (in the sense that turns them along the robot description's reflex_direction); the
+        fastest withdrawal the constraints leave wins, a tie the first.
+        """
+        jac = samples[1][self.pad]
+        across = jac - np.outer(self.normal, self.normal @ jac)
+        u, s, _ = np.linalg.svd(across)
+        first = u[:, 0] if s[0] > 1e-9 else np.cross(self.normal, np.eye(3)[int(np.argmin(np.abs(self.normal)))])
+        first = first / np.linalg.norm(first)
+        if float(self.sign @ (jac.T @ first)) < 0.0:
+            first = -first
+        second = np.cross(self.normal, first)
+        best, rate = self.away, 0.0
+        for k in range(SIDEWAYS_DIRECTIONS):
+            angle = 2.0 * np.pi * k / SIDEWAYS_DIRECTIONS
+            candidate = np.cos(angle) * first + np.sin(angle) * second
+            r = self._probe(q, candidate, samples)
+            if r > rate + 1e-9:
+                best, rate = candidate, r
+        return best, rate
+
+    # -- every control cycle -------------------------------------------------------------------
+    def velocity(self, q: np.ndarray, t: float, *, count: bool = True) -> np.ndarray:
+        """q_dot at pose ``q``, ``t`` s into the reflex (``count``: a live cycle, not the retreat check's)."""
+        n = len(self.v_limit)
+        speed = self.speed_m_s * smooth_profile(t, self.duration_s, self.ramp_s)
+        if self.pad < 0 or self.blocked or not speed > 0.0:
+            return np.zeros(n)
+        try:
+            away = self.away
+            if self.sideways:  # straight away from the contact point, once the pad has left it
+                offset = self.model.pad_point(q, self.pad) - self.contact
+                dist = float(np.linalg.norm(offset))
+                if dist > AWAY_M:
+                    away = offset / dist
+            dq, corrected, achieved = self._solve(q, speed, away)
+        except Exception as exc:  # never without a command: stand still this cycle
+            if count:
+                self.failures += 1
+                self._say("warning", "whole_arm_failed",
+                          f"reflex on pad {self.pad_names[self.pad]}: the withdrawal's QP failed ({exc!r}); the arm "
+                          "is commanded to stand still in every cycle it fails (counted)")
+            return np.zeros(n)
+        if count:
+            if corrected:
+                self.corrections += 1
+            if achieved < HOLD_SHARE * speed:
+                self.stalled += 1
+                self._say("info", "whole_arm_stalled",
+                          f"reflex on pad {self.pad_names[self.pad]}: {t:.2f} s in, no joint motion moves it "
+                          "farther without bringing another part of the arm closer to the contact: slowing to a "
+                          "stop")
+        return dq
+
+    def _solve(self, q: np.ndarray, speed: float, away: np.ndarray, *,
+               samples: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, bool, float]:
+        """The QP at ``q`` for the pad's speed ``speed`` along ``away``: q_dot, whether the constraints held the
+        pad back, and the pad's speed along ``away`` it gives (m/s). ``samples``: :meth:`_samples` at ``q``, if
+        known. Raises on a failure."""
+        points, jacs = self._samples(q) if samples is None else samples
+        jp = jacs[self.pad]
+        a = jp.T @ away
+        # Constraints G q_dot <= h: the touched pad not toward the contact along n0; no other sampled point
+        # closer to the contact point (each beyond its budget).
+        offset = points - self.contact
+        dist = np.linalg.norm(offset, axis=1)
+        keep = ~self._free
+        units = offset[keep] / dist[keep, None]
+        rows = np.vstack([self.normal @ jp, -np.matmul(units[:, None, :], jacs[keep])[:, 0, :]])
+        toward = float(self.normal @ (points[self.pad] - self.contact))
+        h = np.concatenate([[max(0.0, TOWARD_BUDGET_M - toward)],
+                            np.maximum(0.0, dist[keep] - self._d0[keep] + APPROACH_BUDGET_M)]) / TAU_S
+        norms = np.linalg.norm(rows, axis=1)
+        used = norms > ZERO_ROW
+        rows = rows[used] / norms[used, None]
+        h = h[used] / norms[used] + SLACK
+        # Bounds: the joint speed limits, a joint range less the margin no faster than it can brake before.
+        room_hi = np.maximum(self.q_hi - q, 0.0)
+        room_lo = np.maximum(q - self.q_lo, 0.0)
+        hi = np.minimum(self.v_limit, np.sqrt(2.0 * self.a_limit * room_hi))
+        lo = -np.minimum(self.v_limit, np.sqrt(2.0 * self.a_limit * room_lo))
+        flat = jacs.reshape(-1, jacs.shape[2])
+        motion = flat.T @ flat / len(jacs)  # the sampled points' mean squared speed
+        hessian = np.outer(a, a) + self.motion_weight * motion + self.regularization * self._eye
+        # quadprog: minimise 1/2 x'Gx - a'x subject to C'x >= b (rows x <= h, lo <= x <= hi).
+        constraints = np.vstack([-rows, self._box]).T
+        bounds = np.concatenate([-h, -hi - SLACK, lo - SLACK])
+        dq = np.asarray(quadprog.solve_qp(hessian, speed * a, constraints, bounds)[0], dtype=float)
+        if dq.shape != a.shape or not np.all(np.isfinite(dq)):
+            raise RuntimeError(f"quadprog returned {dq!r}")
+        # No sampled point faster than point_speed_m_s.
+        fastest = float(np.max(np.linalg.norm(jacs @ dq, axis=1)))
+        if fastest > self.point_speed:
+            dq = dq * (self.point_speed / fastest)
+        achieved = float(a @ dq)
+        # Corrected: the pad withdraws slower than asked because the free withdrawal (no constraint, no bound)
+        # would have brought another point closer to the contact than the constraints allow.
+        free = a * (speed / (float(a @ a) + self.regularization))
+        corrected = achieved < CORRECTED_SHARE * speed and bool(np.any(rows @ free > h))
+        return dq, corrected, achieved
+
+    def _samples(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sampled points of the arm at ``q`` (K x 3, base frame; the pads first, in id order) and their
+        linear Jacobians (K x 3 x n)."""
+        model = self.model
+        speed_jacs = model.speed_jacobians(q)  # pads, elbow, flange; also brings pinocchio's data to q
+        pads = model.pad_points(q)
+        origins = model.joint_positions(q)  # every joint's origin, then the flange
+        n = model.nq
+        ends = np.empty((n + 1, 3, n))
+        for joint in range(1, n + 1):
+            ends[joint - 1] = self._root @ pin.getJointJacobian(model.model, model.data, joint,
+                                                               pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
+        ends[n] = speed_jacs[-1]  # the flange
+        # Along each link: joint k's origin to joint k+1's (both fixed in link k), the last joint's to the flange.
+        fractions = np.asarray(ALONG)
+        along = (origins[:-1, None, :] * (1.0 - fractions)[None, :, None]
+                 + origins[1:, None, :] * fractions[None, :, None]).reshape(-1, 3)
+        along_j = (ends[:-1, None] * (1.0 - fractions)[None, :, None, None]
+                   + ends[1:, None] * fractions[None, :, None, None]).reshape(-1, 3, n)
+        points = np.concatenate([pads, origins, along])
+        jacs = np.concatenate([speed_jacs[: self.n_pads], ends, along_j])
+        return points, jacs
+
+    def _say(self, level: str, code: str, message: str) -> None:
+        """Report once per reflex: the log and the planner's diagnostics."""
+        if code in self._said:
+            return
+        self._said.add(code)
+        log.log(logging.WARNING if level == "warning" else logging.INFO, "%s", message)
+        self.notes.append((level, code, message))
+
+    def snapshot(self) -> WholeArm:
+        stream = copy.copy(self)
+        stream._said = set(self._said)
+        stream.notes = []
+        return stream
+
+
+STRATEGY = WholeArm
