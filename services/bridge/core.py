@@ -504,7 +504,9 @@ class BridgeCore:
     def _report_clip(self, event: Event) -> None:
         """Count and report a clip the tracker made."""
         tracker = self.tracker
-        why = "in a withdrawal" if tracker.withdrawal else "rejoining the stream" if tracker.rejoining else ""
+        why = "in a withdrawal" if tracker.withdrawal else "rejoining the stream" if tracker.rejoining else \
+            "catching up with the stream, itself within the limits" \
+            if event.code == "cartesian_limit" and tracker.catching_up else ""
         self.clipped += 1
         self.clipped_expected += bool(why)
         self.events.append(self._limit_level(event, why))

@@ -129,6 +129,10 @@ NEAR_LIMIT = 0.02
 # ... this much below, so that the hard cap (which costs the jerk limit) does
 # not bind on rounding or on the arm's geometry changing under it.
 CAP_MARGIN = 5e-3
+# A withdrawal's limits hold until every point of the arm, commanded otherwise, is back under this share of the
+# collaborative speed: a stream that ran at the speed itself (the Cartesian reflex's 0.25 m/s) is still braking,
+# a point may pass the speed for a few cycles while the jerk-limited stop takes hold.
+WITHDRAWAL_END = 1.0
 # A controlled stop is checked against the Cartesian speed limit every this
 # many s over its first STOP_CHECK_SPAN_S (where its speed peaks), m/s of slack.
 STOP_CHECK_S = 0.004
@@ -167,7 +171,8 @@ class Tracker:
         self.reflex = False  # the command followed is a withdrawal's (phase REFLEX)
         # The withdrawal's limits hold from its first command until the arm,
         # commanded otherwise, is back within the collaborative speed (it
-        # decelerates within the acceleration limits, not in one cycle).
+        # decelerates within the acceleration limits, not in one cycle), with
+        # a margin (WITHDRAWAL_END).
         self.withdrawal = False
         self.toward: np.ndarray | None = None
         # After a hold, a position stream is rejoined no faster than any point of
@@ -175,6 +180,10 @@ class Tracker:
         self.rejoining = False
         self.rejoin_cap: float | None = None  # a fixed cap for the rejoin (a handover's), m/s
         self.rejoin_cycles = 0  # control cycles the rejoin lasts at least
+        # The last Cartesian clip was the law catching up with a position stream whose own speed is within the
+        # limits (the arm a few mrad behind it after a jerk-limited turn): the envelope shaping the tracking,
+        # not a planner asking for too much.
+        self.catching_up = False
         self.stream_peak = 0.0
         self.limited = 0  # control cycles the Cartesian limits scaled
         self.period_s = period_s  # the control period, s
@@ -712,6 +721,7 @@ class Tracker:
         env = self.env
         cap = None
         v_ref = frame[1]
+        own = float("inf")  # the stream's own fastest point, m/s (a velocity stream: not a reference to catch up)
         if self.mode == "position":
             own = float(limiter.speeds(self.q, v_ref).max()) if v_ref.any() else 0.0
             self.stream_peak = min(max(self.stream_peak, own), limiter.limits.speed_m_s)
@@ -720,7 +730,7 @@ class Tracker:
         else:
             self.rejoining = False
         if self.withdrawal and not self.reflex and \
-                float(limiter.speeds(self.q, self.dq).max()) <= limiter.limits.speed_m_s:
+                float(limiter.speeds(self.q, self.dq).max()) <= WITHDRAWAL_END * limiter.limits.speed_m_s:
             self.withdrawal = False
             self.toward = None
         q1, v1, a1 = state
@@ -782,6 +792,7 @@ class Tracker:
         self.limited += 1
         if self._clip_reported:
             return (q1, v1, a1), None
+        self.catching_up = own <= limiter.limits.speed_m_s * (1.0 - CAP_MARGIN)
         return (q1, v1, a1), self._clip("cartesian_limit", f"{self.mode} command from {active!r}: {scaling.describe()}")
 
     def _power(self, v: np.ndarray, h: float) -> Scaling | None:
