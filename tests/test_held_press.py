@@ -176,7 +176,7 @@ def test_the_papers_behaviour_returns_into_a_finger_still_pressing():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("strategy", ["cartesian", "cartesian-smooth", "uniform", "location"])
+@pytest.mark.parametrize("strategy", ["cartesian", "cartesian-smooth", "uniform", "location", "whole-arm"])
 def test_a_3s_press_on_every_pad_in_open_and_closed_loop(strategy):
     for press in held_presses(Profile(), [strategy]):
         check(press)

@@ -29,7 +29,7 @@ def test_every_strategy_and_a_killed_planner_verify_bit_for_bit(tmp_path):
     profile = tmp_path / "profile.toml"
     profile.write_text(f'[zenoh]\nbase_port = {PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
     output = tmp_path / "killed.mcap"
-    strategies = ["cartesian-smooth", "location", "uniform"]  # cartesian: tests/test_e2e.py
+    strategies = ["cartesian-smooth", "location", "uniform", "whole-arm"]  # cartesian: tests/test_e2e.py
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
         procs["recorder"] = nwr(profile, "run", "recorder", "--output", str(output))

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -453,3 +454,40 @@ def test_the_live_server_broadcasts_time_without_an_error(caplog):
     finally:
         view.stop()
     assert not [r for r in caplog.records if r.levelname == "ERROR"], caplog.text  # was one per frame
+
+
+def test_ghost_of_a_whole_arm_withdrawal_is_its_displacement_and_none_when_it_holds_still():
+    """The whole-arm planner's own status, as it publishes it: the arrow is where the pad is headed (its mean
+    speed over the withdrawal's duration); a blocked reflex (no motion) draws none."""
+    from nwr.common.config import PlannerSection
+    from nwr.services.planner.core import Planner
+
+    cfg = PlannerSection(strategy="whole-arm", name="whole-arm")
+    planner = Planner(cfg, DESC, MODEL)
+    planner.on_state(DESC.home.copy(), following=True)
+    t = 0
+    while planner.mode != "TASK":
+        t += 2_000_000
+        planner.step(t)
+    pad = 5
+    gains = [0.0] * len(DESC.pads)
+    gains[pad] = 0.58
+    p = DESC.pads[pad]
+    contact = m.Contact(pad=pad, name=p.name, region=p.region, change_hpa=15.0, level=4, gain=0.58)
+    planner.on_pain(m.SkinPain(seq=1, stamp_ns=t, trace=m.Trace(1, t), model="continuous", level=[1] * 10,
+                               gain=gains, strongest=contact), t)
+    st = planner.status(t)
+    core = c.ViewCore(DESC, MODEL)
+    core.apply(state(np.array(planner.q)))
+    core.apply(st)
+    ghost = core.frame(0).ghost
+    assert ghost is not None and ghost.arrow is not None and ghost.strategy == "whole-arm"
+    q0 = np.asarray(st.saved_pose)
+    length = float(np.linalg.norm(ghost.arrow.tip - ghost.arrow.tail))
+    assert length == pytest.approx(0.58 * cfg.whole_arm.distance_m)
+    assert ghost.arrow.tip - ghost.arrow.tail == pytest.approx(-length * MODEL.pad_normal(q0, pad), abs=1e-3)
+    assert st.reflex is not None
+    blocked = msgspec.structs.replace(st, seq=st.seq + 1, reflex=msgspec.structs.replace(
+        st.reflex, direction=[0.0, 0.0, 0.0], reason="blocked"))
+    core.apply(blocked)
+    assert core.frame(1).ghost is None
