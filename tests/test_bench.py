@@ -216,3 +216,21 @@ def test_the_in_process_chain_is_the_floor():
 
     floor = bench_bare.percentiles(bench_bare.in_process(200))
     assert 0.0 < floor["p50"] <= floor["p99"] < 5.0  # encode, decode and build three messages
+
+
+def test_the_strategies_bench_times_every_reflex_cycle_against_the_cartesian_one(monkeypatch):
+    from nwr.services.tools import bench_strategies
+
+    monkeypatch.setattr(bench_strategies, "POSES_S", (0.0,))
+    monkeypatch.setattr(bench_strategies, "GAINS", (1.0,))
+    rows = bench_strategies.run(Profile(), names=("whole-arm", "uniform"))
+    assert [r["strategy"] for r in rows] == ["cartesian", "whole-arm", "uniform"]  # the baseline first
+    by = {r["strategy"]: r for r in rows}
+    # Every pad once: CR streams 0.5 s at 500 Hz, the whole-arm withdrawal 1 s; UR until its target is reached.
+    assert by["cartesian"]["cycles"] == pytest.approx(10 * 250, abs=20)
+    assert by["whole-arm"]["cycles"] == pytest.approx(10 * 500, abs=20)
+    assert by["uniform"]["cycles"] > 10 * 100
+    assert by["cartesian"]["p50 / cartesian"] == 1.0
+    for r in rows:
+        assert 0 < r["cycle p50 us"] <= r["cycle p99 us"] <= r["cycle max us"]
+        assert r["onset p50 us"] > 0 and r["p99 / period"] > 0
