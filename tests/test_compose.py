@@ -1,14 +1,18 @@
-"""The compose deployment, built by the offline path and run for real.
+"""The compose deployment, built by the offline path and run for real; the online build from a clean clone.
 
 Builds the base image (debootstrap), the wheelhouse and the project image
 with deploy/offline/build.sh (the first two are cached per machine), brings
 deploy/compose.yaml up on a bridge network as it ships, secure by default
 (the certs step makes the lab CA and a certificate per service; the router
 takes mutual TLS only and enforces the access control; every service in its
-own container, a client of the router container), tries intruders without a
+own container, a client of the router container; the router published on
+loopback, every container's log rotated), tries intruders without a
 certificate and with another CA's, plays a touch script, stops and restarts
 the active planner, and checks all of it from the recording the recorder
 wrote to its volume.
+
+The online form (deploy/README.md, "With internet") is built from what a
+clean clone holds, with the package index: see test_online_build_from_a_clean_clone.
 
 Skipped when no Docker daemon (or no compose) is available, unless
 NWR_REQUIRE_DOCKER=1 (set by .ci/run), where that is a failure.
@@ -16,6 +20,7 @@ NWR_REQUIRE_DOCKER=1 (set by .ci/run), where that is a failure.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -26,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from nwr.common.config import GainSection, load_script
 from nwr.common.recordings import read_recording
@@ -41,6 +47,7 @@ SCRIPT = ROOT / "tests" / "data" / "short.toml"
 PLANNER = "cartesian"
 SERVICES = ["router", "bridge", "planner", "gain", "recorder", "gateway"]
 RECORDING = "compose-test.mcap"
+BUILD_SH = ROOT / "deploy" / "offline" / "build.sh"
 
 
 def _run(cmd: list[str], timeout: float = 600, check: bool = True, **kw: object) -> subprocess.CompletedProcess[str]:
@@ -171,10 +178,12 @@ services:
   recorder:
     command: run recorder --session compose-test --output recordings/{RECORDING}
 """)
-    env = {**os.environ, "NWR_PLANNER": PLANNER, "NWR_ROUTER_PUBLISH": "127.0.0.1",
+    # The router is published where compose.yaml publishes it by default (loopback).
+    env = {**os.environ, "NWR_PLANNER": PLANNER,
            "NWR_ROUTER_PORT": str(_free_port()), "NWR_IMAGE": os.environ.get("NWR_IMAGE", "nwr:latest"),
            "NWR_CERTS": str(tmp_path / "certs")}
-    for name in ("NWR_ROUTER", "NWR_RECORDINGS", "NWR_INSECURE", "NWR_ROUTER_SANS"):
+    for name in ("NWR_ROUTER", "NWR_RECORDINGS", "NWR_INSECURE", "NWR_ROUTER_SANS", "NWR_ROUTER_PUBLISH",
+                 "NWR_LOG_MAX_SIZE", "NWR_LOG_MAX_FILE"):
         env.pop(name, None)
     project = f"nwrtest{os.getpid()}"
     dep = Deployment(compose, project, [ROOT / "deploy" / "compose.yaml", override], env)
@@ -198,6 +207,7 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
                           dep.container(s)]).stdout.strip() for s in SERVICES}
     assert len(set(addresses.values())) == len(SERVICES), addresses
     stages.done("healthy (liveliness checks)", ", ".join(f"{s} {a}" for s, a in addresses.items()))
+    _check_published_and_rotated(dep)
     _check_secure(dep, tmp_path)
     stages.done("secure: certificates, intruders, operator")
 
@@ -238,6 +248,25 @@ def test_compose_deployment(deployment: tuple[Deployment, Stages], tmp_path: Pat
     _check_planner_lost(records, t_stop, t_start)
     _check_resumed(records, t_start, t_end)
     assert metadata["session"]["robot"] == "ur10e"
+
+
+def _check_published_and_rotated(dep: Deployment) -> None:
+    """The router's port on the host's loopback only, and every container's log (certs step included) rotated."""
+    bindings = json.loads(_run(["docker", "inspect", "-f", "{{json .HostConfig.PortBindings}}",
+                                dep.container("router")]).stdout)
+    assert [(b["HostIp"], b["HostPort"]) for b in bindings["7447/tcp"]] == [("127.0.0.1", dep.env["NWR_ROUTER_PORT"])]
+    ids = _run(["docker", "ps", "-aq", "--filter", f"label=com.docker.compose.project={dep.project}"]).stdout.split()
+    configs: dict[str, object] = {}
+    for cid in ids:
+        name, config = _run(["docker", "inspect", "-f", "{{index .Config.Labels \"com.docker.compose.service\"}} "
+                             "{{json .HostConfig.LogConfig}}", cid]).stdout.strip().split(" ", 1)
+        configs[name] = json.loads(config)
+    assert set(configs) >= {"certs", *SERVICES}, configs
+    for name, config in configs.items():
+        assert config == {"Type": "local", "Config": {"max-size": "10m", "max-file": "5"}}, (name, config)
+    # `docker compose logs` still reads them.
+    assert "Zenoh router" in dep("logs", "--no-color", "router").stdout
+    print("router published on 127.0.0.1 only; logs rotated (local, 10m x 5) for " + ", ".join(sorted(configs)))
 
 
 def _check_secure(dep: Deployment, tmp_path: Path) -> None:
@@ -324,3 +353,117 @@ def _check_resumed(records: list, t_start: int, t_end: int) -> None:  # type: ig
     states = [r.message for r in records if r.key == "robot/state" and t_start <= r.message.stamp_ns <= t_end]
     moving = [s for s in states if s.status == "ok" and s.owner == PLANNER and max(abs(v) for v in s.dq) > 1e-3]
     assert moving, {s.status for s in states}
+
+
+def test_every_service_logs_rotated_and_the_router_published_on_loopback() -> None:
+    """compose.yaml as written (no Docker needed): one rotated logging anchor for every service, profiles included."""
+    text = (ROOT / "deploy" / "compose.yaml").read_text()
+    doc = yaml.safe_load(text)
+    logging = doc["x-logging"]
+    assert logging["driver"] in ("local", "json-file"), logging
+    assert set(logging["options"]) >= {"max-size", "max-file"}, logging
+    assert {name: s.get("logging") for name, s in doc["services"].items()} == dict.fromkeys(doc["services"], logging)
+    assert text.count("logging: *logging") == 2  # the certs step and the anchor every other service merges
+    assert doc["services"]["router"]["ports"] == ["${NWR_ROUTER_PUBLISH:-127.0.0.1}:${NWR_ROUTER_PORT:-7447}:7447"]
+    assert doc["services"]["view"]["ports"] == ["${NWR_VIEW_PUBLISH:-127.0.0.1}:${NWR_VIEW_PORT:-8765}:8765"]
+    assert all("ports" not in s for name, s in doc["services"].items() if name not in ("router", "view"))
+
+
+# What pip inside the stand-in base trusts: this machine's CA bundle (it may
+# reach the index through a TLS-inspecting proxy whose CA only the host knows).
+CA_BUNDLES = ("PIP_CERT", "SSL_CERT_FILE", "REQUESTS_CA_BUNDLE")
+PROXY_ARGS = ("HTTP_PROXY", "HTTPS_PROXY", "NO_PROXY", "http_proxy", "https_proxy", "no_proxy")
+
+
+def _clean_context(dest: Path) -> list[str]:
+    """What a clean clone of the working tree, committed as it is, holds: tracked and new files, never ignored ones.
+
+    In CI (a fresh clone) that is the clone itself; on a developer's machine
+    it leaves out what git ignores (a wheelhouse's wheels, certificates, the
+    venv), which a clone would not have either.
+    """
+    listed = _run(["git", "-C", str(ROOT), "ls-files", "-z", "--cached", "--others", "--exclude-standard"]).stdout
+    files = [f for f in listed.split("\0") if f and (ROOT / f).is_file()]
+    for name in files:
+        (dest / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / name, dest / name)
+    return files
+
+
+def _stand_in_base(base: str, tag: str, work: Path) -> str:
+    """The debootstrapped base, made to stand in for python:3.11-slim; returns what differs, for the report.
+
+    python:3.11-slim has no OpenMP runtime (the Dockerfile's runtime stage
+    installs libgomp1 from Debian then), so it is removed here; and pip gets
+    this machine's CA bundle, as a lab behind a TLS-inspecting proxy gives its
+    base image its proxy's CA.
+    """
+    work.mkdir()
+    lines = [f"FROM {base}", "LABEL nwr.build=1", "RUN dpkg --purge libgomp1 >/dev/null"]
+    notes = ["libgomp1 removed"]
+    bundle = next((Path(os.environ[v]) for v in CA_BUNDLES if os.environ.get(v)),
+                  Path("/etc/ssl/certs/ca-certificates.crt"))
+    if bundle.is_file():
+        shutil.copy(bundle, work / "ca-certificates.crt")
+        lines += ["COPY ca-certificates.crt /etc/ssl/certs/ca-certificates.crt",
+                  "ENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt"]
+        notes.append(f"pip trusts this machine's CA bundle ({bundle})")
+    (work / "Dockerfile").write_text("\n".join(lines) + "\n")
+    _run(["docker", "build", "--quiet", "-t", tag, str(work)], timeout=300)
+    return ", ".join(notes)
+
+
+def test_online_build_from_a_clean_clone(compose: list[str], tmp_path: Path) -> None:
+    """The documented online build, `docker build -f deploy/Dockerfile .` and compose's `build:`, from a clean clone.
+
+    The same Dockerfile as the offline path, in its online form: no
+    wheelhouse (the folder is in git, empty), PIP_NO_INDEX=0, every wheel
+    from the package index through whatever the host offers (its network,
+    its proxy variables, its CA bundle). What stands in: the debootstrapped
+    base image of deploy/offline/build.sh (cached per machine) for
+    python:3.11-slim, since no image registry is reachable here.
+    """
+    stages = Stages()
+    pid = os.getpid()
+    stand_in, image = f"nwr-online-base:test{pid}", f"nwr-online:test{pid}"
+    try:
+        _run(["bash", str(BUILD_SH), "base"], timeout=1800)
+        base = _run(["bash", str(BUILD_SH), "base-tag"]).stdout.strip()
+        notes = _stand_in_base(base, stand_in, tmp_path / "base")
+        stages.done("base: stand-in for python:3.11-slim", f"{base}, {notes}")
+
+        ctx = tmp_path / "clone"
+        files = _clean_context(ctx)
+        assert not list(ctx.rglob("*.whl")), "a clean clone has no wheels"
+        stages.done("context: a clean clone", f"{len(files)} files")
+
+        proxies = [a for v in PROXY_ARGS if os.environ.get(v) for a in ("--build-arg", f"{v}={os.environ[v]}")]
+        build = _run(["docker", "build", "-f", "deploy/Dockerfile", "--build-arg", f"BASE={stand_in}", *proxies,
+                      "-t", image, "."], timeout=1800, check=False, cwd=ctx)
+        output = build.stdout + build.stderr
+        assert build.returncode == 0, f"the online build failed from a clean clone:\n{output[-4000:]}"
+        # pip took the wheels from the index (none came from a wheelhouse), and
+        # the runtime stage installed OpenMP from Debian as on python:3.11-slim.
+        downloaded = output.count("Downloading ")
+        assert downloaded >= 20 and "Unpacking libgomp1" in output, output[-4000:]
+        stages.done("docker build (online)", f"{downloaded} downloads from the package index")
+
+        # The image works: the CLI, pinocchio (OpenMP), Zenoh; no pip; its user.
+        assert "usage: nwr" in _run(["docker", "run", "--rm", image, "--help"], timeout=120).stdout
+        probe = ("import importlib.util, os, pinocchio, zenoh, nwr.services.cli; "
+                 "print(importlib.util.find_spec('pip') is None, os.getuid())")
+        assert _run(["docker", "run", "--rm", "--entrypoint", "python", image, "-c", probe],
+                    timeout=120).stdout.split() == ["True", "10001"]
+        stages.done("image runs")
+
+        # compose's build: (the same context and Dockerfile, so Docker's cache answers).
+        env = {**os.environ, "NWR_IMAGE": image}
+        _run([*compose, "-p", f"nwronline{pid}", "-f", str(ctx / "deploy" / "compose.yaml"), "build",
+              "--build-arg", f"BASE={stand_in}", *proxies, "router"], timeout=1800, env=env)
+        stages.done("compose build (cached)")
+    finally:
+        _run(["docker", "image", "rm", "--force", image, stand_in], check=False, timeout=120)
+        # The builder stage's leftovers (label nwr.build=1), as build.sh prunes its own.
+        _run(["docker", "image", "prune", "--force", "--filter", "label=nwr.build=1"], check=False, timeout=300)
+        stages.done("images removed")
+        print(stages.format().replace("compose test stages", "online build stages"))

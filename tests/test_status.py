@@ -83,6 +83,18 @@ def test_env_overrides_router_and_robot() -> None:
         apply_env_overrides(load_profile(), {"NWR_ROBOT": "UR 10"})
 
 
+def test_router_listens_on_loopback_unless_told_and_names_every_interface() -> None:
+    assert router.listen_choice(None, {}) == ("tcp/127.0.0.1:7447", "the default, loopback only")
+    assert router.listen_choice(None, {"NWR_ROUTER_LISTEN": "tcp/10.0.0.2:7447"}) == (
+        "tcp/10.0.0.2:7447", "NWR_ROUTER_LISTEN")
+    assert router.listen_choice("tcp/0.0.0.0:7447", {"NWR_ROUTER_LISTEN": "tcp/10.0.0.2:7447"}) == (
+        "tcp/0.0.0.0:7447", "--listen")
+    assert router.listen_choice(None, {"NWR_ROUTER_LISTEN": ""})[1] == "the default, loopback only"
+    listen = ["tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447", "tcp/0.0.0.0:7447", "tls/[::]:7447",
+              "tcp/[::1]:7447", "tcp/0.0.0.0:7448#iface=eth0"]
+    assert router.wildcard_endpoints(listen) == ["tcp/0.0.0.0:7447", "tls/[::]:7447", "tcp/0.0.0.0:7448#iface=eth0"]
+
+
 @pytest.mark.e2e
 def test_router_status_and_check_on_loopback(capsys: pytest.CaptureFixture[str]) -> None:
     """A real `nwr router`, a client that announces itself and publishes, and `nwr status` through the router."""

@@ -8,8 +8,12 @@ listen nowhere, so all traffic goes through it.
 
 The default listen endpoint is loopback (``tcp/127.0.0.1:7447``): on a
 host, opening the router to the LAN is a decision (``--listen
-tcp/0.0.0.0:7447`` or ``NWR_ROUTER_LISTEN``). The compose deployment passes
-``tcp/0.0.0.0:7447``, inside the container's own network namespace.
+tcp/10.0.0.2:7447``, one of the host's addresses, or ``NWR_ROUTER_LISTEN``).
+A wildcard address (``0.0.0.0``, ``[::]``) is every network the host is on,
+and the router says so when it starts. The compose deployment passes
+``tcp/0.0.0.0:7447`` inside the container's own network namespace, and
+publishes the port on the host's loopback unless ``NWR_ROUTER_PUBLISH``
+names another address (deploy/README.md).
 
 The router declares the liveliness token ``nwr/<robot>/alive/router``, so
 ``nwr status`` lists it beside the services and ``nwr status --check
@@ -32,6 +36,7 @@ import os
 import re
 import signal
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 
 import zenoh
@@ -44,8 +49,30 @@ from nwr.common.node import check_tls_files, tls_config, tls_endpoints
 log = logging.getLogger(__name__)
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+# Hosts of a listen endpoint that mean every address of the machine.
+WILDCARD_HOSTS = frozenset({"0.0.0.0", "::"})
 # The rules shipped with the deployment, for a router started from a checkout.
 DEFAULT_ACL = "deploy/acl.json5"
+
+
+def listen_choice(arg: str | None, environ: Mapping[str, str]) -> tuple[str, str]:
+    """The listen endpoints (comma-separated) and where they came from: ``--listen``, the environment or the default."""
+    if arg:
+        return arg, "--listen"
+    if environ.get("NWR_ROUTER_LISTEN"):
+        return environ["NWR_ROUTER_LISTEN"], "NWR_ROUTER_LISTEN"
+    return DEFAULT_LISTEN, "the default, loopback only"
+
+
+def wildcard_endpoints(listen: list[str]) -> list[str]:
+    """The endpoints of ``listen`` on every address of the machine (``tcp/0.0.0.0:7447``, ``tcp/[::]:7447``)."""
+    wide = []
+    for endpoint in listen:
+        address = endpoint.split("/", 1)[-1].split("#", 1)[0].split("?", 1)[0]
+        host = address.rsplit(":", 1)[0].strip("[]")
+        if host in WILDCARD_HOSTS:
+            wide.append(endpoint)
+    return wide
 
 
 def router_config(listen: list[str], connect: list[str], *, tls: ZenohSection | None = None,
@@ -102,8 +129,9 @@ def load_acl(path: Path, robot: str | None = None) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--listen", metavar="ENDPOINTS",
-        help=f"comma-separated endpoints to listen on (default: $NWR_ROUTER_LISTEN or {DEFAULT_LISTEN}; "
-             "tcp/0.0.0.0:7447 for the LAN)",
+        help=f"comma-separated endpoints to listen on (default: $NWR_ROUTER_LISTEN or {DEFAULT_LISTEN}, "
+             "loopback; for a LAN, this host's address on it, e.g. tcp/10.0.0.2:7447; tcp/0.0.0.0:7447 is every "
+             "network the host is on)",
     )
     parser.add_argument("--connect", metavar="ENDPOINTS", default="",
                         help="comma-separated endpoints of other routers to connect to (a router per site)")
@@ -116,9 +144,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) -> int:
-    listen = parse_endpoints(args.listen or os.environ.get("NWR_ROUTER_LISTEN") or DEFAULT_LISTEN, "--listen")
+    listen_arg, listen_source = listen_choice(args.listen, os.environ)
+    listen = parse_endpoints(listen_arg, "--listen")
     if not listen:
-        raise ConfigError("--listen names no endpoint: give at least one, e.g. tcp/0.0.0.0:7447")
+        raise ConfigError("--listen names no endpoint: give at least one, e.g. tcp/10.0.0.2:7447")
+    # Every interface is a choice the log states: on a host it is every
+    # network the host is on; in a container, the host's port publishing
+    # decides who reaches it.
+    wide = wildcard_endpoints(listen)
+    if wide:
+        log.info("listening on every address of this host or container (%s, from %s): on a host, every network "
+                 "it is on reaches the router; name one address (--listen tcp/10.0.0.2:7447) to serve one LAN",
+                 ", ".join(wide), listen_source)
     connect = parse_endpoints(args.connect, "--connect")
     tls = zcfg if zcfg is not None and zcfg.secure else None
     acl = None
@@ -151,8 +188,8 @@ def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) 
                           "or the address not one of this host's?") from exc
     with session:
         token = session.liveliness().declare_token(keys.key(robot, keys.alive("router")))
-        log.info("Zenoh router %s listening on %s%s (multicast scouting off); token %s", session.zid(),
-                 ", ".join(listen), f", connected to {', '.join(connect)}" if connect else "",
+        log.info("Zenoh router %s listening on %s (%s)%s (multicast scouting off); token %s", session.zid(),
+                 ", ".join(listen), listen_source, f", connected to {', '.join(connect)}" if connect else "",
                  keys.key(robot, keys.alive("router")))
         stop.wait()
         token.undeclare()
@@ -170,7 +207,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "router", help="a Zenoh router for the LAN deployment (listens on loopback unless told otherwise)",
         description="Run a Zenoh session in router mode with multicast scouting off. Services reach it with "
                     "NWR_ROUTER=tcp/HOST:7447 (or [zenoh] router). It listens on loopback by default: use "
-                    "--listen tcp/0.0.0.0:7447 to serve the LAN.",
+                    "--listen tcp/ADDRESS:7447 with this host's address on the LAN to serve it.",
     )
     add_arguments(p)
     p.set_defaults(handler=_handler)
