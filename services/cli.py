@@ -18,7 +18,7 @@ from typing import Any
 from nwr.common.config import env_overrides, insecure, profile_for
 from nwr.common.errors import NwrError
 from nwr.common.node import setup_logging
-from nwr.services.pipeline.graph import SERVICES
+from nwr.services.pipeline.graph import SERVICES, process_name
 
 log = logging.getLogger("nwr")
 
@@ -71,10 +71,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def log_label(args: argparse.Namespace) -> str:
+    """What every log line of this process is labelled with: the command, or the service it runs (a planner
+    named on the command line by its process name, ``planner-<name>``, so that several planners' lines differ)."""
+    if args.command != "run":
+        return str(args.command)
+    return process_name(args.service, getattr(args, "name", None) or getattr(args, "reflex", None))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    setup_logging(args.log_level, args.service if args.command == "run" else args.command)
+    setup_logging(args.log_level, log_label(args))
     try:
         # Read here, not at import: flags and environment override the profile in main.
         args.env_overrides = env_overrides(os.environ)

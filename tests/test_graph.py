@@ -251,3 +251,15 @@ def test_every_package_is_installed() -> None:
     # Besides the code, the folders of data files (profiles, scripts, a robot's files), each with its files.
     data = set(setuptools["package-data"])
     assert found | data == listed and not found & data
+
+
+def test_each_planners_log_lines_carry_its_name_when_several_run() -> None:
+    from nwr.services.cli import build_parser, log_label
+
+    parser = build_parser()
+    assert log_label(parser.parse_args(["run", "planner", "--name", "uniform", "--reflex", "uniform"])) == \
+        "planner-uniform"
+    assert log_label(parser.parse_args(["run", "planner", "--reflex", "whole-arm"])) == "planner-whole-arm"
+    assert log_label(parser.parse_args(["run", "planner"])) == "planner"
+    assert log_label(parser.parse_args(["run", "bridge"])) == "bridge"
+    assert log_label(parser.parse_args(["demo"])) == "demo"

@@ -46,7 +46,7 @@ def test_a_demo_session_in_lockstep_reports_no_warning(strategy: str, closed_loo
 # The one warning a loaded machine may rightly cause: a control loop late by a cycle or more; and, where the
 # planner's loop says it overran, the bridge's stop on its late command.
 LOAD = re.compile(r"WARNING +nwr\.common\.pacing: \w+ loop overran by")
-PLANNER_LATE = re.compile(r"planner +WARNING +nwr\.common\.pacing: \w+ loop overran by")
+PLANNER_LATE = re.compile(r"planner(-[\w-]+)? +WARNING +nwr\.common\.pacing: \w+ loop overran by")
 LATE_COMMAND = re.compile(r"bridge +WARNING .*\[stale_command\]")
 
 
