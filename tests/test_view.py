@@ -457,37 +457,26 @@ def test_the_live_server_broadcasts_time_without_an_error(caplog):
 
 
 def test_ghost_of_a_whole_arm_withdrawal_is_its_displacement_and_none_when_it_holds_still():
-    """The whole-arm planner's own status, as it publishes it: the arrow is where the pad is headed (its mean
-    speed over the withdrawal's duration); a blocked reflex (no motion) draws none."""
+    """The reflex as the whole-arm planner publishes it (its strategy's onset direction and duration): the
+    arrow is where the pad is headed (its mean speed over the withdrawal); a blocked reflex draws none."""
     from nwr.common.config import PlannerSection
-    from nwr.services.planner.core import Planner
+    from nwr.services.planner import strategies
 
-    cfg = PlannerSection(strategy="whole-arm", name="whole-arm")
-    planner = Planner(cfg, DESC, MODEL)
-    planner.on_state(DESC.home.copy(), following=True)
-    t = 0
-    while planner.mode != "TASK":
-        t += 2_000_000
-        planner.step(t)
-    pad = 5
-    gains = [0.0] * len(DESC.pads)
-    gains[pad] = 0.58
-    p = DESC.pads[pad]
-    contact = m.Contact(pad=pad, name=p.name, region=p.region, change_hpa=15.0, level=4, gain=0.58)
-    planner.on_pain(m.SkinPain(seq=1, stamp_ns=t, trace=m.Trace(1, t), model="continuous", level=[1] * 10,
-                               gain=gains, strongest=contact), t)
-    st = planner.status(t)
+    cfg = PlannerSection(strategy="whole-arm")
+    strategy = strategies.build(cfg, DESC, MODEL, cfg.speed_fraction * DESC.v_max)
+    pad, q0 = 5, DESC.home.copy()
+    info = reflex_info(pad, 0.58)
+    onset = strategy.start(q0, info.contact)
+    info = msgspec.structs.replace(info, strategy="whole-arm", direction=onset.direction,
+                                   duration_s=strategy.duration_s)
     core = c.ViewCore(DESC, MODEL)
-    core.apply(state(np.array(planner.q)))
-    core.apply(st)
+    core.apply(state(q0))
+    core.apply(status("REFLEX", reflex=info, saved=list(q0)))
     ghost = core.frame(0).ghost
     assert ghost is not None and ghost.arrow is not None and ghost.strategy == "whole-arm"
-    q0 = np.asarray(st.saved_pose)
     length = float(np.linalg.norm(ghost.arrow.tip - ghost.arrow.tail))
     assert length == pytest.approx(0.58 * cfg.whole_arm.distance_m)
     assert ghost.arrow.tip - ghost.arrow.tail == pytest.approx(-length * MODEL.pad_normal(q0, pad), abs=1e-3)
-    assert st.reflex is not None
-    blocked = msgspec.structs.replace(st, seq=st.seq + 1, reflex=msgspec.structs.replace(
-        st.reflex, direction=[0.0, 0.0, 0.0], reason="blocked"))
-    core.apply(blocked)
+    blocked = msgspec.structs.replace(info, direction=[0.0, 0.0, 0.0], reason="blocked")
+    core.apply(status("REFLEX", seq=1, reflex=blocked, saved=list(q0)))
     assert core.frame(1).ghost is None

@@ -178,20 +178,27 @@ def test_a_ramp_longer_than_half_the_withdrawal_is_refused() -> None:
         build(duration_s=0.5, ramp_s=0.3)
 
 
-def test_the_planner_streams_it_for_its_own_duration_and_the_status_says_sideways() -> None:
-    cfg = PlannerSection(strategy="whole-arm", name="whole-arm")
+def touched(cfg: PlannerSection, pad: str, gain: float) -> tuple[Planner, int, m.Command | None]:
+    """A planner of ``cfg`` in its task, the touch on ``pad`` at ``gain`` given to it: the planner, the time (ns)
+    and its answer."""
     planner = Planner(cfg, DESC, MODEL)
     planner.on_state(DESC.home.copy(), following=True)
     t = 0
     while planner.mode != "TASK":
         t += 2_000_000
         planner.step(t)
-    pad = NAMES.index("shoulder_outer")
+    index = NAMES.index(pad)
     gains = [0.0] * len(NAMES)
-    gains[pad] = 1.0
+    gains[index] = gain
     pain = m.SkinPain(seq=1, stamp_ns=t, trace=m.Trace(1, t - 1000), model="continuous", level=[1] * len(NAMES),
-                      gain=gains, strongest=contact(pad, 1.0))
-    assert isinstance(planner.on_pain(pain, t), m.VelocityCommand)
+                      gain=gains, strongest=contact(index, gain))
+    return planner, t, planner.on_pain(pain, t)
+
+
+def test_the_planner_streams_it_for_its_own_duration_and_the_status_says_sideways() -> None:
+    cfg = PlannerSection(strategy="whole-arm", name="whole-arm")
+    planner, t, command = touched(cfg, "shoulder_outer", 1.0)
+    assert isinstance(command, m.VelocityCommand)
     assert planner.mode == "REFLEX"
     status = planner.status(t)
     assert status.reflex is not None and status.reflex.reason == "sideways"
@@ -208,18 +215,7 @@ def _reflex_and_return(pad: str, gain: float) -> np.ndarray:
     """The planner's commanded poses from a touch on ``pad`` until its task resumes (the paper's immediate
     return: no hold)."""
     cfg = PlannerSection(strategy="whole-arm", name="whole-arm", sustained_contact="paper")
-    planner = Planner(cfg, DESC, MODEL)
-    planner.on_state(DESC.home.copy(), following=True)
-    t = 0
-    while planner.mode != "TASK":
-        t += 2_000_000
-        planner.step(t)
-    index = NAMES.index(pad)
-    gains = [0.0] * len(NAMES)
-    gains[index] = gain
-    pain = m.SkinPain(seq=1, stamp_ns=t, trace=m.Trace(1, t - 1000), model="continuous", level=[1] * len(NAMES),
-                      gain=gains, strongest=contact(index, gain))
-    planner.on_pain(pain, t)
+    planner, t, _ = touched(cfg, pad, gain)
     path = [planner.q.copy()]
     while planner.mode != "TASK":
         t += 2_000_000

@@ -39,6 +39,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -681,40 +682,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_handler_with_defaults)
 
 
-def run_tracking(args: argparse.Namespace) -> int:
-    """``nwr bench --tracking``: the tracker's figures (:mod:`.bench_tracking`), one row per session and version."""
-    from nwr.services.tools import bench_tracking
-
+def _in_process(args: argparse.Namespace, name: str,
+                run: Callable[[Profile, Callable[[dict[str, Any]], None]], list[dict[str, Any]]]) -> int:
+    """An in-process measurement: ``run`` prints one row per line as it goes; ``--output``: ``<name>.json``."""
     profile = load_profile(args.profile)
 
     def show(row: dict[str, Any]) -> None:
         print(", ".join(f"{k} {_f(v, '.4g') if isinstance(v, float) else v}" for k, v in row.items()), flush=True)
 
-    rows = bench_tracking.run(profile, against=args.against, jitter_ms=args.jitter_ms, print_row=show)
+    rows = run(profile, show)
     if args.output:
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "tracking.json").write_text(json.dumps(rows, indent=1, default=_jsonable))
-        print(f"raw numbers: {out / 'tracking.json'}")
+        (out / f"{name}.json").write_text(json.dumps(rows, indent=1, default=_jsonable))
+        print(f"raw numbers: {out / f'{name}.json'}")
     return 0
+
+
+def run_tracking(args: argparse.Namespace) -> int:
+    """``nwr bench --tracking``: the tracker's figures (:mod:`.bench_tracking`), one row per session and version."""
+    from nwr.services.tools import bench_tracking
+
+    return _in_process(args, "tracking", lambda profile, show: bench_tracking.run(
+        profile, against=args.against, jitter_ms=args.jitter_ms, print_row=show))
 
 
 def run_strategies(args: argparse.Namespace) -> int:
     """``nwr bench --strategies``: each strategy's cost per planner cycle (:mod:`.bench_strategies`)."""
     from nwr.services.tools import bench_strategies
 
-    profile = load_profile(args.profile)
-
-    def show(row: dict[str, Any]) -> None:
-        print(", ".join(f"{k} {_f(v, '.3g') if isinstance(v, float) else v}" for k, v in row.items()), flush=True)
-
-    rows = bench_strategies.run(profile, print_row=show)
-    if args.output:
-        out = Path(args.output)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "strategies.json").write_text(json.dumps(rows, indent=1, default=_jsonable))
-        print(f"raw numbers: {out / 'strategies.json'}")
-    return 0
+    return _in_process(args, "strategies", lambda profile, show: bench_strategies.run(profile, print_row=show))
 
 
 def _handler_with_defaults(args: argparse.Namespace) -> int:
