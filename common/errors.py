@@ -19,3 +19,7 @@ class DecodeError(NwrError):
 
 class SafetyError(NwrError):
     """A command or state violates the robot's safety envelope."""
+
+
+class StudyError(NwrError):
+    """A study's answer store or a submission to it is refused (wrong version, out of scale, a duplicate, ...)."""

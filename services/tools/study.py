@@ -13,6 +13,11 @@ the participant, order, block and condition in the session metadata.
 During a block the arm draws the figure-eight and the planner lights the
 target pad; with the simulated skin, ``--follow-target`` makes a simulated
 participant press it every few seconds at varying pressures.
+
+The questionnaire's answers go to the study's store beside the recordings
+(``recordings/study.sqlite``): ``nwr study submit FORM.json`` writes one
+form, ``nwr study export --csv OUT`` writes them all in long format and
+``nwr study analyze`` runs the paper's analysis (docs/study.md).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
 from nwr.services.planner import strategies
+from nwr.services.tools.study_store import STORE_NAME, recording_name
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +77,7 @@ def conditions_of(text: str | None) -> tuple[str, ...]:
 
 
 def block_path(directory: Path, participant: str, block: int, condition: str) -> Path:
-    return directory / participant / f"{participant}-b{block}-{condition}.mcap"
+    return directory / recording_name(participant, block, condition)
 
 
 class Switcher:
@@ -173,14 +179,55 @@ def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
               f"{path}")
 
 
+def _store_path(args: argparse.Namespace) -> Path:
+    return Path(args.store) if args.store else Path(profile_for(args).recorder.directory) / STORE_NAME
+
+
+def _submit(args: argparse.Namespace) -> int:
+    from nwr.services.tools.study_store import Store, decode_form
+
+    with Store(_store_path(args), args.questionnaire) as store:
+        for path in args.forms:
+            form = decode_form(Path(path).read_bytes(), path)
+            store.submit(form, replace=args.replace)
+            what = f"condition {form.condition!r}" if hasattr(form, "condition") else "final form"
+            log.info("%s: participant %s, %s written to %s", path, form.participant, what, store.path)
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from nwr.services.tools.study_store import Store
+
+    with Store(_store_path(args), create=False) as store:
+        n = store.export_csv(args.csv)
+    print(f"{n} answers from {store.path} written to {args.csv}")
+    return 0
+
+
+def _analyze(args: argparse.Namespace) -> int:
+    from nwr.common.robot import load_description
+    from nwr.services.tools import study_analysis
+
+    store = _store_path(args)
+    out = Path(args.out) if args.out else store.parent / "study-analysis"
+    description = profile_for(args).robot.description or None
+    result, report, pictures = study_analysis.run(store, out, lambda: load_description(description))
+    for participant, why in result.excluded.items():
+        log.warning("participant %s excluded from the within-subject tests: %s", participant, why)
+    print(f"{len(result.complete)} of {len(result.participants)} participants in the tests; report {report}; "
+          f"figures {', '.join(p.name for p in pictures) or 'none'}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("study", help="run the paper's three-condition study protocol (or other conditions), one "
                                      "recording per block",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--participant", required=True, help="participant ID (names the recordings' folder)")
-    p.add_argument("--order", type=int, required=True,
-                   help="counterbalanced order (a cyclic Latin square of the conditions); the paper's: "
+    # Required for a session (checked in _session): argparse would also demand them of `nwr study analyze`.
+    p.add_argument("--participant", help="participant ID (names the recordings' folder); required for a session")
+    p.add_argument("--order", type=int, help="required for a session: "
+                        "counterbalanced order (a cyclic Latin square of the conditions); the paper's: "
                         + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
     p.add_argument("--conditions", metavar="R1,R2,...",
                    help="the reflex strategies to compare, comma-separated (default: the paper's "
@@ -189,4 +236,47 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the target pad every SECONDS (simulated skin)")
     p.add_argument("--overwrite", action="store_true", help="replace the participant's existing recordings")
-    p.set_defaults(handler=_run)
+
+    def _session(args: argparse.Namespace) -> int:
+        missing = [flag for flag, value in (("--participant", args.participant), ("--order", args.order))
+                   if value is None]
+        if missing:
+            p.error(f"the following arguments are required: {', '.join(missing)}")
+        return _run(args)
+
+    p.set_defaults(handler=_session)
+    answers = p.add_subparsers(dest="study_command", metavar="{submit,export,analyze}",
+                               title="the questionnaire's answers (docs/study.md)")
+    store_help = f"the study's answer store (default: the profile's recordings folder/{STORE_NAME})"
+    s = answers.add_parser("submit", help="write filled-in forms (JSON) to the study's answer store",
+                           description="Write each FORM (a JSON object: \"form\": \"condition\" with participant, "
+                                       "condition, order, block and ratings; or \"form\": \"final\" with "
+                                       "participant, choices and answers) in one transaction each. A form already "
+                                       "submitted is refused unless --replace.")
+    s.add_argument("forms", nargs="+", metavar="FORM", help="a submission as JSON (docs/study.md)")
+    s.add_argument("--store", metavar="PATH", help=store_help)
+    s.add_argument("--questionnaire", metavar="FILE",
+                   help="a new store's questionnaire (default: the packaged common/study/questionnaire.toml)")
+    s.add_argument("--replace", action="store_true", help="replace a form already submitted")
+    s.set_defaults(handler=_submit)
+    e = answers.add_parser("export", help="every answer as CSV, one row per participant x condition x item",
+                           description="Every answer in tidy long format: one row per participant x condition x "
+                                       "item, with order, block, recording, subscale and whether it is reversed; "
+                                       "the final form's answers with an empty condition.")
+    e.add_argument("--csv", required=True, metavar="OUT", help="the CSV file to write")
+    e.add_argument("--store", metavar="PATH", help=store_help)
+    e.set_defaults(handler=_export)
+    a = answers.add_parser("analyze", help="the paper's analysis of the answers and recordings: report and figures",
+                           description=study_analysis_doc(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--store", metavar="PATH", help=store_help)
+    a.add_argument("--out", metavar="DIR", help="where report.md and the figures go (default: study-analysis/ "
+                                                 "beside the store)")
+    a.set_defaults(handler=_analyze)
+
+
+def study_analysis_doc() -> str:
+    """The analysis module's docstring, for ``--help`` (without importing scipy and matplotlib at start-up)."""
+    import ast
+
+    source = Path(__file__).with_name("study_analysis.py").read_text(encoding="utf-8")
+    return (ast.get_docstring(ast.parse(source)) or "").split("\n\n", 1)[1]

@@ -1,0 +1,481 @@
+"""``nwr study analyze``: the study's answers and recordings, analysed as the paper did, as tables and figures.
+
+Per participant and condition, each subscale's score is the mean of its
+items, reversed items flipped (``points + 1 - x``). Across conditions, for
+the participants who answered every condition (the others are listed, with
+what they miss, and kept in the descriptive statistics only): the Friedman
+test (``scipy.stats.friedmanchisquare``, effect size Kendall's W =
+chi2 / (N (k - 1))), and where its p < 0.05 the pairwise Wilcoxon signed-rank
+tests (``scipy.stats.wilcoxon``, two-sided, zero differences dropped; exact
+without ties, else the normal approximation with the tie correction), their
+p-values Holm-corrected within each subscale (the family: its k (k - 1) / 2
+pairs), effect size the matched-pairs rank-biserial correlation. With two
+conditions the one Wilcoxon test is the test. Cronbach's alpha per subscale
+and condition describes the items' consistency. Stars: *, **, *** for
+(corrected) p below 0.05, 0.01, 0.001.
+
+Per condition, what the recordings measured (``analysis.summarize`` of each
+block's recording): reflexes per block, onset latency, withdrawal and peak
+speed, medians over the condition's reflexes. A missing or unreadable
+recording is said in the report, not fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+from scipy import stats
+
+from nwr.common.errors import NwrError
+from nwr.common.questionnaire import Questionnaire, Scale
+from nwr.services.tools.study_store import NO_PREFERENCE, FinalAnswer, Rating, Store
+
+log = logging.getLogger(__name__)
+
+ALPHA = 0.05
+
+
+def stars(p: float | None) -> str:
+    if p is None or not np.isfinite(p):
+        return ""
+    return "***" if p < 0.001 else "**" if p < 0.01 else "*" if p < 0.05 else ""
+
+
+def holm(p: list[float]) -> list[float]:
+    """Holm's step-down adjusted p-values (the k-th smallest times (m - k + 1), made monotone, capped at 1)."""
+    m = len(p)
+    order = np.argsort(p, kind="stable")
+    adjusted = np.empty(m)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        adjusted[i] = running
+    return [float(x) for x in adjusted]
+
+
+def cronbach_alpha(items: np.ndarray) -> float | None:
+    """Cronbach's alpha of a participants x items matrix; None with fewer than 2 items or 2 participants, or
+    no variance in the total."""
+    n, k = items.shape
+    if k < 2 or n < 2:
+        return None
+    total = items.sum(axis=1).var(ddof=1)
+    if total == 0:
+        return None
+    return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
+
+
+def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
+    """Matched-pairs rank-biserial correlation of a - b (zero differences dropped): +1 every participant rated
+    ``a`` higher, -1 every one ``b``."""
+    d = a - b
+    d = d[d != 0]
+    if d.size == 0:
+        return 0.0
+    ranks = stats.rankdata(np.abs(d))
+    return float((ranks[d > 0].sum() - ranks[d < 0].sum()) / ranks.sum())
+
+
+@dataclass
+class PairTest:
+    a: str
+    b: str
+    n: int  # complete participants (zero differences included; the test drops them)
+    statistic: float  # scipy's: the smaller of the signed-rank sums
+    p: float
+    p_holm: float = 1.0
+    r: float = 0.0  # rank-biserial, > 0: a rated higher
+
+
+@dataclass
+class ScaleResult:
+    scale: Scale
+    scores: dict[str, dict[str, float]]  # condition -> participant -> score
+    alpha: dict[str, float | None]  # condition -> Cronbach's alpha
+    n: int = 0  # complete participants in the tests
+    chi2: float | None = None
+    p: float | None = None
+    kendall_w: float | None = None
+    pairs: list[PairTest] = field(default_factory=list)
+    note: str = ""
+
+
+@dataclass
+class Analysis:
+    questionnaire: Questionnaire
+    conditions: list[str]
+    participants: list[str]
+    complete: list[str]
+    excluded: dict[str, str]  # participant -> why not in the within-subject tests
+    scales: list[ScaleResult]
+    votes: dict[str, Counter[str]]  # choice id -> option -> votes
+    no_final: list[str]
+    open_answers: dict[str, list[tuple[str, str]]]  # question id -> (participant, text)
+
+
+def _order(conditions: set[str], q: Questionnaire) -> list[str]:
+    known = list(q.labels)
+    return sorted(conditions, key=lambda c: (known.index(c) if c in known else len(known), c))
+
+
+def analyze(ratings: list[Rating], finals: list[FinalAnswer], q: Questionnaire) -> Analysis:
+    """The analysis of a store's answers (pure: no files)."""
+    values: dict[tuple[str, str], dict[str, int]] = defaultdict(dict)  # (participant, condition) -> item -> value
+    for r in ratings:
+        values[(r.participant, r.condition)][r.item] = r.value
+    conditions = _order({c for _, c in values}, q)
+    final_by: dict[str, list[FinalAnswer]] = defaultdict(list)
+    for a in finals:
+        final_by[a.participant].append(a)
+    participants = sorted({p for p, _ in values} | set(final_by))
+    excluded: dict[str, str] = {}
+    for p in participants:
+        missing = [c for c in conditions if (p, c) not in values]
+        if len(missing) == len(conditions):
+            excluded[p] = "no per-condition form (final form only)"
+        elif missing:
+            excluded[p] = f"no answers for {', '.join(missing)} (a skipped block?)"
+    complete = [p for p in participants if p not in excluded]
+
+    results = []
+    for scale in q.scales():
+        flip = scale.reversed
+        scores: dict[str, dict[str, float]] = {c: {} for c in conditions}
+        alpha: dict[str, float | None] = {}
+        for c in conditions:
+            rows = [[q.points + 1 - v[i] if i in flip else v[i] for i in scale.items]
+                    for (p, cond), v in sorted(values.items()) if cond == c]
+            who = [p for (p, cond) in sorted(values) if cond == c]
+            matrix = np.array(rows, dtype=float).reshape(len(rows), len(scale.items))
+            scores[c] = dict(zip(who, matrix.mean(axis=1).tolist()))
+            alpha[c] = cronbach_alpha(matrix)
+        result = ScaleResult(scale, scores, alpha, n=len(complete))
+        _test(result, conditions, complete)
+        results.append(result)
+
+    votes: dict[str, Counter[str]] = {c.id: Counter() for c in q.choice}
+    open_answers: dict[str, list[tuple[str, str]]] = {o.id: [] for o in q.open}
+    for p, answers in sorted(final_by.items()):
+        for a in answers:
+            if a.kind == "choice" and a.item in votes:
+                votes[a.item][a.text] += 1
+            elif a.kind == "open" and a.text and a.item in open_answers:
+                open_answers[a.item].append((p, a.text))
+    no_final = [p for p in participants if p not in final_by]
+    return Analysis(q, conditions, participants, complete, excluded, results, votes, no_final, open_answers)
+
+
+def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> None:
+    k, n = len(conditions), len(complete)
+    if k < 2:
+        result.note = "one condition: nothing to compare"
+        return
+    if n < 3:
+        result.note = f"{n} participant(s) answered every condition: too few for the tests (3 or more)"
+        return
+    data = np.array([[result.scores[c][p] for c in conditions] for p in complete])  # participants x conditions
+    if k >= 3:
+        if np.all(data == data[:, :1]):  # every participant rated every condition alike: no ranks differ
+            result.chi2, result.p, result.kendall_w = 0.0, 1.0, 0.0
+        else:
+            chi2, p = stats.friedmanchisquare(*data.T)
+            result.chi2, result.p = float(chi2), float(p)
+            result.kendall_w = float(chi2) / (n * (k - 1))
+        if result.p >= ALPHA:
+            return
+    pairs = []
+    for i in range(k):
+        for j in range(i + 1, k):
+            a, b = data[:, i], data[:, j]
+            if np.all(a == b):
+                pairs.append(PairTest(conditions[i], conditions[j], n, 0.0, 1.0))
+                continue
+            d = a - b
+            nonzero = np.abs(d[d != 0])
+            # Exact without zeros or ties; else the normal approximation with the tie correction (scipy's
+            # permutation method would take seconds a test and, on subscale means, gives the same answer).
+            exact = nonzero.size == d.size and np.unique(nonzero).size == nonzero.size
+            res = stats.wilcoxon(a, b, method="exact" if exact else "approx")
+            pairs.append(PairTest(conditions[i], conditions[j], n, float(res.statistic), float(res.pvalue),
+                                  r=rank_biserial(a, b)))
+    for pair, adjusted in zip(pairs, holm([pt.p for pt in pairs])):
+        pair.p_holm = adjusted
+    result.pairs = pairs
+    if k == 2:
+        result.note = "two conditions: the Wilcoxon signed-rank test alone (no Friedman test)"
+
+
+# -- what the recordings measured ------------------------------------------------------
+
+
+@dataclass
+class ConditionMeasures:
+    condition: str
+    blocks: int = 0
+    reflexes_per_block: list[int] = field(default_factory=list)
+    onset_ms: list[float] = field(default_factory=list)
+    withdrawal_mm: list[float] = field(default_factory=list)
+    peak_m_s: list[float] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # "P03 b2 ...: missing"
+
+
+def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str, ConditionMeasures]:
+    """Per condition, each rated block's recording (relative to ``root``) summarized; a recording that is
+    missing or unreadable is noted, not fatal. ``desc``: a RobotDescription, or a callable returning one
+    (loaded only when a recording is there)."""
+    from nwr.common.recordings import read_recording
+    from nwr.services.tools import analysis
+
+    blocks = sorted({(r.condition, r.participant, r.block, r.recording) for r in ratings})
+    out: dict[str, ConditionMeasures] = {}
+    for condition, participant, block, recording in blocks:
+        cm = out.setdefault(condition, ConditionMeasures(condition))
+        path = root / recording
+        if not path.exists():
+            cm.problems.append(f"{participant} block {block}: {recording} is missing")
+            continue
+        try:
+            records, _ = read_recording(path)
+            if callable(desc):
+                desc = desc()
+            touches = analysis.summarize(records, desc)
+        except (NwrError, OSError) as exc:
+            cm.problems.append(f"{participant} block {block}: {recording} unreadable ({exc})")
+            continue
+        cm.blocks += 1
+        reflexes = [t for t in touches if t.reflex_seq]
+        cm.reflexes_per_block.append(len(reflexes))
+        cm.onset_ms += [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
+        cm.withdrawal_mm += [t.withdrawal_mm for t in reflexes if t.withdrawal_mm is not None]
+        cm.peak_m_s += [t.peak_speed_m_s for t in reflexes if t.peak_speed_m_s is not None]
+    return out
+
+
+# -- figures ---------------------------------------------------------------------------
+
+
+def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scales = [s for s in result.scales if s.scale.kind == kind]
+    if not scales:
+        return None
+    labels = [result.questionnaire.label(c) for c in result.conditions]
+    cols = 2 if len(scales) == 4 else len(scales)
+    rows = -(-len(scales) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), squeeze=False)
+    for ax, s in zip(axes.flat, scales):
+        data = [list(s.scores[c].values()) for c in result.conditions]
+        ax.boxplot(data, tick_labels=labels, showmeans=True, widths=0.5,
+                   medianprops={"color": "red", "linewidth": 2},
+                   meanprops={"marker": "o", "markerfacecolor": "red", "markeredgecolor": "red", "markersize": 5},
+                   flierprops={"marker": "x", "markeredgecolor": "0.3"},
+                   boxprops={"color": "0.2"}, whiskerprops={"color": "0.2"}, capprops={"color": "0.2"})
+        ax.set_title(s.scale.name, fontsize=11)
+        ax.set_ylim(0.8, 5.2)
+        ax.set_yticks(range(1, 6))
+        ax.grid(axis="y", alpha=0.3)
+        top = 5.25
+        for pair in s.pairs:
+            mark = stars(pair.p_holm)
+            if not mark:
+                continue
+            i, j = result.conditions.index(pair.a) + 1, result.conditions.index(pair.b) + 1
+            ax.plot([i, i, j, j], [top, top + 0.08, top + 0.08, top], color="black", linewidth=1)
+            ax.text((i + j) / 2, top + 0.06, mark, ha="center", va="bottom", fontsize=11)
+            top += 0.35
+        ax.set_ylim(0.8, max(5.2, top + 0.1))
+        ax.set_xlabel(_friedman_text(s), fontsize=8, color="0.35")
+    for ax in list(axes.flat)[len(scales):]:
+        ax.set_visible(False)
+    fig.suptitle(title, fontsize=12)
+    fig.text(0.5, 0.005, "red dot: mean, red line: median; * p < 0.05, ** p < 0.01, *** p < 0.001 "
+             "(Wilcoxon signed-rank, Holm-corrected)", ha="center", fontsize=7, color="0.35")
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def _friedman_text(s: ScaleResult) -> str:
+    if s.p is None:
+        return s.note.split(":")[0] if s.note else ""
+    return f"Friedman p = {s.p:.3g}, Kendall's W = {s.kendall_w:.2f}, N = {s.n}"
+
+
+def _radar(result: Analysis, path: Path) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    q = result.questionnaire
+    if not q.choice or not any(result.votes.values()):
+        return None
+    options = [*result.conditions, NO_PREFERENCE]
+    names = [q.label(c) for c in result.conditions] + [q.no_preference]
+    angles = np.linspace(0, 2 * np.pi, len(q.choice), endpoint=False)
+    top = max(max(v.values(), default=0) for v in result.votes.values())
+    from matplotlib.projections.polar import PolarAxes
+
+    fig, axes = plt.subplots(figsize=(6.4, 6.4), subplot_kw={"projection": "polar"})
+    ax = cast(PolarAxes, axes)
+    ax.set_theta_offset(np.pi / 2)  # the first question at the top, the others clockwise
+    ax.set_theta_direction(-1)
+    colors = plt.get_cmap("tab10")
+    palette = ["0.45" if o == NO_PREFERENCE else colors(n) for n, o in enumerate(options)]
+    closed = np.append(angles, angles[0])
+    for option, name, color in zip(options, names, palette):
+        counts = np.array([result.votes[c.id][option] for c in q.choice], dtype=float)
+        ax.plot(closed, np.append(counts, counts[0]), color=color, linewidth=2, marker="o", markersize=4,
+                linestyle="--" if option == NO_PREFERENCE else "-", label=name)
+        ax.fill(closed, np.append(counts, counts[0]), color=color, alpha=0.08)
+    ax.set_xticks(angles)
+    ax.set_xticklabels([])
+    # The counts beside each question's name: points of equal count would hide each other's numbers.
+    for angle, choice in zip(angles, q.choice):
+        ax.text(angle, top + 1.9, choice.short, ha="center", va="center", fontsize=11, fontweight="bold")
+        short = [*(q.label(c) for c in result.conditions), "none"]
+        tally = "  ".join(f"{n} {result.votes[choice.id][o]}" for n, o in zip(short, options))
+        ax.text(angle, top + 1.9, "\n\n" + tally, ha="center", va="center", fontsize=9, color="0.3")
+    ax.set_ylim(0, top + 1)
+    ax.set_yticks(range(0, top + 2, max(1, (top + 1) // 4)))
+    ax.tick_params(axis="y", labelsize=7, labelcolor="0.5")
+    ax.set_title(f"Forced choice: votes of {sum(result.votes[q.choice[0].id].values())} participants", fontsize=12,
+                 pad=40)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=len(options), fontsize=9, frameon=False)
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def figures(result: Analysis, out: Path) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    made = [_boxplots(result, "godspeed", out / "godspeed.png", "Godspeed scores per condition"),
+            _boxplots(result, "custom", out / "custom.png", "Custom scales per condition"),
+            _radar(result, out / "votes.png")]
+    return [p for p in made if p is not None]
+
+
+# -- the report ------------------------------------------------------------------------
+
+
+def _f(x: float | None, fmt: str = ".2f") -> str:
+    return "-" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def _p(p: float | None) -> str:
+    if p is None:
+        return "-"
+    return "< 0.001" if p < 0.001 else f"{p:.3f}"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *("| " + " | ".join(r) + " |" for r in rows), ""]
+
+
+def report(result: Analysis, store: str, pictures: list[Path],
+           measures: dict[str, ConditionMeasures] | None = None) -> str:
+    q = result.questionnaire
+    lab = q.label
+    conds = ", ".join(f"{lab(c)} ({c})" if lab(c) != c else c for c in result.conditions)
+    lines = [f"# Study analysis: {store}", "",
+             f"Questionnaire `{q.name}`; conditions {conds}; {len(result.participants)} participants, "
+             f"{len(result.complete)} with every condition answered.", ""]
+    if result.excluded:
+        lines += ["**Excluded from the within-subject tests** (kept in the descriptive statistics):", ""]
+        lines += [f"- {p}: {why}" for p, why in result.excluded.items()] + [""]
+    lines += ["## Method", "",
+              "Each subscale's score is the mean of its items per participant and condition, reversed items "
+              f"flipped ({q.points + 1} - x). Across conditions, over the participants who answered every "
+              "condition: the Friedman test (effect size Kendall's W); where its p < 0.05, pairwise Wilcoxon "
+              "signed-rank tests (two-sided, zero differences dropped; exact p without ties, else the normal "
+              "approximation with the tie correction) with the Holm correction over the "
+              "subscale's pairs (p Holm), effect size the matched-pairs rank-biserial correlation r (> 0: the "
+              "first condition rated higher). The Friedman p-values are not corrected across subscales. Stars: "
+              "*, **, *** for p Holm < 0.05, 0.01, 0.001. Cronbach's alpha per subscale and condition over "
+              "every participant who answered it.", "",
+              "## Descriptive statistics", ""]
+    rows = []
+    for s in result.scales:
+        for c in result.conditions:
+            v = np.array(list(s.scores[c].values()))
+            if v.size == 0:
+                rows.append([s.scale.name, lab(c), "0", "-", "-", "-", "-", "-"])
+                continue
+            q1, med, q3 = np.percentile(v, [25, 50, 75])
+            rows.append([s.scale.name, lab(c), str(v.size), f"{v.mean():.2f}",
+                         _f(float(v.std(ddof=1)) if v.size > 1 else None), f"{med:.2f}", f"{q1:.2f}-{q3:.2f}",
+                         _f(s.alpha[c])])
+    lines += _table(["subscale", "condition", "n", "mean", "SD", "median", "IQR", "Cronbach's alpha"], rows)
+    lines += ["## Friedman tests", ""]
+    k = len(result.conditions)
+    lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "Kendall's W", "note"],
+                    [[s.scale.name, str(s.n), _f(s.chi2), _p(s.p) + (" " + stars(s.p) if stars(s.p) else ""),
+                      _f(s.kendall_w), s.note] for s in result.scales])
+    post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), _f(pt.statistic, ".1f"), _p(pt.p),
+             _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
+    lines += ["## Pairwise Wilcoxon signed-rank tests", ""]
+    if post:
+        lines += _table(["subscale", "pair", "N", "T (smaller rank sum)", "p", "p Holm", "r (rank-biserial)", ""], post)
+    else:
+        lines += ["None: no Friedman test had p < 0.05.", ""]
+    lines += ["## Forced choice", ""]
+    if q.choice:
+        options = [*result.conditions, NO_PREFERENCE]
+        lines += _table(["question", *(lab(c) for c in result.conditions), q.no_preference],
+                        [[c.text, *(str(result.votes[c.id][o]) for o in options)] for c in q.choice])
+        if result.no_final:
+            lines += [f"No final form from: {', '.join(result.no_final)}.", ""]
+    if measures is not None:
+        lines += ["## What the recordings measured", "",
+                  "Per condition, every rated block's recording (`nwr summary`'s figures); medians over the "
+                  "condition's reflexes.", ""]
+        rows = []
+        for c in result.conditions:
+            cm = measures.get(c)
+            if cm is None:
+                continue
+            rows.append([lab(c), str(cm.blocks), _f(float(np.median(cm.reflexes_per_block)) if cm.blocks else None,
+                                                   ".1f"),
+                         _f(float(np.median(cm.onset_ms)) if cm.onset_ms else None),
+                         _f(float(np.median(cm.withdrawal_mm)) if cm.withdrawal_mm else None, ".1f"),
+                         _f(float(np.median(cm.peak_m_s)) if cm.peak_m_s else None, ".3f")])
+        lines += _table(["condition", "blocks read", "reflexes per block", "onset (ms)", "withdrawal (mm)",
+                         "peak speed (m/s)"], rows)
+        problems = [p for cm in measures.values() for p in cm.problems]
+        if problems:
+            lines += ["Recordings not read:", "", *(f"- {p}" for p in problems), ""]
+    if any(result.open_answers.values()):
+        lines += ["## Open answers", ""]
+        for o in q.open:
+            answers = result.open_answers.get(o.id, [])
+            if answers:
+                lines += [f"**{o.text}**", "", *(f"- {p}: {text}" for p, text in answers), ""]
+    if pictures:
+        lines += ["## Figures", "", *(f"![{p.stem}]({p.name})" for p in pictures), ""]
+    return "\n".join(lines)
+
+
+def run(store_path: Path, out: Path, desc: Any = None) -> tuple[Analysis, Path, list[Path]]:
+    """Analyse the store at ``store_path`` into ``out`` (report.md and the figures); ``desc``: the robot
+    description for the recordings (a callable is called when the first recording is read)."""
+    with Store(store_path, create=False) as store:
+        ratings, finals, q = store.ratings(), store.final_answers(), store.questionnaire
+    if not ratings:
+        log.warning("%s holds no per-condition answers yet", store_path)
+    result = analyze(ratings, finals, q)
+    pictures = figures(result, out)
+    measures = measure_recordings(ratings, store_path.parent, desc) if desc is not None else None
+    path = out / "report.md"
+    path.write_text(report(result, str(store_path), pictures, measures), encoding="utf-8")
+    return result, path, pictures

@@ -1,0 +1,259 @@
+"""The study's questionnaire, answer store and analysis (``nwr study submit|export|analyze``)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+from study_synthetic import condition_forms, final_forms, ratings_of
+
+from nwr.common.errors import ConfigError, StudyError
+from nwr.common.questionnaire import QUESTIONNAIRE_PATH, load_questionnaire, parse_questionnaire
+from nwr.services.cli import main
+from nwr.services.tools import study_analysis as sa
+from nwr.services.tools.study_store import ConditionForm, FinalForm, Store, decode_form
+
+Q, Q_TEXT = load_questionnaire()
+
+
+def _form(condition: str = "uniform", block: int = 1, participant: str = "P01", **changes: int) -> ConditionForm:
+    ratings = dict.fromkeys(Q.rated_items(), 3) | changes
+    return ConditionForm(participant=participant, condition=condition, order=1, block=block, ratings=ratings)
+
+
+# -- the questionnaire -----------------------------------------------------------------
+
+
+def test_the_packaged_questionnaire_is_the_papers():
+    assert [g.name for g in Q.godspeed] == ["Anthropomorphism", "Animacy", "Likeability", "Perceived Safety"]
+    assert [len(g.items) for g in Q.godspeed] == [5, 6, 5, 3]  # Bartneck et al. 2009
+    assert [(i.left, i.right) for i in Q.godspeed[0].items][:2] == [("Fake", "Natural"), ("Machinelike", "Humanlike")]
+    assert [len(g.items) for g in Q.likert] == [2, 3, 3]  # the paper's eight custom items
+    assert Q.likert[0].items[0].text.startswith("The robot’s reaction to my touch felt natural")
+    assert [c.id for c in Q.choice] == ["most_natural", "most_human_like", "safest", "most_appropriate"]
+    assert len(Q.open) == 4 and Q.points == 5
+
+
+@pytest.mark.parametrize(("old", "new", "names"), [
+    ("points = 5", "points = 7", "$.points"),
+    ('{ id = "natural_1", text', '{ id = "natural_1", txt', "$.likert[0].items[0]"),
+    ('right = "Lively"', 'right = ""', "$.godspeed[1].items[1].right"),
+    ('left = "Dead", ', "", "$.godspeed[1].items[0]"),  # missing anchor
+    ('id = "safest"', 'id = "safest"\ncolour = "red"', "colour"),
+    ('id = "natural_2"', 'id = "natural_1"', "'natural_1'"),  # an id twice
+])
+def test_a_bad_questionnaire_is_a_config_error_naming_the_field(old, new, names):
+    assert old in Q_TEXT
+    with pytest.raises(ConfigError, match=f"{names}".replace("$", r"\$").replace("[", r"\[").replace("]", r"\]")):
+        parse_questionnaire(Q_TEXT.replace(old, new, 1))
+
+
+def test_the_questionnaire_is_package_data():
+    import tomllib
+    from pathlib import Path
+
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "*.toml" in pyproject["tool"]["setuptools"]["package-data"]["nwr.common.study"]
+    assert QUESTIONNAIRE_PATH.exists()
+
+
+# -- the store -------------------------------------------------------------------------
+
+
+def test_answers_round_trip_with_their_block_and_recording(tmp_path):
+    with Store(tmp_path / "study.sqlite") as store:
+        store.submit(_form("uniform", 1, anthropomorphism_1=5))
+        store.submit(_form("location", 2))
+        store.submit(FinalForm(participant="P01", choices=dict.fromkeys((c.id for c in Q.choice), "uniform")
+                               | {"safest": "none"}, answers={"liked_most": "it moved back"}))
+    with Store(tmp_path / "study.sqlite", create=False) as store:  # reopened: everything is there
+        ratings = store.ratings()
+        assert len(ratings) == 2 * len(Q.rated_items())
+        first = ratings[0]
+        assert (first.participant, first.condition, first.order, first.block, first.item, first.value) == \
+            ("P01", "uniform", 1, 1, "anthropomorphism_1", 5)
+        assert first.recording == "P01/P01-b1-uniform.mcap"
+        finals = {a.item: a.text for a in store.final_answers()}
+        assert finals["safest"] == "none" and finals["most_natural"] == "uniform"
+        assert finals["liked_most"] == "it moved back" and finals["suggestions"] == ""
+        assert store.questionnaire == Q  # the copy it keeps
+    db = sqlite3.connect(tmp_path / "study.sqlite")
+    assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: _form(animacy_2=6), r"animacy_2 = 6 is out of the scale 1 to 5"),
+    (lambda: _form(animacy_2=0), r"animacy_2 = 0 is out of the scale"),
+    (lambda: ConditionForm(participant="P01", condition="uniform", order=1, block=1,
+                           ratings={i: 3 for i in Q.rated_items() if i != "comfort_2"}),
+     r"no answer to comfort_2"),
+    (lambda: _form(colour=3), r"colour is no item"),
+    (lambda: _form("location", 1), r"block 1 was already answered for condition 'uniform'"),
+    (lambda: ConditionForm(participant="P01", condition="location", order=2, block=2,
+                           ratings=dict.fromkeys(Q.rated_items(), 3)), r"order 2, but .* says order 1"),
+    (lambda: FinalForm(participant="P01", choices=dict.fromkeys((c.id for c in Q.choice), "cartesian")),
+     r"most_natural = 'cartesian' is no condition the participant rated \(uniform\)"),
+    (lambda: FinalForm(participant="P01", choices={"most_natural": "uniform"}), r"no answer to most_human_like"),
+])
+def test_a_bad_submission_is_refused_naming_the_item_and_nothing_is_written(tmp_path, make, message):
+    with Store(tmp_path / "study.sqlite") as store:
+        store.submit(_form("uniform", 1))
+        before = len(store.ratings()), len(store.final_answers())
+        with pytest.raises(StudyError, match=message):
+            store.submit(make())
+        assert (len(store.ratings()), len(store.final_answers())) == before
+
+
+def test_a_second_submission_is_refused_unless_it_explicitly_replaces(tmp_path):
+    with Store(tmp_path / "study.sqlite") as store:
+        store.submit(_form("uniform", 1))
+        with pytest.raises(StudyError, match="P01 already submitted the form for condition 'uniform' at .*--replace"):
+            store.submit(_form("uniform", 1, likeability_1=5))
+        store.submit(_form("uniform", 1, likeability_1=5), replace=True)
+        values = {r.item: r.value for r in store.ratings()}
+        assert len(store.ratings()) == len(Q.rated_items()) and values["likeability_1"] == 5
+
+
+def test_a_store_of_another_version_or_no_store_is_a_clear_error(tmp_path):
+    path = tmp_path / "study.sqlite"
+    Store(path).close()
+    db = sqlite3.connect(path)
+    db.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+    db.commit()
+    db.close()
+    with pytest.raises(StudyError, match="schema version 99; this nwr reads version 1"):
+        Store(path)
+    (tmp_path / "junk.sqlite").write_bytes(b"not a database at all" * 100)
+    with pytest.raises(StudyError, match="no study store"):
+        Store(tmp_path / "junk.sqlite")
+    with pytest.raises(StudyError, match="no study store at"):
+        Store(tmp_path / "absent.sqlite", create=False)
+
+
+def test_a_form_as_json_decodes_and_a_bad_one_names_the_field():
+    form = decode_form(json.dumps({"form": "condition", "participant": "P01", "condition": "uniform", "order": 1,
+                                   "block": 1, "ratings": {"animacy_1": 4}}).encode(), "x.json")
+    assert isinstance(form, ConditionForm) and form.ratings == {"animacy_1": 4}
+    with pytest.raises(StudyError, match=r"block"):
+        decode_form(b'{"form": "condition", "participant": "P01", "condition": "uniform", "order": 1, '
+                    b'"block": 0, "ratings": {}}', "x.json")
+    with pytest.raises(StudyError, match="participant"):
+        decode_form(b'{"form": "final", "participant": "../etc", "choices": {}}', "x.json")
+
+
+def test_export_writes_one_row_per_participant_condition_and_item(tmp_path):
+    rng = np.random.default_rng(3)
+    with Store(tmp_path / "study.sqlite") as store:
+        for form in condition_forms(Q, rng, 3, {}):
+            store.submit(form)
+        for final in final_forms(Q, rng, 3, {"uniform": 1, "none": 1}):
+            store.submit(final)
+    assert main(["study", "export", "--store", str(tmp_path / "study.sqlite"), "--csv", str(tmp_path / "a.csv")]) == 0
+    with open(tmp_path / "a.csv", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    rated = [r for r in rows if r["form"] == "condition"]
+    assert len(rated) == 3 * 3 * len(Q.rated_items())
+    assert len({(r["participant"], r["condition"], r["item"]) for r in rated}) == len(rated)
+    safety_3 = next(r for r in rated if r["item"] == "safety_3")
+    assert safety_3["scale"] == "perceived_safety" and safety_3["reversed"] == "1"
+    assert safety_3["recording"] == f"{safety_3['participant']}/{safety_3['participant']}-b{safety_3['block']}-" \
+                                    f"{safety_3['condition']}.mcap"
+    assert len([r for r in rows if r["form"] == "final"]) == 3 * (len(Q.choice) + len(Q.open))
+
+
+# -- the analysis ----------------------------------------------------------------------
+
+
+def test_a_preferred_condition_comes_out_significant_in_the_direction_drawn(tmp_path):
+    rng = np.random.default_rng(18)
+    store_path = tmp_path / "recordings" / "study.sqlite"
+    with Store(store_path) as store:
+        for form in condition_forms(Q, rng, 12, {"uniform": 1.2}):
+            store.submit(form)
+        for final in final_forms(Q, rng, 12, {"uniform": 6, "location": 1, "cartesian": 2, "none": 1}):
+            store.submit(final)
+    out = tmp_path / "analysis"
+    assert main(["study", "analyze", "--store", str(store_path), "--out", str(out)]) == 0
+    result, _, _ = sa.run(store_path, out, desc=lambda: pytest.fail("there is no recording to read"))
+    assert result.complete == [f"P{i:02d}" for i in range(1, 13)] and not result.excluded
+    for s in result.scales:
+        assert s.p is not None and s.p < 0.05, s.scale.name
+        for pair in s.pairs:
+            if "uniform" in (pair.a, pair.b):
+                assert pair.p_holm < 0.05, (s.scale.name, pair)
+                assert (pair.r > 0) == (pair.a == "uniform")  # uniform rated higher
+    text = (out / "report.md").read_text()
+    assert "| Anthropomorphism | UR vs LR | 12 |" in text and "Holm" in text and "**" in text
+    assert "P01/P01-b1-uniform.mcap is missing" in text  # no recordings here: said, not fatal
+    for name in ("godspeed.png", "custom.png", "votes.png"):
+        assert (out / name).stat().st_size > 20_000, name
+
+
+def test_answers_without_an_effect_reject_at_the_nominal_rate():
+    rng = np.random.default_rng(7)
+    draws, rejected = 200, 0
+    for _ in range(draws):
+        result = sa.analyze(ratings_of(condition_forms(Q, rng, 12, {})), [], Q)
+        rejected += sum(1 for s in result.scales if s.p is not None and s.p < 0.05)
+    rate = rejected / (draws * len(result.scales))
+    margin = 3 * np.sqrt(0.05 * 0.95 / draws)  # 3 binomial SDs of one subscale's 200 draws
+    assert abs(rate - 0.05) < min(margin, 0.05), rate
+
+
+def test_a_participant_without_every_condition_is_excluded_from_the_tests_and_listed():
+    rng = np.random.default_rng(5)
+    forms = condition_forms(Q, rng, 6, {"cartesian": 1.0})
+    forms = [f for f in forms if not (f.participant == "P02" and f.condition == "location")]
+    result = sa.analyze(ratings_of(forms), [], Q)
+    assert result.complete == ["P01", "P03", "P04", "P05", "P06"]
+    assert result.excluded == {"P02": "no answers for location (a skipped block?)"}
+    assert all(s.n == 5 for s in result.scales)
+    assert len(result.scales[0].scores["uniform"]) == 6  # still in the descriptive statistics
+    text = sa.report(result, "s", [])
+    assert "P02: no answers for location" in text and result.no_final == [f"P0{i}" for i in range(1, 7)]
+
+
+def test_two_conditions_are_compared_by_one_wilcoxon_test():
+    rng = np.random.default_rng(9)
+    result = sa.analyze(ratings_of(condition_forms(Q, rng, 10, {"whole-arm": 1.5}, ("cartesian", "whole-arm"))),
+                        [], Q)
+    assert result.conditions == ["cartesian", "whole-arm"]
+    for s in result.scales:
+        assert s.p is None and len(s.pairs) == 1 and "two conditions" in s.note
+        assert s.pairs[0].r < 0 and s.pairs[0].p_holm == s.pairs[0].p
+
+
+def test_holm_and_alpha():
+    assert sa.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    assert sa.holm([0.5, 0.001]) == pytest.approx([0.5, 0.002])
+    items = np.array([[1, 2], [2, 3], [3, 4], [4, 5]], dtype=float)  # perfectly consistent items
+    assert sa.cronbach_alpha(items) == pytest.approx(1.0)
+    assert sa.cronbach_alpha(items[:, :1]) is None
+
+
+def test_the_commands_and_their_help(capsys):
+    for argv in (["study", "--help"], ["study", "analyze", "--help"], ["study", "export", "--help"],
+                 ["study", "submit", "--help"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 0
+    assert "analyze" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:  # the protocol's flags are still required for a session
+        main(["study"])
+    assert exc.value.code == 2
+    assert "--participant" in capsys.readouterr().err
+
+
+def test_submit_from_json_files(tmp_path, caplog):
+    store = tmp_path / "study.sqlite"
+    form = tmp_path / "f.json"
+    form.write_text(json.dumps({"form": "condition", "participant": "P01", "condition": "uniform", "order": 1,
+                                "block": 1, "ratings": dict.fromkeys(Q.rated_items(), 4)}))
+    assert main(["study", "submit", "--store", str(store), str(form)]) == 0
+    assert main(["study", "submit", "--store", str(store), str(form)]) == 2  # a second submission: refused
+    assert "already submitted" in caplog.text
+    assert main(["study", "submit", "--store", str(store), "--replace", str(form)]) == 0
+
