@@ -263,3 +263,31 @@ def test_each_planners_log_lines_carry_its_name_when_several_run() -> None:
     assert log_label(parser.parse_args(["run", "planner"])) == "planner"
     assert log_label(parser.parse_args(["run", "bridge"])) == "bridge"
     assert log_label(parser.parse_args(["demo"])) == "demo"
+
+
+def test_a_routers_clients_start_once_it_listens_and_not_on_a_router_that_died() -> None:
+    import socket
+    import subprocess
+    import sys
+
+    from nwr.common.errors import NwrError
+    from nwr.services.pipeline.graph import ROUTER, Unit
+    from nwr.services.pipeline.supervisor import listen_endpoint, wait_for_router, wait_listening
+
+    assert listen_endpoint(Unit(ROUTER, ROUTER, ("--listen", "tls/10.0.0.2:7447", "--acl", "a.json5"))) == \
+        "tls/10.0.0.2:7447"
+    assert listen_endpoint(Unit(ROUTER, ROUTER, ())) is None
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        with socket.socket() as server:
+            server.bind(("127.0.0.1", 0))
+            server.listen()
+            port = server.getsockname()[1]
+            wait_for_router(Unit(ROUTER, ROUTER, ("--listen", f"tcp/127.0.0.1:{port}")), alive)  # returns
+        with pytest.raises(NwrError, match="did not listen"):
+            wait_listening(f"tcp/127.0.0.1:{port}", alive, timeout_s=0.3)
+    finally:
+        alive.kill()
+        alive.wait()
+    with pytest.raises(NwrError, match="exited"):
+        wait_listening(f"tcp/127.0.0.1:{port}", alive)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,6 +19,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from nwr.common.config import Profile
+from nwr.common.errors import NwrError
 from nwr.services.pipeline.graph import ROUTER, Layout, Unit, stop_order, units
 
 log = logging.getLogger("nwr")
@@ -28,6 +30,44 @@ CLEAN_EXITS = (0, -signal.SIGTERM, -signal.SIGINT)
 # asked to stop, s: a loaded machine at 1 kHz lags by tens of ms.
 GATEWAY_GRACE_S = 0.3
 
+
+
+# How long a router may take to listen before its clients (which give up at once on one that is not there) start.
+ROUTER_START_S = 30.0
+
+
+def listen_endpoint(unit: Unit) -> str | None:
+    """The endpoint a router unit listens on (its ``--listen``), if it names one."""
+    args = list(unit.args)
+    return args[args.index("--listen") + 1] if "--listen" in args[:-1] else None
+
+
+def wait_listening(endpoint: str, proc: subprocess.Popen[bytes], timeout_s: float = ROUTER_START_S) -> None:
+    """Until something accepts TCP connections on ``endpoint`` (``tcp/HOST:PORT`` or ``tls/HOST:PORT``); a
+    NwrError if ``proc`` exits first or ``timeout_s`` passes. A loaded machine starts a router in more than a
+    fixed half second."""
+    host, _, port = endpoint.split("/", 1)[-1].rpartition(":")
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+                return
+        except OSError:
+            if proc.poll() is not None:
+                raise NwrError(f"the router exited (code {proc.returncode}) before it listened on {endpoint}") \
+                    from None
+            if time.monotonic() > deadline:
+                raise NwrError(f"the router did not listen on {endpoint} within {timeout_s:.0f} s") from None
+            time.sleep(0.05)
+
+
+def wait_for_router(unit: Unit, proc: subprocess.Popen[bytes]) -> None:
+    """Before the router's clients start: until it listens where its unit says (a moment, if it names nothing)."""
+    endpoint = listen_endpoint(unit)
+    if endpoint is None or endpoint.split("/", 1)[0] not in ("tcp", "tls"):
+        time.sleep(0.3)
+        return
+    wait_listening(endpoint, proc)
 
 def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None, *,
           pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:
@@ -137,7 +177,7 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
             if unit.label == "recorder":
                 wait_for_recorder(profile, procs[unit.label])
             elif unit.service == ROUTER:
-                time.sleep(0.3)  # clients connect at start-up
+                wait_for_router(unit, procs[unit.label])
         log.info("started %s", ", ".join(f"{n} (pid {p.pid})" for n, p in procs.items()))
         while not stop:
             now = time.monotonic()

@@ -54,7 +54,7 @@ from nwr.common.errors import ConfigError, NwrError
 from nwr.common.recordings import SessionRecorder, read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
-from nwr.services.pipeline.supervisor import failed, spawn, stop_all
+from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
 from nwr.services.tools import bench_bare
 from nwr.services.tools.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
 
@@ -209,7 +209,7 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
         for unit in units(layout):
             procs[unit.label] = spawn(unit, str(toml_path), "INFO", run_dir / f"{unit.label}.log")
             if unit.service == ROUTER:
-                time.sleep(0.3)  # clients connect at start-up
+                wait_for_router(unit, procs[unit.label])
         _wait_for_line(run_dir / "gateway.log", "publishing", procs, STARTUP_TIMEOUT_S)
         t0 = time.monotonic()
         for name, proc in procs.items():
@@ -594,7 +594,7 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                     try:
                         run["bare"] = bare_once(config, bare_port, work / f"bare-{done}", args.bare_seconds,
                                                 profile)
-                    except (RuntimeError, OSError, ValueError) as exc:
+                    except (RuntimeError, OSError, ValueError, NwrError) as exc:
                         print(f"  the bare chain failed: {exc}", flush=True)
                         result["failures"].append({"config": f"bare chain: {config.name}", "rep": rep,
                                                    "error": str(exc)})

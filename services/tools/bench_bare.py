@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -38,6 +37,7 @@ import zenoh
 from nwr.common import messages as m
 from nwr.common.config import ZenohSection
 from nwr.common.node import zenoh_config
+from nwr.services.pipeline.supervisor import wait_listening
 
 ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source last
 N_PADS = 10
@@ -172,7 +172,7 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
         if router_listen is not None:
             procs["router"] = _spawn([sys.executable, "-m", "nwr.services.cli", "router", "--listen", router_listen],
                                      work / "router.log")
-            _wait_listening(router_listen, procs["router"], work / "router.log")
+            wait_listening(router_listen, procs["router"])
         for role in ROLES:
             args = [*base, role, *zargs, "--rate", str(rate_hz), "--duration", str(duration_s)]
             if role == "bridge":
@@ -195,23 +195,6 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
     latency = [(arrival - stamp) / 1e6 for _seq, stamp, arrival in data["arrivals"]]
     cpu = sum(cpu1.get(n, cpu0[n]) - cpu0[n] for n in cpu0)
     return BareRun(latency, int(data.get("sent", 0)), len(latency), 100.0 * cpu / max(wall, 1e-9), wall)
-
-
-def _wait_listening(endpoint: str, proc: subprocess.Popen[bytes], log: Path,
-                    timeout_s: float = STARTUP_TIMEOUT_S) -> None:
-    """Until the router accepts connections on ``endpoint`` (``tcp/HOST:PORT``): the roles, its clients, give up
-    at once on a router that is not there yet (a loaded machine starts it in more than half a second)."""
-    host, _, port = endpoint.split("/", 1)[1].rpartition(":")
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
-                return
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the bare chain's router did not listen on {endpoint}: "
-                                   f"{log.read_text()[-500:]}") from None
-            time.sleep(0.05)
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
