@@ -100,7 +100,7 @@ def run(profile: Profile, print_row: Callable[[dict[str, Any]], None] = lambda _
                     onsets[strategy].append(onset)
                     cycles[strategy] += timed
     period_us = 1e6 / profile.planner.rate_hz
-    base = float(np.median(cycles[BASELINE])) / 1e3
+    base = float(np.median(np.asarray(cycles[BASELINE], dtype=float) / 1e3))
     rows = []
     for strategy in order:
         c = np.asarray(cycles[strategy], dtype=float) / 1e3
