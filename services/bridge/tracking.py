@@ -129,10 +129,6 @@ NEAR_LIMIT = 0.02
 # ... this much below, so that the hard cap (which costs the jerk limit) does
 # not bind on rounding or on the arm's geometry changing under it.
 CAP_MARGIN = 5e-3
-# A withdrawal's limits hold until every point of the arm, commanded otherwise, is back under this share of the
-# collaborative speed: a stream that ran at the speed itself (the Cartesian reflex's 0.25 m/s) is still braking,
-# a point may pass the speed for a few cycles while the jerk-limited stop takes hold.
-WITHDRAWAL_END = 1.0
 # A controlled stop is checked against the Cartesian speed limit every this
 # many s over its first STOP_CHECK_SPAN_S (where its speed peaks), m/s of slack.
 STOP_CHECK_S = 0.004
@@ -171,8 +167,7 @@ class Tracker:
         self.reflex = False  # the command followed is a withdrawal's (phase REFLEX)
         # The withdrawal's limits hold from its first command until the arm,
         # commanded otherwise, is back within the collaborative speed (it
-        # decelerates within the acceleration limits, not in one cycle), with
-        # a margin (WITHDRAWAL_END).
+        # decelerates within the acceleration limits, not in one cycle).
         self.withdrawal = False
         self.toward: np.ndarray | None = None
         # After a hold, a position stream is rejoined no faster than any point of
@@ -730,7 +725,7 @@ class Tracker:
         else:
             self.rejoining = False
         if self.withdrawal and not self.reflex and \
-                float(limiter.speeds(self.q, self.dq).max()) <= WITHDRAWAL_END * limiter.limits.speed_m_s:
+                float(limiter.speeds(self.q, self.dq).max()) <= limiter.limits.speed_m_s:
             self.withdrawal = False
             self.toward = None
         q1, v1, a1 = state

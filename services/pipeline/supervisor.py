@@ -30,8 +30,6 @@ CLEAN_EXITS = (0, -signal.SIGTERM, -signal.SIGINT)
 # asked to stop, s: a loaded machine at 1 kHz lags by tens of ms.
 GATEWAY_GRACE_S = 0.3
 
-
-
 # How long a router may take to listen before its clients (which give up at once on one that is not there) start.
 ROUTER_START_S = 30.0
 
@@ -68,6 +66,7 @@ def wait_for_router(unit: Unit, proc: subprocess.Popen[bytes]) -> None:
         time.sleep(0.3)
         return
     wait_listening(endpoint, proc)
+
 
 def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None, *,
           pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:

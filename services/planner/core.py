@@ -118,10 +118,9 @@ class Reflex:
     # Hold mode: the motion ends here (s from its start), where the touched pad is furthest from the contact,
     # when the strategy's motion would bring it back toward the contact afterwards.
     stop_at_s: float | None = None
-    # The strategy withdraws the pad across its normal (its joints cannot move it along it): whether it
-    # withdraws is judged by its distance from the contact point.
-    sideways: bool = False
-    reason: str = ""  # ReflexInfo.reason: why the motion is not the strategy's plain withdrawal
+    # ReflexInfo.reason: why the motion is not the strategy's plain withdrawal; "sideways": the pad withdraws
+    # across its normal (its joints cannot move it along it), judged by its distance from the contact point.
+    reason: str = ""
     # A retracing strategy's withdrawal: the commanded poses of its stream, from the onset (one a cycle).
     path: list[np.ndarray] = field(default_factory=list)
 
@@ -600,7 +599,7 @@ class Planner:
         """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction."""
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
-        reflex.sideways, reflex.reason = onset.sideways, onset.reason
+        reflex.reason = onset.reason
 
     def _withdrawal_speeds(self, target: np.ndarray, contact: m.Contact | None) -> np.ndarray:
         """Joint speed limits of a joint-space withdrawal to ``target``: every point within the withdrawal
@@ -1041,7 +1040,8 @@ class Planner:
     @staticmethod
     def _withdraws(reflex: Reflex, assessment: retreat.Assessment) -> bool:
         """Whether the reflex's motion moves the touched pad away from the contact at all (for its gain)."""
-        moved = max(assessment.furthest_m, assessment.leaves_m) if reflex.sideways else assessment.furthest_m
+        moved = max(assessment.furthest_m, assessment.leaves_m) if reflex.reason == "sideways" \
+            else assessment.furthest_m
         return moved >= WITHDRAW_MIN_M * max(reflex.contact.gain, MIN_GAIN_SCALE)
 
     def planned_path(self, samples: int = 40) -> tuple[np.ndarray, float]:

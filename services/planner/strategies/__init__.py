@@ -46,11 +46,14 @@ class Onset:
     target: np.ndarray | None = None  # position mode: the joint target, rad
     direction: list[float] = field(default_factory=list)  # velocity mode: the pad's Cartesian velocity, m/s
     corrected: bool = False  # guarded mode changed the planned motion
-    # Velocity mode: the pad withdraws across its normal, away from the contact point (its joints cannot move
-    # it along the normal); the retreat check then judges the withdrawal by the distance from that point.
-    sideways: bool = False
     # Why the motion is not the strategy's plain withdrawal ("" when it is): ReflexInfo.reason.
     reason: str = ""
+
+    @property
+    def sideways(self) -> bool:
+        """Velocity mode: the pad withdraws across its normal, away from the contact point (its joints cannot
+        move it along the normal); the retreat check then judges the withdrawal by the distance from it."""
+        return self.reason == "sideways"
 
 
 class ReflexStrategy(ABC):

@@ -196,8 +196,7 @@ class WholeArm(ReflexStrategy):
                       f"reflex on pad {name}: its joints cannot move it along its normal without bringing another "
                       f"part of the arm closer to the contact; it withdraws sideways, along "
                       f"{np.round(self.away, 3).tolist()} (base frame), away from the contact point")
-        return Onset(direction=(self.speed_m_s * self.away).tolist(), sideways=self.sideways,
-                     reason="sideways" if self.sideways else "")
+        return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="sideways" if self.sideways else "")
 
     def _probe(self, q: np.ndarray, away: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> float:
         """How fast the pad can withdraw along ``away`` at the profile's plateau within the approach budgets
