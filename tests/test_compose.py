@@ -20,6 +20,7 @@ NWR_REQUIRE_DOCKER=1 (set by .ci/run), where that is a failure.
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import shutil
@@ -319,20 +320,38 @@ def _check_session(records: list, script) -> None:  # type: ignore[no-untyped-de
     touches = analysis.summarize(records, desc)
     estimator = GainEstimator(GainSection(), desc.pads)
     assert len(touches) >= len(script.touch), touches
-    latencies = []
+    latencies: list[float] = []
+    resumed: list[str] = []
     for scripted in script.touch:
         touch = next(t for t in touches if t.name == scripted.pad)
         _, gain = estimator.gain(touch.pad, scripted.peak_hpa)
         if gain > 0:
             assert touch.reflex_seq > 0, touch
             assert touch.onset_latency_ms is not None and 0 < touch.onset_latency_ms < 1000, touch
-            assert touch.resumed_after_s is not None and touch.resumed_after_s < 5.0, touch
+            # Back on the task: 2.4-2.8 s for this script in lockstep and live, loaded or not; once 6.6 s in
+            # compose on a loaded CI machine. The bound catches a return that never ends, not a slow one.
+            assert touch.resumed_after_s is not None and touch.resumed_after_s < 15.0, touch
             latencies.append(touch.onset_latency_ms)
+            resumed.append(_resumption(records, touch))
         else:
             assert touch.reflex_seq == 0, touch
     assert latencies
     print(f"reflex onset across containers: {', '.join(f'{x:.2f}' for x in latencies)} ms "
           f"(median {np.median(latencies):.2f} ms)")
+    print("back on the task after:\n  " + "\n  ".join(resumed))
+
+
+def _resumption(records: list, touch) -> str:  # type: ignore[no-untyped-def]
+    """How long the touch's reflex took to give the arm back to the task, with what the bridge reported meanwhile."""
+    t0 = touch.start_ns
+    t1 = t0 + round((touch.resumed_after_s or 0.0) * 1e9)
+    states = collections.Counter(r.message.status for r in records
+                                 if r.key == "robot/state" and t0 <= r.message.stamp_ns <= t1)
+    modes = [r.message.mode for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
+             and t0 <= r.message.stamp_ns <= t1 and r.message.active]
+    changes = [mode for i, mode in enumerate(modes) if i == 0 or modes[i - 1] != mode]
+    return (f"{touch.name}: {touch.resumed_after_s:.2f} s; bridge {dict(states)}; "
+            f"active planner {' > '.join(map(str, changes))}")
 
 
 def _check_planner_lost(records: list, t_stop: int, t_start: int) -> None:  # type: ignore[no-untyped-def]

@@ -5,7 +5,9 @@ four processes of the pipeline's shape (gateway -> gain -> planner ->
 bridge), opened with the pipeline's own Zenoh configuration
 (:func:`nwr.common.node.zenoh_config`: peers on loopback at the services'
 ports, or clients of a local router), sending the pipeline's own messages
-(the same sizes, encoded with msgspec) and doing nothing else: each stage
+(the same sizes, encoded with msgspec, with the QoS the key registry gives
+them: real-time priority, express, blocking on congestion) and doing
+nothing else: each stage
 decodes what it receives and publishes the next message from its Zenoh
 callback; the gateway publishes ten pads at the skin's rate. The bridge
 stamps each command's arrival: the chain's latency is the skin sample's
@@ -34,6 +36,7 @@ import msgspec
 import numpy as np
 import zenoh
 
+from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import ZenohSection
 from nwr.common.node import zenoh_config
@@ -43,6 +46,7 @@ ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source 
 N_PADS = 10
 KEY = "nwr-bare/{}"  # its own keys: a running pipeline's subscribers never see the chain
 ALIVE = "nwr-bare/alive/{}"
+START = "nwr-bare/start"
 END = "nwr-bare/end"
 STARTUP_TIMEOUT_S = 30.0
 
@@ -63,11 +67,24 @@ def command(p: m.SkinPain, now_ns: int) -> m.PositionCommand:
                              trace=p.trace)
 
 
+def declare(session: zenoh.Session, role_key: str, relative: str) -> zenoh.Publisher:
+    """A publisher on the chain's own key with the QoS the pipeline gives ``relative`` (priority, express, block)."""
+    topic = keys.topic_for(relative)
+    return session.declare_publisher(
+        KEY.format(role_key), priority=topic.priority, express=topic.express,
+        congestion_control=zenoh.CongestionControl.DROP if topic.drop else zenoh.CongestionControl.BLOCK)
+
+
 # ------------------------------------------------------------------------------ one role
 
 
 def run_role(role: str, cfg: ZenohSection, *, rate_hz: float, duration_s: float, out: Path | None) -> int:
-    """One process of the chain; the gateway publishes for ``duration_s`` once every other role is alive."""
+    """One process of the chain; the gateway publishes for ``duration_s`` once every other role is alive.
+
+    Each role writes ``out/<role>.json``: its CPU time (every thread's, ``time.process_time``) from the
+    gateway's start message to its end message, so that start-up (imports, opening the session) is not
+    counted; the bridge adds the arrivals.
+    """
     encode = msgspec.msgpack.Encoder().encode
     conf = zenoh_config(cfg, listen_slot=role)
     with zenoh.open(conf) as session:
@@ -76,13 +93,13 @@ def run_role(role: str, cfg: ZenohSection, *, rate_hz: float, duration_s: float,
         subscribers: list[Any] = []
         if role == "gain":
             decode_s = msgspec.msgpack.Decoder(m.SkinPressure).decode
-            out_pub = session.declare_publisher(KEY.format("pain"), express=True)
+            out_pub = declare(session, "pain", keys.SKIN_PAIN)
             subscribers.append(session.declare_subscriber(
                 KEY.format("pressure"), lambda z: out_pub.put(encode(pain(decode_s(z.payload.to_bytes()),
                                                                           time.monotonic_ns())))))
         elif role == "planner":
             decode_p = msgspec.msgpack.Decoder(m.SkinPain).decode
-            out_pub = session.declare_publisher(KEY.format("command"), express=True)
+            out_pub = declare(session, "command", keys.robot_command("bare"))
             subscribers.append(session.declare_subscriber(
                 KEY.format("pain"), lambda z: out_pub.put(encode(command(decode_p(z.payload.to_bytes()),
                                                                          time.monotonic_ns())))))
@@ -97,6 +114,12 @@ def run_role(role: str, cfg: ZenohSection, *, rate_hz: float, duration_s: float,
             subscribers.append(session.declare_subscriber(KEY.format("command"), on_command))
         if role != "gateway":
             end: dict[str, Any] = {}
+            cpu0 = [time.process_time()]
+
+            def on_start(_z: zenoh.Sample) -> None:
+                cpu0[0] = time.process_time()
+
+            subscribers.append(session.declare_subscriber(START, on_start))
 
             def on_end(z: zenoh.Sample) -> None:
                 end.update(json.loads(z.payload.to_bytes()))  # the gateway's figures
@@ -105,15 +128,23 @@ def run_role(role: str, cfg: ZenohSection, *, rate_hz: float, duration_s: float,
             subscribers.append(session.declare_subscriber(END, on_end))
             token = session.liveliness().declare_token(ALIVE.format(role))
             done.wait(duration_s + STARTUP_TIMEOUT_S + 30.0)
-            if role == "bridge" and out is not None:
-                time.sleep(0.1)  # the last commands on their way
-                out.write_text(json.dumps({"arrivals": arrivals, **end}))
+            cpu_s = time.process_time() - cpu0[0]
+            figures: dict[str, Any] = {"cpu_s": cpu_s}
+            if role == "bridge":
+                # The end comes straight from the gateway, the last commands three hops behind it: wait for
+                # them (on a loaded machine they can trail by more than the gateway's pause), a lost one 2 s.
+                deadline = time.monotonic() + 2.0
+                while len(arrivals) < int(end.get("sent", 0)) and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                figures.update(arrivals=arrivals, **end)
+            if out is not None:
+                (out / f"{role}.json").write_text(json.dumps(figures))
             token.undeclare()
             return 0
-        return _publish(session, rate_hz, duration_s)
+        return _publish(session, rate_hz, duration_s, out)
 
 
-def _publish(session: zenoh.Session, rate_hz: float, duration_s: float) -> int:
+def _publish(session: zenoh.Session, rate_hz: float, duration_s: float, out: Path | None) -> int:
     """The gateway: wait for the others, publish ``duration_s`` of samples at ``rate_hz``, then the end."""
     from nwr.common.pacing import Rate
 
@@ -129,9 +160,11 @@ def _publish(session: zenoh.Session, rate_hz: float, duration_s: float) -> int:
         time.sleep(0.05)
     time.sleep(0.3)  # routes settle
     encode = msgspec.msgpack.Encoder().encode
-    pub = session.declare_publisher(KEY.format("pressure"), express=True)
+    pub = declare(session, "pressure", keys.SKIN_PRESSURE)
     rate = Rate(rate_hz, "bare gateway")
     n = int(round(duration_s * rate_hz))
+    session.put(START, b"")
+    cpu0 = time.process_time()
     t0 = time.monotonic()
     for seq in range(n):
         rate.sleep()
@@ -139,6 +172,8 @@ def _publish(session: zenoh.Session, rate_hz: float, duration_s: float) -> int:
     wall = time.monotonic() - t0
     time.sleep(0.2)  # the last sample through the chain before the end stops it
     session.put(END, json.dumps({"sent": n, "publish_wall_s": wall, "overruns": rate.overruns}))
+    if out is not None:
+        (out / "gateway.json").write_text(json.dumps({"cpu_s": time.process_time() - cpu0}))
     return 0
 
 
@@ -150,8 +185,8 @@ class BareRun:
     latency_ms: list[float]  # per sample that arrived: stamp to the bridge
     sent: int
     received: int
-    cpu_percent_total: float  # the four processes, % of one core, over the run
-    wall_s: float
+    cpu_percent_total: float  # the four processes (and the router), % of one core, while the gateway published
+    wall_s: float  # the gateway's publishing time
 
 
 def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
@@ -160,7 +195,8 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
     from nwr.services.tools.bench import proc_cost
 
     work.mkdir(parents=True, exist_ok=True)
-    out = work / "bare.json"
+    for stale in work.glob("*.json"):
+        stale.unlink()
     procs: dict[str, subprocess.Popen[bytes]] = {}
     base = [sys.executable, "-m", "nwr.services.tools.bench_bare"]
     if cfg.secure:
@@ -168,22 +204,20 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
     zargs = ["--base-port", str(cfg.base_port), "--host", cfg.host, "--mode", cfg.mode]
     if cfg.router:
         zargs += ["--router", ",".join(cfg.router)]
+    router_cpu = 0.0
     try:
         if router_listen is not None:
             procs["router"] = _spawn([sys.executable, "-m", "nwr.services.cli", "router", "--listen", router_listen],
                                      work / "router.log")
             wait_listening(router_listen, procs["router"])
+            router_cpu = -proc_cost(procs["router"].pid)[0]  # from here: its start-up is over
         for role in ROLES:
-            args = [*base, role, *zargs, "--rate", str(rate_hz), "--duration", str(duration_s)]
-            if role == "bridge":
-                args += ["--out", str(out)]
-            procs[role] = _spawn(args, work / f"{role}.log")
-        cpu0 = {n: proc_cost(p.pid)[0] for n, p in procs.items()}
-        t0 = time.monotonic()
+            procs[role] = _spawn([*base, role, *zargs, "--rate", str(rate_hz), "--duration", str(duration_s),
+                                  "--out", str(work)], work / f"{role}.log")
         if procs["gateway"].wait(duration_s + STARTUP_TIMEOUT_S + 30.0) != 0:
             raise RuntimeError(f"the bare chain's gateway failed: {(work / 'gateway.log').read_text()[-500:]}")
-        cpu1 = {n: proc_cost(p.pid)[0] for n, p in procs.items() if p.poll() is None}
-        wall = time.monotonic() - t0
+        if "router" in procs:
+            router_cpu += proc_cost(procs["router"].pid)[0]
         for role in ("bridge", "planner", "gain"):
             procs[role].wait(10.0)
     finally:
@@ -191,10 +225,12 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
             if p.poll() is None:
                 p.terminate()
                 p.wait(5.0)
-    data = json.loads(out.read_text())
+    figures = {role: json.loads((work / f"{role}.json").read_text()) for role in ROLES}
+    data = figures["bridge"]
     latency = [(arrival - stamp) / 1e6 for _seq, stamp, arrival in data["arrivals"]]
-    cpu = sum(cpu1.get(n, cpu0[n]) - cpu0[n] for n in cpu0)
-    return BareRun(latency, int(data.get("sent", 0)), len(latency), 100.0 * cpu / max(wall, 1e-9), wall)
+    wall = float(data["publish_wall_s"])
+    cpu = router_cpu + sum(f["cpu_s"] for f in figures.values())
+    return BareRun(latency, int(data["sent"]), len(latency), 100.0 * cpu / max(wall, 1e-9), wall)
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
@@ -234,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--router", default="", help="comma-separated router endpoints (clients of a router)")
     parser.add_argument("--rate", type=float, default=25.0)
     parser.add_argument("--duration", type=float, default=10.0)
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--out", type=Path, help="directory for the role's figures (<role>.json)")
     args = parser.parse_args(argv)
     cfg = ZenohSection(base_port=args.base_port, host=args.host, mode=args.mode,
                        router=[e for e in args.router.split(",") if e])
