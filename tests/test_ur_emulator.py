@@ -1,0 +1,279 @@
+"""The UR controller emulator: RTDE packing (fast) and the real ur_rtde against it (slow, e2e).
+
+ur_rtde fixes its ports (RTDE 30004, dashboard 29999, script 30003), so the
+e2e test binds those on 127.0.0.1: one emulator at a time, and it skips when
+something else holds them.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from nwr.services.tools import ur_emulator as u
+
+HOME = [0.0, -1.15, 1.85, -2.27, -1.57, 0.0]
+
+
+# --------------------------------------------------------------------------- packing
+
+
+def test_package_round_trip_and_split() -> None:
+    a = u.pack_package(u.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2))
+    b = u.pack_bool_reply(u.CONTROL_PACKAGE_START, True)
+    assert a == b"\x00\x05V\x00\x02"
+    packages, rest = u.split_packages(a + b + b[:2])
+    assert packages == [(u.REQUEST_PROTOCOL_VERSION, b"\x00\x02"), (u.CONTROL_PACKAGE_START, b"\x01")]
+    assert rest == b[:2]
+    assert u.parse_protocol_version(packages[0][1]) == 2
+
+
+@pytest.mark.parametrize("raw, message", [
+    (b"\x00\x02V", "smaller than the 3-byte header"),
+    (b"\x00\x05z\x00\x02", "unknown RTDE command"),
+])
+def test_split_rejects_garbage(raw: bytes, message: str) -> None:
+    with pytest.raises(u.RtdeProtocolError, match=message):
+        u.split_packages(raw)
+
+
+def test_data_round_trip() -> None:
+    types = ["DOUBLE", "VECTOR6D", "INT32", "UINT32", "UINT64", "BOOL", "UINT8", "VECTOR3D", "VECTOR6INT32"]
+    values = [1.5, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6], -7, 7, 2**40, True, 255, [1.0, 2.0, 3.0], [1, -2, 3, -4, 5, -6]]
+    package = u.pack_data(3, types, values)
+    (command, payload), = u.split_packages(package)[0]
+    assert command == u.DATA_PACKAGE and u.data_recipe_id(payload) == 3
+    assert u.unpack_data(payload, types) == values
+
+
+def test_data_errors_are_clear() -> None:
+    with pytest.raises(u.RtdeProtocolError, match="needs 6 values"):
+        u.pack_data(1, ["VECTOR6D"], [[1.0, 2.0]])
+    with pytest.raises(u.RtdeProtocolError, match="no RTDE data type 'FLOAT'"):
+        u.data_format(["FLOAT"])
+    with pytest.raises(u.RtdeProtocolError, match="has 5 bytes; the recipe needs 9"):
+        u.unpack_data(b"\x01\x00\x00\x00\x00", ["DOUBLE"])
+    with pytest.raises(u.RtdeProtocolError, match="no recipe id"):
+        u.data_recipe_id(b"")
+    with pytest.raises(u.RtdeProtocolError, match="expected 2"):
+        u.parse_protocol_version(b"\x02")
+
+
+def test_setup_and_text_message_parsing() -> None:
+    payload = struct.pack(">d", 500.0) + b"timestamp,actual_q,"  # ur_rtde's trailing comma
+    assert u.parse_setup_outputs(payload) == (500.0, ["timestamp", "actual_q"])
+    assert u.parse_setup_inputs(b"input_int_register_0") == ["input_int_register_0"]
+    with pytest.raises(u.RtdeProtocolError, match="empty variable name"):
+        u.parse_setup_inputs(b"a,,b")
+    with pytest.raises(u.RtdeProtocolError, match="expected a frequency"):
+        u.parse_setup_outputs(b"\x00")
+    message = u.pack_text_message("hello", "tester", u.WARNING_MESSAGE)
+    (command, body), = u.split_packages(message)[0]
+    assert command == u.TEXT_MESSAGE and u.parse_text_message(body) == ("hello", "tester", u.WARNING_MESSAGE)
+    with pytest.raises(u.RtdeProtocolError, match="truncated"):
+        u.parse_text_message(body[:4])
+
+
+def test_variable_types() -> None:
+    assert u.variable_type("actual_q", "output") == "VECTOR6D"
+    assert u.variable_type("output_int_register_47", "output") == "INT32"
+    assert u.variable_type("input_double_register_3", "output") == "DOUBLE"
+    assert u.variable_type("input_bit_register_64", "input") == "BOOL"
+    assert u.variable_type("output_int_register_0", "input") is None
+    assert u.variable_type("output_int_register_48", "output") is None
+    assert u.variable_type("output_int_register_01", "output") is None
+    assert u.variable_type("no_such_thing", "output") is None
+
+
+# --------------------------------------------------------------------------- the session
+
+
+def _reply(session: u.RtdeSession, command: int, payload: bytes = b"") -> tuple[int, bytes]:
+    (answer,), rest = u.split_packages(session.handle(command, payload))
+    assert rest == b""
+    return answer
+
+
+def _controller() -> u.Controller:
+    """A controller on a frozen clock: the watchdog sees no time pass unless a test moves it."""
+    limits = u.ArmLimits(np.full(6, -6.28), np.full(6, 6.28), np.full(6, 2.0), np.full(6, 8.0))
+    return u.Controller(u.Arm(np.array(HOME), limits), clock=lambda: 0.0)
+
+
+def test_session_recipes_and_registers() -> None:
+    controller = _controller()
+    claims: dict[str, int] = {}
+    lock = threading.Lock()
+    session = u.RtdeSession(controller, claims, lock)
+    assert _reply(session, u.REQUEST_PROTOCOL_VERSION, b"\x00\x02") == (u.REQUEST_PROTOCOL_VERSION, b"\x01")
+    command, body = _reply(session, u.GET_URCONTROL_VERSION)
+    assert struct.unpack(">IIII", body)[0] == 5
+    out = struct.pack(">d", 500.0) + b"timestamp,actual_q,output_int_register_0,nope"
+    assert _reply(session, u.CONTROL_PACKAGE_SETUP_OUTPUTS, out)[1] == b"\x00DOUBLE,VECTOR6D,INT32,NOT_FOUND"
+    out = struct.pack(">d", 500.0) + b"timestamp,actual_q,input_int_register_0"
+    assert _reply(session, u.CONTROL_PACKAGE_SETUP_OUTPUTS, out)[1] == b"\x01DOUBLE,VECTOR6D,INT32"
+    # input recipes are numbered from 1, apart from the output recipes
+    assert _reply(session, u.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_0,input_double_register_0")[1] \
+        == b"\x01INT32,DOUBLE"
+    assert _reply(session, u.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_0")[1] == b"\x02INT32"
+    other = u.RtdeSession(controller, claims, lock)
+    assert _reply(other, u.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_0,input_int_register_1")[1] \
+        == b"\x00IN_USE,INT32"
+    assert _reply(session, u.CONTROL_PACKAGE_START) == (u.CONTROL_PACKAGE_START, b"\x01")
+    (_, data), = u.split_packages(u.pack_data(1, ["INT32", "DOUBLE"], [42, 0.5]))[0]
+    assert session.handle(u.DATA_PACKAGE, data) == b""
+    assert controller.input_int[0] == 42 and controller.input_double[0] == 0.5
+    (command, payload), = u.split_packages(session.data_packages())[0]
+    timestamp, q, register = u.unpack_data(payload, ["DOUBLE", "VECTOR6D", "INT32"])
+    assert q == HOME and register == 42
+    with pytest.raises(u.RtdeProtocolError, match="unknown input recipe 9"):
+        session.handle(u.DATA_PACKAGE, b"\x09")
+    session.release()
+    assert _reply(other, u.CONTROL_PACKAGE_SETUP_INPUTS, b"input_int_register_0")[1] == b"\x01INT32"
+
+
+def test_control_script_emulation() -> None:
+    controller = _controller()
+    controller.load_script("def rtde_control():\n  global reg_offset_int = 0\nend\n")
+    assert controller.script_running and controller.output_int[0] == u.SCRIPT_READY
+    controller.write_inputs(["input_int_register_0", "input_double_register_0"], [u.CMD_SET_WATCHDOG, 10.0])
+    controller.tick()
+    assert controller.output_int[0] == u.SCRIPT_DONE and controller.watchdog_hz == 10.0
+    controller.write_inputs(["input_int_register_0"], [0])
+    controller.tick()
+    assert controller.output_int[0] == u.SCRIPT_READY
+    target = list(HOME)
+    target[0] = 0.1
+    names = ["input_int_register_0"] + [f"input_double_register_{i}" for i in range(11)]
+    for _ in range(400):  # 0.8 s of servoJ
+        controller.write_inputs(names, [u.CMD_SERVOJ, *target, 0.5, 0.5, 0.002, 0.1, 300.0])
+        controller.tick()
+    assert controller.arm.q[0] == pytest.approx(0.1, abs=1e-3)
+    assert np.all(np.abs(controller.arm.qd) <= 2.0 + 1e-9)
+    controller.write_inputs(["input_int_register_0", "input_double_register_0"], [u.CMD_STOP_SCRIPT, 0.0])
+    controller.tick()
+    assert not controller.script_running and controller.runtime_state == u.RUNTIME_STOPPED
+
+
+def test_watchdog_stops_the_script() -> None:
+    now = [0.0]
+    controller = u.Controller(_controller().arm, clock=lambda: now[0])
+    controller.load_script("def rtde_control():\nend\n")
+    controller.write_inputs(["input_int_register_0", "input_double_register_0"], [u.CMD_SET_WATCHDOG, 10.0])
+    controller.tick()
+    now[0] = 0.09
+    controller.tick()
+    assert controller.script_running
+    now[0] = 0.2
+    controller.tick()
+    assert not controller.script_running
+
+
+def test_speed_is_acceleration_limited() -> None:
+    arm = _controller().arm
+    arm.speed([1.0, 0, 0, 0, 0, 0], 100.0)  # above the 8 rad/s^2 limit
+    arm.step()
+    assert arm.qd[0] == pytest.approx(8.0 * u.DT)
+    for _ in range(200):
+        arm.step()
+    assert arm.qd[0] == pytest.approx(1.0)
+    arm.stop(4.0)
+    arm.step()
+    assert arm.qd[0] == pytest.approx(1.0 - 4.0 * u.DT)
+
+
+def test_take_program() -> None:
+    program, rest = u.take_program("def a():\n  x = 1\n  end\nend\nsec b():\n")
+    assert program == "def a():\n  x = 1\n  end\nend\n" and rest == "sec b():\n"
+    assert u.take_program("def a():\n  x = 1\n") == (None, "def a():\n  x = 1\n")
+
+
+# --------------------------------------------------------------------------- e2e
+
+
+def _ports_free() -> bool:
+    for port in (30004, 29999, 30003):
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", port)) == 0:
+                return False
+    return True
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    if not _ports_free():
+        pytest.skip("ports 30004 / 29999 / 30003 on 127.0.0.1 are in use (ur_rtde cannot use others)")
+    log = open(tmp_path / "emulator.log", "w")  # its log: a pipe nobody drains would block it
+    process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.ur_emulator", "--host", "127.0.0.1"],
+                               stdout=subprocess.PIPE, stderr=log, text=True)
+    try:
+        assert process.stdout is not None
+        line = process.stdout.readline()
+        assert line.startswith("ready"), line
+        yield process
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()
+        log.close()
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_ur_rtde_against_the_emulator(emulator: subprocess.Popen) -> None:
+    rtde_receive = pytest.importorskip("rtde_receive")
+    rtde_control = pytest.importorskip("rtde_control")
+    receive = rtde_receive.RTDEReceiveInterface("127.0.0.1", 500.0)
+    control = None
+    try:
+        time.sleep(0.1)
+        assert receive.isConnected()
+        assert receive.getActualQ() == pytest.approx(HOME)
+        assert receive.getRobotMode() == u.ROBOT_MODE_RUNNING
+        assert receive.getSafetyMode() == u.SAFETY_MODE_NORMAL
+        assert not receive.isProtectiveStopped() and not receive.isEmergencyStopped()
+        t, started = receive.getTimestamp(), time.monotonic()
+        time.sleep(0.2)
+        # the controller's clock runs (not compared with the wall clock: a loaded machine starves both sides)
+        assert 0.0 < receive.getTimestamp() - t <= time.monotonic() - started + 0.05
+
+        control = rtde_control.RTDEControlInterface("127.0.0.1", 500.0)
+        assert control.isConnected() and control.isProgramRunning()
+        time.sleep(0.05)  # the receive interface's newest sample is a few ms old
+        assert receive.getRuntimeState() == u.RUNTIME_PLAYING
+        # The bridge arms 10 Hz; 1 Hz here, so a loaded test machine's stalls do not trip it.
+        assert control.setWatchdog(1.0)
+        target = list(HOME)
+        for i in range(400):  # 0.8 s of a servoJ stream, as the bridge sends it
+            period = control.initPeriod()
+            control.kickWatchdog()
+            target[0] = 0.1 * min(1.0, i / 200)
+            assert control.servoJ(target, 0.5, 0.5, 0.002, 0.1, 300.0)
+            control.waitPeriod(period)
+        assert control.servoStop(2.0)
+        deadline = time.monotonic() + 3.0
+        while max(abs(v) for v in receive.getActualQd()) > 0.0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.05)
+        q = receive.getActualQ()
+        assert q[0] == pytest.approx(0.1, abs=0.01)
+        assert q[1:] == pytest.approx(HOME[1:])
+        assert max(abs(v) for v in receive.getActualQd()) < 1e-6
+        control.stopScript()
+        assert not control.isProgramRunning()
+    finally:
+        if control is not None:
+            control.disconnect()
+        receive.disconnect()
