@@ -14,9 +14,16 @@ During a block the arm draws the figure-eight and the planner lights the
 target pad; with the simulated skin, ``--follow-target`` makes a simulated
 participant press it every few seconds at varying pressures.
 
-The questionnaire's answers go to the study's store beside the recordings
-(``recordings/study.sqlite``): ``nwr study submit FORM.json`` writes one
-form, ``nwr study export --csv OUT`` writes them all in long format and
+The session's plan (participant, order, conditions block by block, and
+when each block was recorded) goes to the study's answer store beside the
+recordings (``recordings/study.sqlite``). With ``--forms [PORT]`` the
+questionnaires are served as a local web page (``--forms-host`` the address
+a tablet reaches); after each block the session waits until that block's
+form is submitted, after the last one until the final form is. ``nwr study
+forms`` serves them alone (answers after a session).
+
+The questionnaire's answers go to the same store: ``nwr study submit
+FORM.json`` writes one form, ``nwr study export --csv OUT`` writes them all in long format and
 ``nwr study analyze`` runs the paper's analysis (docs/study.md).
 """
 
@@ -27,6 +34,7 @@ import logging
 import signal
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,9 +46,14 @@ from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
 from nwr.services.planner import strategies
-from nwr.services.tools.study_store import STORE_NAME, recording_name
+from nwr.services.tools.study_store import STORE_NAME, Store, recording_name
+
+if TYPE_CHECKING:
+    from nwr.services.tools.study_web import FormServer
 
 log = logging.getLogger(__name__)
+
+FORMS_PORT = 8770  # nwr study --forms (study_web.DEFAULT_PORT, without importing starlette at start-up)
 
 # The paper's conditions: UR, LR, CR.
 PAPER_CONDITIONS = ("uniform", "location", "cartesian")
@@ -116,7 +129,38 @@ def _run(args: argparse.Namespace) -> int:
     if existing and not args.overwrite:
         raise ConfigError(f"{existing[0]} exists: choose another participant ID, or --overwrite")
     paths[0].parent.mkdir(parents=True, exist_ok=True)
+    store = Store(directory / STORE_NAME)
+    forms = None
+    try:
+        store.plan(args.participant, args.order, order, replace=args.overwrite)
+        if args.forms_port is not None:
+            from nwr.services.tools.study_web import serve
 
+            forms = serve(store.path, args.forms_host, args.forms_port)
+            print(f"questionnaires for participant {args.participant}: {forms.url}", flush=True)
+        return _run_blocks(args, profile, conditions, order, paths, store, forms)
+    finally:
+        if forms is not None:
+            forms.stop()
+        store.close()
+
+
+def _wait_for_form(store: Store, stop: threading.Event, url: str, participant: str, condition: str | None,
+                   what: str) -> bool:
+    """Wait until ``participant``'s form (``condition``'s, None: the final one) is in the store; False if the
+    study is interrupted first."""
+    print(f"waiting for {what}: {url}", flush=True)
+    log.info("waiting for %s (%s)", what, url)
+    while store.submitted_at(participant, condition) is None:
+        if stop.wait(0.5):
+            log.warning("study interrupted while waiting for %s", what)
+            return False
+    log.info("%s submitted", what)
+    return True
+
+
+def _run_blocks(args: argparse.Namespace, profile: Profile, conditions: tuple[str, ...], order: tuple[str, ...],
+                paths: list[Path], store: Store, forms: FormServer | None) -> int:
     # The gateway starts once the others are alive; each block has its own recorder.
     layout = Layout(planners=list(conditions), active=order[0], gateway=None)
     procs = {u.label: spawn(u, args.profile, args.log_level) for u in units(layout)}
@@ -149,16 +193,29 @@ def _run(args: argparse.Namespace) -> int:
                 recorder.send_signal(signal.SIGTERM)
                 recorder.wait(15)
                 done.append((block, condition, path))
+                store.recorded(args.participant, block)
                 if stopped:
                     log.warning("study interrupted during block %d", block)
                     break
+                if forms is not None:
+                    url = f"{forms.url}p/{args.participant}/block/{block}"
+                    if not _wait_for_form(store, node.stop, url, args.participant, condition,
+                                          f"the questionnaire of block {block} ({condition})"):
+                        break
+                    if block == len(order) and not _wait_for_form(
+                            store, node.stop, f"{forms.url}p/{args.participant}/final", args.participant, None,
+                            "the final questionnaire"):
+                        break
                 for _ in range(20):  # its token must be gone before the next recorder's
                     if "recorder" not in node.alive_services(0.3):
                         break
     finally:
         stop_all(procs)
     _print_blocks(done, profile)
-    return 0 if len(done) == len(order) else 1
+    complete = len(done) == len(order)
+    if forms is not None:
+        complete = complete and store.submitted_at(args.participant) is not None
+    return 0 if complete else 1
 
 
 def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
@@ -204,6 +261,24 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _forms(args: argparse.Namespace) -> int:
+    from nwr.common.errors import StudyError
+    from nwr.services.tools.study_web import serve
+
+    path = _store_path(args)
+    if not path.exists():
+        raise StudyError(f"no study store at {path}: `nwr study` creates it with the first session "
+                         "(or give --store PATH)")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with serve(path, args.host, args.port) as server:
+        print(f"questionnaires of {path}: {server.url} (Ctrl-C to stop)", flush=True)
+        while server.thread.is_alive() and not stop.wait(0.5):
+            pass
+    return 0
+
+
 def _analyze(args: argparse.Namespace) -> int:
     from nwr.common.robot import load_description
     from nwr.services.tools import study_analysis
@@ -236,6 +311,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the target pad every SECONDS (simulated skin)")
     p.add_argument("--overwrite", action="store_true", help="replace the participant's existing recordings")
+    p.add_argument("--forms", dest="forms_port", type=int, nargs="?", const=FORMS_PORT, metavar="PORT",
+                   help=f"serve the questionnaires as a web page (port {FORMS_PORT} if none given) and wait after "
+                        "each block until its form is submitted, after the last for the final form")
+    p.add_argument("--forms-host", default="127.0.0.1", metavar="ADDRESS",
+                   help="the address the forms are served on (default 127.0.0.1: this machine only; the lab "
+                        "network's address of this machine for a tablet)")
 
     def _session(args: argparse.Namespace) -> int:
         missing = [flag for flag, value in (("--participant", args.participant), ("--order", args.order))
@@ -245,7 +326,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         return _run(args)
 
     p.set_defaults(handler=_session)
-    answers = p.add_subparsers(dest="study_command", metavar="{submit,export,analyze}",
+    answers = p.add_subparsers(dest="study_command", metavar="{submit,forms,export,analyze}",
                                title="the questionnaire's answers (docs/study.md)")
     store_help = f"the study's answer store (default: the profile's recordings folder/{STORE_NAME})"
     s = answers.add_parser("submit", help="write filled-in forms (JSON) to the study's answer store",
@@ -259,6 +340,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a new store's questionnaire (default: the packaged common/study/questionnaire.toml)")
     s.add_argument("--replace", action="store_true", help="replace a form already submitted")
     s.set_defaults(handler=_submit)
+    f = answers.add_parser("forms", help="serve the questionnaires as a web page (answers after a session)",
+                           description="Serve the per-condition and final questionnaires of every session in the "
+                                       "store (nwr study registers them) until Ctrl-C.")
+    f.add_argument("--store", metavar="PATH", help=store_help)
+    f.add_argument("--port", type=int, default=FORMS_PORT, help=f"TCP port (default {FORMS_PORT})")
+    f.add_argument("--host", default="127.0.0.1", metavar="ADDRESS",
+                   help="the address to serve on (default 127.0.0.1; a LAN address for a tablet)")
+    f.set_defaults(handler=_forms)
     e = answers.add_parser("export", help="every answer as CSV, one row per participant x condition x item",
                            description="Every answer in tidy long format: one row per participant x condition x "
                                        "item, with order, block, recording, subscale and whether it is reversed; "

@@ -23,8 +23,15 @@ condition the participant did not rate are refused with a :class:`StudyError`
 naming the item. A store of another schema version, or another SQLite file,
 is refused on opening.
 
+The store also holds each session's plan (``nwr study``: a participant's
+order and conditions, block by block, and when each block was recorded), so
+the browser forms (``nwr.services.tools.study_web``) know a block's condition
+and order without anyone typing them.
+
 Evolution: a change to the tables bumps :data:`SCHEMA_VERSION`; an older
 store is then refused (with its version and this one's) rather than misread.
+A table only added (which older code ignores) is created on opening and
+keeps the version: the ``blocks`` table came that way.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import sqlite3
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -104,6 +112,19 @@ class Rating:
 
 
 @dataclass(frozen=True)
+class Block:
+    """A planned block of a session and how far it got."""
+
+    participant: str
+    order: int
+    block: int
+    condition: str
+    recording: str
+    recorded_at: str | None  # None: not recorded yet
+    answered_at: str | None  # its per-condition form's submission; None: not answered yet
+
+
+@dataclass(frozen=True)
 class FinalAnswer:
     participant: str
     item: str
@@ -131,6 +152,19 @@ CREATE TABLE answers (
     value INTEGER,                    -- a rating, 1..points
     text TEXT,                        -- a forced choice or an open answer
     PRIMARY KEY (submission, item)
+);
+"""
+# Added after version 1, created on opening: a session's plan (nwr study), block by block.
+_BLOCKS = """
+CREATE TABLE IF NOT EXISTS blocks (
+    participant TEXT NOT NULL,
+    block INTEGER NOT NULL,
+    order_n INTEGER NOT NULL,
+    condition TEXT NOT NULL,
+    recording TEXT NOT NULL,
+    planned_at TEXT NOT NULL,
+    recorded_at TEXT,                 -- NULL: not recorded yet
+    PRIMARY KEY (participant, block)
 );
 """
 
@@ -164,6 +198,7 @@ class Store:
                                  "drop --questionnaire, or start a new store for new texts")
         self.db.execute("PRAGMA journal_mode = WAL")
         self.db.execute("PRAGMA synchronous = FULL")
+        self.db.execute(_BLOCKS)
         text = self._meta("questionnaire")
         try:
             self.questionnaire: Questionnaire = parse_questionnaire(text, f"{self.path}'s questionnaire")
@@ -296,7 +331,58 @@ class Store:
             rows.append((question.id, None, text))
         return rows
 
+    def plan(self, participant: str, order: int, conditions: Sequence[str], *, replace: bool = False) -> None:
+        """Register a session: ``participant`` runs ``conditions`` (in this order), counterbalanced order
+        ``order``. The same plan again is kept; another one is refused unless ``replace`` (``--overwrite``)."""
+        planned = [(b.order, b.condition) for b in self.blocks(participant)]
+        wanted = [(order, c) for c in conditions]
+        if planned == wanted:
+            return
+        if planned and not replace:
+            raise StudyError(f"participant {participant} is already planned with order {planned[0][0]} "
+                             f"({' -> '.join(c for _, c in planned)}) in {self.path}: choose another participant "
+                             "ID, or --overwrite")
+        now = _now()
+        self.db.execute("BEGIN IMMEDIATE")
+        try:
+            self.db.execute("DELETE FROM blocks WHERE participant = ?", (participant,))
+            self.db.executemany("INSERT INTO blocks VALUES (?, ?, ?, ?, ?, ?, NULL)", [
+                (participant, block, order, c, recording_name(participant, block, c).as_posix(), now)
+                for block, c in enumerate(conditions, start=1)])
+            self.db.execute("COMMIT")
+        except BaseException:
+            self.db.execute("ROLLBACK")
+            raise
+
+    def recorded(self, participant: str, block: int) -> None:
+        """Mark a planned block recorded: its per-condition form is now due."""
+        cur = self.db.execute("UPDATE blocks SET recorded_at = ? WHERE participant = ? AND block = ?",
+                              (_now(), participant, block))
+        if cur.rowcount != 1:
+            raise StudyError(f"participant {participant} has no block {block} planned in {self.path}")
+
     # -- reading -------------------------------------------------------------------
+
+    def blocks(self, participant: str | None = None) -> list[Block]:
+        """The planned blocks (of ``participant``, or everyone's in the order they were planned)."""
+        where, params = ("WHERE b.participant = ?", (participant,)) if participant is not None else ("", ())
+        return [Block(*r) for r in self.db.execute(
+            "SELECT b.participant, b.order_n, b.block, b.condition, b.recording, b.recorded_at, s.submitted_at "
+            "FROM blocks b LEFT JOIN submissions s ON s.participant = b.participant AND s.form = 'condition' "
+            f"AND s.condition = b.condition {where} ORDER BY b.planned_at, b.participant, b.block", params)]
+
+    def current_participant(self) -> str | None:
+        """The participant planned last (the running session's), None before any."""
+        row = self.db.execute("SELECT participant FROM blocks ORDER BY planned_at DESC, rowid DESC "
+                              "LIMIT 1").fetchone()
+        return None if row is None else str(row[0])
+
+    def submitted_at(self, participant: str, condition: str | None = None) -> str | None:
+        """When ``participant`` submitted the form for ``condition`` (None: the final form); None if not yet."""
+        form, cond = ("final", "") if condition is None else ("condition", condition)
+        row = self.db.execute("SELECT submitted_at FROM submissions WHERE participant = ? AND form = ? AND "
+                              "condition = ?", (participant, form, cond)).fetchone()
+        return None if row is None else str(row[0])
 
     def ratings(self) -> list[Rating]:
         return [Rating(*r) for r in self.db.execute(
