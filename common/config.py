@@ -120,10 +120,40 @@ class SimSkinSection(_Section):
     closed_loop: bool = False
 
 
+# The default pad mapping of gateway.ros1.pads: device index i -> the UR10e's pad i, the 11th index unused.
+# A placeholder: check it on the lab's skin (docs/lab.md) and write the real one in the lab's profile.
+ROS1_DEFAULT_PADS = ["shoulder_back", "shoulder_outer", "upper_arm_top", "upper_arm_bottom", "elbow_outer",
+                     "forearm_top", "forearm_bottom", "wrist_1", "wrist_2", "wrist_3", ""]
+
+
+class Ros1SkinSection(_Section):
+    # The ROS 1 topic that carries the skin's pressures (AIRSKIN: ~30 Hz).
+    topic: str = "/bullet_ros/airskin_status"
+    # Its message type, package/Name as `rostopic type TOPIC` prints it.
+    message_type: str = "airskin_msgs/AirskinStatus"
+    # The type's definition (its .msg text), for a type this machine has no
+    # ROS package of: generated at start. Empty: import the type from ROS
+    # (e.g. std_msgs/Float32MultiArray with values_field = "data").
+    definition: str = "float32[] pressures"
+    # The message's field holding the pressures (an array of numbers).
+    values_field: str = "pressures"
+    # The pad mapping: entry i names the robot's pad that the message's value
+    # i is; "" = a value no pad takes. A message must carry this many values.
+    pads: list[str] = msgspec.field(default_factory=lambda: list(ROS1_DEFAULT_PADS))
+    # A value v is the absolute pressure v * scale_hpa + offset_hpa, hPa
+    # (the gateway takes each pad's change from its own baseline).
+    scale_hpa: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 1.0
+    offset_hpa: Annotated[float, msgspec.Meta(ge=-5000, le=5000)] = 0.0
+    # No message for this long, or the ROS master unreachable: a diagnostic
+    # (the skin is stale; the bridge stops the arm after bridge.skin_timeout_s).
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+
+
 class GatewaySection(_Section):
     # Skin sample rate, Hz (AIRSKIN delivers about 25 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
-    source: Literal["sim"] = "sim"
+    # "sim": the simulated skin; "ros1": a real skin's pressures on a ROS 1 topic ([gateway.ros1]).
+    source: Literal["sim", "ros1"] = "sim"
     # A change above this marks the pad as touched and freezes its baseline.
     # Below every pad's PL 2 threshold: a press the gain feels must freeze it.
     contact_hpa: Positive = 1.0
@@ -137,6 +167,7 @@ class GatewaySection(_Section):
     # that changed, not a hand): the baseline is re-acquired, with a warning.
     max_contact_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 120.0
     sim: SimSkinSection = msgspec.field(default_factory=SimSkinSection)
+    ros1: Ros1SkinSection = msgspec.field(default_factory=Ros1SkinSection)
 
 
 class PadGainOverride(_Section):
@@ -678,6 +709,11 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
         if unknown:
             raise ConfigError(f"{field} names {unknown}, which robot {desc.name!r} has no pad of; "
                               f"its pads: {', '.join(sorted(pads))}")
+    if profile.gateway.source == "ros1":  # the mapping names this robot's pads (the simulated skin needs none)
+        from nwr.common.skinmap import pad_map
+
+        ros1 = profile.gateway.ros1
+        pad_map(ros1.pads, [pad.name for pad in desc.pads], scale_hpa=ros1.scale_hpa, offset_hpa=ros1.offset_hpa)
     regions = sorted({pad.region for pad in desc.pads})
     for level in ("pl3", "pl4"):
         missing = [r for r in regions if r not in getattr(planner.location_weights, level)]

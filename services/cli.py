@@ -36,6 +36,7 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.tools.router",
     "nwr.services.tools.replay",
     "nwr.services.tools.compare",
+    "nwr.services.tools.rosbag_import",
     "nwr.services.tools.verify",
     "nwr.services.tools.study",
     "nwr.services.tools.bench",

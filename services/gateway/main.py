@@ -1,5 +1,8 @@
 """Skin gateway process: simulated AIRSKIN pads -> skin/pressure, and skin/touch per touch.
 
+With ``gateway.source = "ros1"`` the pads are a real skin's, from a ROS 1
+topic (:mod:`.ros1`, docs/lab.md).
+
 It follows the arm's pose (``robot/state``) to tell where each touch meets
 its pad (the ground truth published on ``skin/touch``) and, with
 ``gateway.sim.closed_loop`` (``--closed-loop``), to let a touch's pressure
@@ -51,6 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.gateway
+    if cfg.source == "ros1":  # a real skin on a ROS 1 topic (docs/lab.md); rospy only then
+        from nwr.services.gateway import ros1
+
+        if args.script or args.follow_target or getattr(args, "closed_loop", False):
+            log.warning("gateway.source = \"ros1\": --script, --follow-target and --closed-loop are the simulated "
+                        "skin's and are ignored")
+        return ros1.run(profile, args)
     if args.rate:
         cfg.rate_hz = args.rate
     if getattr(args, "closed_loop", False):

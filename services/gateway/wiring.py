@@ -1,4 +1,5 @@
-"""The skin gateway's wiring: the simulated skin's ticks + robot/state (+ statuses) -> skin/pressure, skin/touch.
+"""The skin gateway's wiring: the simulated skin's ticks (or a real skin's samples) + robot/state (+ statuses)
+-> skin/pressure, skin/touch.
 
 The call order of the service, with no Zenoh, no thread and no clock of its
 own (time comes from the journal): the live process (:mod:`.main`), lockstep
@@ -11,7 +12,9 @@ runs and ``nwr verify`` run this code.
   simulated participant presses only while the active planner does its task;
 - :meth:`GatewayWiring.origin` starts the touch script's clock;
 - each tick: the follower's touch, the touches that start (forward
-  kinematics only when one needs the pose), the sample.
+  kinematics only when one needs the pose), the sample;
+- a real skin (``gateway.source = "ros1"``, :mod:`.ros1`) has no ticks: each
+  of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 from typing import Any
 
 import msgspec
+import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -44,7 +48,7 @@ class GatewayWiring:
         self.script = script
         self.follow_target_s = follow_target_s
         self.sim = SimSkin(cfg.sim, self.pads, script)
-        self.gateway = Gateway(cfg, len(self.pads), source="sim")
+        self.gateway = Gateway(cfg, len(self.pads), source=cfg.source)
         self.model = RobotModel(self.desc)
         self.follower = TargetFollower(follow_target_s, cfg.sim.seed) if follow_target_s else None
         self.journal = journal
@@ -108,13 +112,28 @@ class GatewayWiring:
             self.touch_seq += 1
         msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
         self.out(keys.SKIN_PRESSURE, msg)
-        for pad in events.reacquired:
-            self.diag("warning", "baseline_reacquired",
-                      f"pad {self.pads[pad].name} stayed above the contact threshold for more than "
-                      f"{self.cfg.max_contact_s} s: its baseline was re-acquired")
+        self._reacquired(events.reacquired)
         for pad in events.non_finite:
             self.diag("warning", "non_finite_pressure", f"pad {self.pads[pad].name} reported a non-finite pressure")
         return t
+
+    def on_sample(self, absolute: np.ndarray) -> None:
+        """A real skin's sample (``gateway.source = "ros1"``): each pad's absolute pressure, hPa, NaN where
+        the pad is invalid in it (:func:`nwr.common.skinmap.map_values`, whose caller reports why)."""
+        absolute = np.asarray(absolute, dtype=float)
+        finite = np.isfinite(absolute)
+        self.journal.begin("sample", data=np.where(finite, absolute, 0.0).tolist(),
+                           text=",".join(str(int(i)) for i in np.flatnonzero(~finite)))
+        now = self.journal.now_ns()
+        msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)
+        self.out(keys.SKIN_PRESSURE, msg)
+        self._reacquired(events.reacquired)
+
+    def _reacquired(self, pads: list[int]) -> None:
+        for pad in pads:
+            self.diag("warning", "baseline_reacquired",
+                      f"pad {self.pads[pad].name} stayed above the contact threshold for more than "
+                      f"{self.cfg.max_contact_s} s: its baseline was re-acquired")
 
     def replay(self, entry: m.JournalEntry, message: Any) -> None:
         match entry.input:
@@ -126,5 +145,10 @@ class GatewayWiring:
                 self.origin()
             case "tick":
                 self.tick()
+            case "sample":
+                absolute = np.array(entry.data, dtype=float)
+                for i in (int(x) for x in entry.text.split(",") if x):
+                    absolute[i] = np.nan
+                self.on_sample(absolute)
             case _:
                 raise ValueError(f"the gateway has no input {entry.input!r}")

@@ -119,7 +119,7 @@ def _short(value: Any) -> str:
 def _from_service(key: str, message: Any, wiring: Any) -> bool:
     """Whether a recorded output on one of the wiring's keys is this service's (not a replay's or an impostor's)."""
     if isinstance(message, m.SkinPressure):
-        return message.source == "sim"
+        return message.source == getattr(getattr(wiring, "cfg", None), "source", "sim")  # the gateway's own skin
     if isinstance(message, (m.PositionCommand, m.VelocityCommand)):
         return message.owner == getattr(wiring, "name", message.owner)
     return True

@@ -1,0 +1,227 @@
+"""The gateway's ROS 1 skin source (``gateway.source = "ros1"``): a real skin's pressures from a ROS 1 topic.
+
+A thin adapter: rospy subscribes to ``gateway.ros1.topic``; each message's
+values field is mapped onto the robot's pads by
+:func:`nwr.common.skinmap.map_values` (the same code ``nwr import`` uses)
+and fed to the gateway's wiring (:meth:`GatewayWiring.on_sample`): the
+same baseline filter and ``skin/pressure`` as the simulated skin.
+
+- the mapping's own gaps (unused device indices, pads no index feeds) are
+  reported once at start (log and diagnostic ``ros1_mapping``);
+- a message of the wrong length, with non-finite or out-of-range values:
+  a diagnostic (``ros1_bad_message``, rate limited) and those pads invalid in
+  that sample; nothing a message carries stops the gateway;
+- no message for ``timeout_s``, or the ROS master unreachable: diagnostics
+  ``ros1_no_messages`` / ``ros1_master_unreachable``. The gateway publishes
+  nothing without messages: the skin goes stale and the bridge stops the arm
+  (``bridge.skin_timeout_s``).
+
+rospy is imported only here, only when the source is chosen: the project
+installs and runs without ROS. On Debian/Ubuntu the packages are
+``python3-rospy`` (with ``python3-rosgraph``, ``python3-genpy``) and, for a
+type imported from ROS, its message package (e.g. ``python3-std-msgs``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import socket
+import sys
+import threading
+import time
+from typing import Any
+from urllib.parse import urlparse
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, Ros1SkinSection
+from nwr.common.door import Door
+from nwr.common.errors import ConfigError
+from nwr.common.node import Node
+from nwr.common.skinmap import PadMap, map_values, pad_map
+from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+
+log = logging.getLogger(__name__)
+
+# Where Debian's and ROS's own Python packages live; appended (never prepended) to sys.path when rospy is not
+# importable as is, so that this environment's own packages (numpy, ...) win.
+ROS_PYTHON_DIRS = ("/usr/lib/python3/dist-packages", "/opt/ros/noetic/lib/python3/dist-packages")
+NO_ROSPY = ("gateway.source = \"ros1\" needs rospy, which cannot be imported ({error}); on Debian/Ubuntu: "
+            "apt install python3-rospy python3-rosgraph python3-genpy (and the message package of "
+            "gateway.ros1.message_type if its definition is empty, e.g. python3-std-msgs), or source a ROS 1 "
+            "installation's setup.bash")
+
+
+def import_ros(module: str = "rospy") -> Any:
+    """``module`` of ROS 1 (rospy, genpy, ...), from this environment or the system's; ConfigError if absent."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        pass
+    for path in ROS_PYTHON_DIRS:
+        if path not in sys.path:
+            sys.path.append(path)
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise ConfigError(NO_ROSPY.format(error=exc)) from exc
+
+
+def message_class(cfg: Ros1SkinSection) -> Any:
+    """The ROS message class of ``cfg.message_type``: generated from ``cfg.definition``, or imported from ROS."""
+    package, _, name = cfg.message_type.partition("/")
+    if not package or not name:
+        raise ConfigError(f"gateway.ros1.message_type = {cfg.message_type!r}: write package/Name, e.g. "
+                          "std_msgs/Float32MultiArray")
+    if cfg.definition.strip():
+        dynamic = import_ros("genpy.dynamic")
+        try:
+            return dynamic.generate_dynamic(cfg.message_type, cfg.definition)[cfg.message_type]
+        except Exception as exc:  # genpy raises its own and assorted errors for a bad definition
+            raise ConfigError(f"gateway.ros1.definition is no valid message definition of "
+                              f"{cfg.message_type}: {exc}") from exc
+    import_ros("genpy")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"gateway.ros1.message_type = {cfg.message_type!r} cannot be imported from ROS ({exc}): "
+                          "install its message package, or give its .msg text as gateway.ros1.definition") from exc
+
+
+def check_field(cls: Any, cfg: Ros1SkinSection) -> None:
+    slots = list(getattr(cls, "__slots__", ()))
+    if cfg.values_field not in slots:
+        raise ConfigError(f"gateway.ros1.values_field = {cfg.values_field!r} is no field of {cfg.message_type} "
+                          f"(its fields: {slots})")
+
+
+class Ros1Skin:
+    """The subscriber's callback and the watchdog's checks, around the gateway's wiring."""
+
+    def __init__(self, cfg: Ros1SkinSection, pmap: PadMap, wiring: GatewayWiring, lock: threading.Lock,
+                 diag: Any) -> None:
+        self.cfg = cfg
+        self.pmap = pmap
+        self.wiring = wiring
+        self.lock = lock
+        self.diag = diag
+        self.count = 0
+        self.bad = 0
+        self.last = time.monotonic()  # of the newest message (the start, before any)
+        self.stale = False
+        self.master_down = False
+
+    def on_message(self, msg: Any) -> None:
+        try:
+            values = getattr(msg, self.cfg.values_field)
+            mapped = map_values(values, self.pmap)
+            with self.lock:
+                self.wiring.on_sample(mapped.absolute_hpa)
+        except Exception as exc:  # a callback must never end the subscription: report and go on
+            self.bad += 1
+            self.diag("error", "ros1_bad_message", f"a message on {self.cfg.topic} could not be used: {exc!r}")
+            return
+        self.count += 1
+        self.last = time.monotonic()
+        if self.stale:
+            self.stale = False
+            log.info("skin messages on %s again", self.cfg.topic)
+        if mapped.problems:
+            self.bad += 1
+            self.diag("warning", "ros1_bad_message", f"{self.cfg.topic}: " + "; ".join(mapped.problems.values()))
+
+    def check(self, master_uri: str) -> None:
+        """The watchdog: messages coming, master reachable."""
+        quiet = time.monotonic() - self.last
+        if quiet > self.cfg.timeout_s:
+            self.stale = True
+            self.diag("error", "ros1_no_messages",
+                      f"no skin message on {self.cfg.topic} for {quiet:.1f} s: the skin is stale (the bridge "
+                      "stops the arm); is the skin's node running, the topic and ROS_MASTER_URI right?")
+        up = master_reachable(master_uri)
+        if not up:
+            self.master_down = True
+            self.diag("error", "ros1_master_unreachable",
+                      f"the ROS master at {master_uri} does not answer; skin messages already flowing may go on, "
+                      "but a restarted skin node will not be found")
+        elif self.master_down:
+            self.master_down = False
+            log.info("the ROS master at %s answers again", master_uri)
+
+
+def master_reachable(uri: str, timeout_s: float = 0.5) -> bool:
+    parsed = urlparse(uri)
+    try:
+        with socket.create_connection((parsed.hostname or "localhost", parsed.port or 11311), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def init_node(rospy: Any, name: str) -> None:
+    """``rospy.init_node``, keeping this process's logging as it was (rospy's configuration would send it all
+    to a file under ~/.ros/log) and its signal handlers (the Node's)."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        rospy.init_node(name, anonymous=True, disable_signals=True)
+    finally:
+        for handler in root.handlers[:]:
+            if handler not in handlers:
+                root.removeHandler(handler)
+        for handler in handlers:
+            if handler not in root.handlers:
+                root.addHandler(handler)
+        root.setLevel(level)
+
+
+def run(profile: Profile, args: argparse.Namespace) -> int:
+    """The gateway with the ROS 1 source, until stopped."""
+    from nwr.common.robot import load_description
+
+    cfg = profile.gateway.ros1
+    rospy = import_ros("rospy")
+    rosgraph = import_ros("rosgraph")
+    cls = message_class(cfg)
+    check_field(cls, cfg)
+    desc = load_description(profile.robot.description or None)
+    pmap = pad_map(cfg.pads, [p.name for p in desc.pads], scale_hpa=cfg.scale_hpa, offset_hpa=cfg.offset_hpa)
+    master_uri = rosgraph.get_master_uri()
+    lock = threading.Lock()
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile)) as node:
+        node.install_signal_handlers()
+        wiring = node.wire(GatewayWiring, profile, lock, script=None)
+
+        def on_state(state: m.RobotState) -> None:
+            with lock:
+                wiring.on_state(state)
+
+        node.subscribe(keys.ROBOT_STATE, on_state)
+        for problem in pmap.describe():
+            node.diag("warning", "ros1_mapping", f"gateway.ros1.pads: {problem}", every_s=0.0)
+        with lock:
+            wiring.origin()
+        skin = Ros1Skin(cfg, pmap, wiring, lock, node.diag)
+
+        def connect() -> None:  # rospy waits for its master to register: not on the main thread
+            try:
+                init_node(rospy, "nwr_gateway")
+                rospy.Subscriber(cfg.topic, cls, skin.on_message, queue_size=10)
+            except Exception as exc:  # rospy.ROSException, OSError, ...: the watchdog goes on reporting
+                node.diag("error", "ros1_init_failed", f"could not join ROS 1 at {master_uri}: {exc!r}")
+                return
+            if not rospy.is_shutdown():
+                log.info("skin from ROS 1: %s (%s, field %s) at master %s, %d values onto %d pads",
+                         cfg.topic, cfg.message_type, cfg.values_field, master_uri, pmap.n_values, pmap.n_pads)
+
+        threading.Thread(target=connect, name="ros1", daemon=True).start()
+        period = min(0.5, cfg.timeout_s / 2)
+        try:
+            while not node.stop.wait(period):
+                skin.check(master_uri)
+        finally:
+            rospy.signal_shutdown("nwr gateway stopping")  # also ends a wait for the master
+            log.info("%d skin messages, %d with problems", skin.count, skin.bad)
+    return 0

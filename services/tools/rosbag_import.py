@@ -1,0 +1,258 @@
+"""``nwr import BAG OUT.mcap``: a ROS 1 bag of a touch session -> a project recording.
+
+The bag's skin topic (``gateway.ros1``: AIRSKIN's ``/bullet_ros/airskin_status``,
+``float32[] pressures``) becomes ``skin/pressure``: each message mapped onto
+the robot's pads by the same code as the live ROS 1 source
+(:func:`nwr.common.skinmap.map_values`, ``gateway.ros1.pads``) and through the
+gateway's baseline filter (:class:`nwr.services.gateway.core.Gateway`), as the
+live gateway would have published it. ``sensor_msgs/JointState`` on the joint
+topic becomes ``robot/state``, its joints put in the robot description's order
+by name. Every message keeps the bag's time stamp (its record time, ns since
+the epoch) as stamp and log time. The session metadata says where it came from
+(``label.imported_from``, the topics, the mapping).
+
+Unusable input ends the import with a non-zero exit and one line: no such bag,
+no skin topic, a skin topic whose type has no ``values_field``, a joint topic
+that is not JointState. A message's own problems (wrong length, non-finite or
+out-of-range values, a joint state missing a joint) are counted and reported
+at the end; a bad value makes its pad invalid in that sample, a joint state
+that misses joints is skipped.
+
+The recording replays like any other (``nwr replay --fast --reflex NAME``; a
+real skin's recording has no touch ground truth: open loop only) and compares
+with ``nwr compare``. ``rosbags`` (pure Python, no ROS needed) is imported only
+when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.config import Profile, profile_for
+from nwr.common.errors import ConfigError
+from nwr.common.recordings import McapRecorder, new_file, session_metadata
+from nwr.common.robot import load_description
+from nwr.common.skinmap import PadMap, map_values, pad_map
+
+log = logging.getLogger(__name__)
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+
+
+def rosbags_type(name: str) -> str:
+    """``pkg/Name`` (ROS 1's spelling) -> ``pkg/msg/Name`` (rosbags')."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def ros1_type(name: str) -> str:
+    parts = name.split("/")
+    return f"{parts[0]}/{parts[2]}" if len(parts) == 3 and parts[1] == "msg" else name
+
+
+@dataclass
+class ImportReport:
+    skin: int = 0
+    states: int = 0
+    skin_problems: Counter[str] = field(default_factory=Counter)  # messages with each kind of problem
+    state_problems: Counter[str] = field(default_factory=Counter)
+    notes: list[str] = field(default_factory=list)  # the mapping's gaps, a missing joint topic
+    first_ns: int = 0
+    last_ns: int = 0
+
+    def format(self, out: Path) -> str:
+        span = (self.last_ns - self.first_ns) / 1e9 if self.skin else 0.0
+        lines = [f"imported {self.skin} skin samples and {self.states} robot states ({span:.1f} s) into {out}"]
+        lines += [f"  note: {n}" for n in self.notes]
+        for kind, count in sorted(self.skin_problems.items()):
+            lines.append(f"  {count} skin messages with a problem ({kind}): their bad pads are invalid")
+        for kind, count in sorted(self.state_problems.items()):
+            lines.append(f"  {count} joint states skipped ({kind})")
+        return "\n".join(lines)
+
+
+def _register(typestore: Any, connection: Any, fallback: tuple[str, str] | None) -> None:
+    """The connection's type in ``typestore``: from the bag's own definition, else ``fallback`` (name, .msg text)."""
+    from rosbags.typesys import get_types_from_msg
+
+    if connection.msgtype in typestore.fielddefs:
+        return
+    try:
+        typestore.register(get_types_from_msg(connection.msgdef.data, connection.msgtype))
+        return
+    except Exception as exc:  # rosbags raises assorted errors for a definition it cannot parse
+        if fallback is None or rosbags_type(fallback[0]) != connection.msgtype or not fallback[1].strip():
+            raise ConfigError(f"the bag's definition of {ros1_type(connection.msgtype)} on {connection.topic} "
+                              f"cannot be read ({exc})") from exc
+    typestore.register(get_types_from_msg(fallback[1], connection.msgtype))
+
+
+def _field_names(typestore: Any, msgtype: str) -> list[str]:
+    return [name for name, _ in typestore.fielddefs[msgtype][1]]
+
+
+def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topic: str, pmap: PadMap,
+               message_type: str, definition: str, values_field: str) -> ImportReport:
+    """Convert ``bag`` into the recording ``out``; ConfigError (one line) for input that cannot be used."""
+    from rosbags.rosbag1 import Reader, ReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    from nwr.services.gateway.core import Gateway
+
+    if not bag.is_file():
+        raise ConfigError(f"{bag}: no such bag file")
+    desc = load_description(profile.robot.description or None)
+    joints = list(desc.joints)
+    typestore = get_typestore(Stores.ROS1_NOETIC)
+    report = ImportReport(notes=pmap.describe())
+    try:
+        reader = Reader(bag)
+        reader.open()
+    except (ReaderError, OSError) as exc:
+        raise ConfigError(f"{bag} is no readable ROS 1 bag: {exc}") from exc
+    try:
+        by_topic: dict[str, list[Any]] = {}
+        for connection in reader.connections:
+            by_topic.setdefault(connection.topic, []).append(connection)
+        topics = sorted(f"{t} ({ros1_type(c[0].msgtype)})" for t, c in by_topic.items())
+        skin_connections = by_topic.get(topic, [])
+        if not skin_connections:
+            raise ConfigError(f"{bag} has no skin topic {topic}: its topics are {topics or 'none'}; name the skin's "
+                              "with --topic")
+        for connection in skin_connections:
+            _register(typestore, connection, (message_type, definition))
+            fields = _field_names(typestore, connection.msgtype)
+            if values_field not in fields:
+                raise ConfigError(f"{topic} in {bag} is of type {ros1_type(connection.msgtype)}, which has no field "
+                                  f"{values_field!r} (its fields: {fields}); give the type's field of pressures "
+                                  "(gateway.ros1.values_field)")
+            if connection.msgtype != rosbags_type(message_type):
+                report.notes.append(f"{topic} is of type {ros1_type(connection.msgtype)}, not {message_type}: "
+                                    f"its field {values_field!r} is taken as the pressures")
+        state_connections = by_topic.get(joint_topic, [])
+        for connection in state_connections:
+            if connection.msgtype != JOINT_STATE:
+                raise ConfigError(f"{joint_topic} in {bag} is of type {ros1_type(connection.msgtype)}, not "
+                                  "sensor_msgs/JointState; name the joint states' topic with --joint-topic")
+        if not state_connections:
+            report.notes.append(f"the bag has no joint states on {joint_topic}: the recording has no robot/state "
+                                f"(its topics: {topics})")
+        if sum(c.msgcount for c in skin_connections) == 0:
+            raise ConfigError(f"{bag} has no message on {topic}")
+
+        gateway = Gateway(profile.gateway, pmap.n_pads, source="ros1")
+        robot = profile.robot.name
+        wanted = [*skin_connections, *state_connections]
+        with new_file(out, "the recording") as stream:
+            recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
+                                    chunk_size=profile.recorder.chunk_size)
+            first_ns = min((t for _, t, _ in reader.messages(connections=skin_connections)), default=0)
+            recorder.metadata("session", session_metadata(
+                robot=robot, session=out.stem, profile_json=msgspec.json.encode(profile).decode(), strategy="",
+                planner="", start_time_iso=dt.datetime.fromtimestamp(first_ns / 1e9, dt.UTC).isoformat(),
+                start_monotonic_ns=first_ns, timing="imported",
+                labels={"imported_from": str(bag), "import_tool": "nwr import", "ros_skin_topic": topic,
+                        "ros_skin_type": message_type, "ros_joint_topic": joint_topic,
+                        "pad_mapping": json.dumps(pmap.table())},
+            ))
+            report.first_ns = first_ns
+            for connection, stamp, raw in reader.messages(connections=wanted):
+                try:
+                    msg = typestore.deserialize_ros1(raw, connection.msgtype)
+                except Exception as exc:  # a corrupt record: counted, never fatal
+                    bucket = report.skin_problems if connection.topic == topic else report.state_problems
+                    bucket[f"undecodable: {type(exc).__name__}"] += 1
+                    continue
+                if connection.topic == topic:
+                    mapped = map_values(getattr(msg, values_field), pmap)
+                    for kind in mapped.problems:
+                        report.skin_problems[kind] += 1
+                    sample, _ = gateway.process((stamp - first_ns) / 1e9, stamp, mapped.absolute_hpa)
+                    recorder.write(keys.key(robot, keys.SKIN_PRESSURE), sample, stamp)
+                    report.skin += 1
+                    report.last_ns = max(report.last_ns, stamp)
+                else:
+                    state, problem = robot_state(msg, joints, report.states, stamp)
+                    if state is None:
+                        report.state_problems[problem] += 1
+                        continue
+                    recorder.write(keys.key(robot, keys.ROBOT_STATE), state, stamp)
+                    report.states += 1
+            recorder.finish()
+    finally:
+        reader.close()
+    return report
+
+
+def robot_state(msg: Any, joints: list[str], seq: int, stamp_ns: int) -> tuple[m.RobotState | None, str]:
+    """A JointState -> RobotState in ``joints`` order (by name), or None and why not."""
+    names = list(msg.name)
+    position = np.asarray(msg.position, dtype=float)
+    velocity = np.asarray(msg.velocity, dtype=float)
+    index = {name: i for i, name in enumerate(names)}
+    missing = [j for j in joints if j not in index]
+    if missing:
+        return None, f"missing joints {missing}"
+    if len(position) != len(names) or (len(velocity) and len(velocity) != len(names)):
+        return None, "positions or velocities not one per name"
+    order = [index[j] for j in joints]
+    q = position[order]
+    dq = velocity[order] if len(velocity) else np.zeros(len(joints))
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
+        return None, "non-finite positions or velocities"
+    return m.RobotState(seq=seq, stamp_ns=stamp_ns, q=q.tolist(), dq=dq.tolist(), status="ok", owner="rosbag",
+                        backend="rosbag", skin_age_s=-1.0), ""
+
+
+def _run(args: argparse.Namespace) -> int:
+    profile = profile_for(args)
+    ros1 = profile.gateway.ros1
+    desc = load_description(profile.robot.description or None)
+    mapping = ros1.pads
+    if args.mapping:
+        mapping = [name.strip() for name in args.mapping.split(",")]
+    pmap = pad_map(mapping, [p.name for p in desc.pads], scale_hpa=ros1.scale_hpa, offset_hpa=ros1.offset_hpa,
+                   where="--mapping" if args.mapping else "gateway.ros1.pads")
+    bag, out = Path(args.bag), Path(args.output)
+    if out.suffix != ".mcap":
+        raise ConfigError(f"{out}: the recording to write must end in .mcap")
+    if out.exists() and not args.force:
+        raise ConfigError(f"{out} exists: give another name, or --force to overwrite it")
+    report = import_bag(bag, out, profile, topic=args.topic or ros1.topic, joint_topic=args.joint_topic,
+                        pmap=pmap, message_type=args.message_type or ros1.message_type,
+                        definition=ros1.definition, values_field=args.field or ros1.values_field)
+    print(report.format(out))
+    if report.skin_problems or report.state_problems:
+        log.warning("some messages had problems (above); the recording marks the bad pads invalid")
+    return 0 if report.skin else 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "import", help="turn a ROS 1 bag of a touch session (skin pressures, joint states) into a recording",
+        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("bag", help="ROS 1 bag (.bag)")
+    p.add_argument("output", help="recording to write (.mcap)")
+    p.add_argument("--topic", help="the skin's topic (default: gateway.ros1.topic)")
+    p.add_argument("--message-type", help="the skin's message type, pkg/Name (default: gateway.ros1.message_type)")
+    p.add_argument("--field", help="the message's field of pressures (default: gateway.ros1.values_field)")
+    p.add_argument("--joint-topic", default="/joint_states", help="sensor_msgs/JointState topic (default: %(default)s)")
+    p.add_argument("--mapping", metavar="PADS",
+                   help="pad mapping: comma-separated pad names, the i-th for the message's value i, empty for an "
+                        "unused one (default: gateway.ros1.pads of the profile, --profile)")
+    p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it exists")
+    p.set_defaults(handler=_run)
