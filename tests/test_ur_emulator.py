@@ -176,6 +176,82 @@ def test_watchdog_stops_the_script() -> None:
     assert not controller.script_running
 
 
+def _running(now: list[float]) -> u.Controller:
+    controller = u.Controller(_controller().arm, clock=lambda: now[0], protective_unlock_delay_s=5.0)
+    controller.load_script("def rtde_control():\nend\n")
+    controller.arm.speed([0.5, 0, 0, 0, 0, 0], 8.0)
+    for _ in range(100):
+        controller.tick()
+    assert controller.arm.qd[0] == pytest.approx(0.5)
+    return controller
+
+
+def _to_rest(controller: u.Controller) -> None:
+    for _ in range(500):
+        controller.tick()
+    assert not np.any(controller.arm.qd)
+
+
+def test_protective_stop_and_its_unlock() -> None:
+    now = [0.0]
+    controller = _running(now)
+    controller.protective_stop()
+    assert not controller.script_running and controller.safety_mode == u.SAFETY_MODE_PROTECTIVE_STOP
+    assert controller.safety_status_bits & u.SAFETY_PROTECTIVE_STOPPED
+    _to_rest(controller)
+    fault, = controller.faults
+    assert fault["fault"] == "protective_stop" and fault["rest_t"] is not None and fault["cleared_t"] is None
+    controller.load_script("def rtde_control():\nend\n")  # refused while stopped
+    assert not controller.script_running
+    dashboard = u.Dashboard(controller)
+    assert dashboard.answer("safetymode") == "Safetymode: PROTECTIVE_STOP"
+    assert dashboard.answer("unlock protective stop").startswith("Cannot unlock protective stop until 5s")
+    now[0] = 5.0
+    assert dashboard.answer("unlock protective stop") == "Protective stop releasing"
+    assert controller.safety_status_bits == u.SAFETY_NORMAL
+    controller.load_script("def rtde_control():\nend\n")
+    assert controller.script_running and fault["cleared_t"] == 5.0
+
+
+def test_emergency_stop_powers_the_arm_off() -> None:
+    now = [0.0]
+    controller = _running(now)
+    controller.emergency_stop()
+    assert controller.safety_status_bits & u.SAFETY_EMERGENCY_STOPPED and not controller.script_running
+    _to_rest(controller)
+    assert controller.robot_mode == u.ROBOT_MODE_POWER_OFF
+    dashboard = u.Dashboard(controller)
+    assert dashboard.answer("robotmode") == "Robotmode: POWER_OFF"
+    assert dashboard.answer("power on").startswith("Failed")  # the button is still pressed
+    assert controller.release_emergency_stop() == "emergency stop released"
+    controller.load_script("def rtde_control():\nend\n")
+    assert not controller.script_running  # powered off
+    dashboard.answer("power on")
+    dashboard.answer("brake release")
+    assert controller.robot_mode == u.ROBOT_MODE_RUNNING
+    controller.load_script("def rtde_control():\nend\n")
+    assert controller.script_running
+
+
+def test_stall_trips_the_watchdog_and_motion_is_logged() -> None:
+    now = [0.0]
+    controller = _running(now)
+    names = ["input_int_register_0", "input_double_register_0"]
+    controller.write_inputs(names, [u.CMD_SET_WATCHDOG, 10.0])
+    controller.tick()
+    controller.write_inputs(names, [u.CMD_SPEEDJ, 0.1])
+    assert controller.motion_writes == 1 and controller.command_changes[-1] == (0.0, u.CMD_SPEEDJ)
+    controller.stall(1.0)
+    now[0] = 0.05
+    controller.write_inputs(names, [u.CMD_WATCHDOG, 0.0])  # ignored: the stall
+    controller.tick()
+    assert controller.script_running
+    now[0] = 0.2
+    controller.tick()
+    assert not controller.script_running
+    assert [f["fault"] for f in controller.faults] == ["stall", "watchdog"]
+
+
 def test_speed_is_acceleration_limited() -> None:
     arm = _controller().arm
     arm.speed([1.0, 0, 0, 0, 0, 0], 100.0)  # above the 8 rad/s^2 limit

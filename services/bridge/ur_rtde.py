@@ -16,7 +16,9 @@
 - ``disconnect()`` ends any stream, stops the control script and closes both
   interfaces: the robot is released at rest.
 - The controller watches the bridge: ``setWatchdog(watchdog_hz)`` right after
-  every (re)connection, ``kickWatchdog`` every cycle. A bridge that hangs or
+  every (re)connection, ``kickWatchdog`` every cycle (and from a helper thread
+  between ``connect()`` and the control loop's first cycle: opening the Zenoh
+  session takes longer than the watchdog's period). A bridge that hangs or
   is starved of CPU for longer than ``1 / watchdog_hz`` has the controller
   stop its control script, and with it the arm, without the bridge's help.
 
@@ -80,6 +82,7 @@ class RtdePacer:
         self._t_local = time.monotonic()
 
     def sleep(self, stop: threading.Event | None = None) -> bool:
+        self.backend.take_over()  # the loop kicks the watchdog from now on
         control = self.backend.control
         if control is not None and self.backend.connected:
             try:
@@ -147,6 +150,15 @@ class URRtdeBackend(Backend):
         self.next_attempt = 0.0
         self.reconnects = 0
         self.fault_reason = ""
+        # Whether the running control script has the watchdog armed: after a
+        # re-upload it is armed only once the script runs (setWatchdog fails before).
+        self.watchdog_armed = False
+        # Between connect() and the control loop's first cycle (the Zenoh
+        # session, the wiring: easily longer than 1 / watchdog_hz) a thread
+        # kicks the watchdog, under this lock; the pacer takes over.
+        self._control_lock = threading.RLock()
+        self._keepalive: threading.Thread | None = None
+        self._keepalive_stop = threading.Event()
         self.last_q = np.zeros(env.n)
         # The controller's own ramps: never steeper than the envelope's
         # slowest joint (the bridge's setpoints already are).
@@ -172,11 +184,39 @@ class URRtdeBackend(Backend):
             raise RobotConnectionError(f"the UR controller at {self.robot_ip} refused the RTDE watchdog at "
                                        f"{self.watchdog_hz:g} Hz: the bridge does not run the arm without it")
         self.connected = True
+        self.watchdog_armed = True
         self.streaming = None
         self.backoff_s = self.reconnect_min_s
         self.last_q = self._read_q()
         self.last_sent = self.last_q.copy()
+        if self.factory is rtde_factory:  # test doubles (tests/test_rtde_backend.py) have no watchdog to feed
+            self._start_keepalive()
         log.info("connected to the UR controller at %s (RTDE at %.0f Hz)", self.robot_ip, 1.0 / self.dt)
+
+    def _start_keepalive(self) -> None:
+        """Kick the watchdog from a thread until the control loop's first cycle (:meth:`take_over`)."""
+        self._keepalive_stop.clear()
+        period = min(0.25 / self.watchdog_hz, 0.02)
+
+        def kick() -> None:
+            while not self._keepalive_stop.wait(period):
+                with self._control_lock:
+                    try:
+                        if self.control is not None:
+                            self.control.kickWatchdog()
+                    except RuntimeError as exc:
+                        log.warning("kicking the RTDE watchdog before the control loop: %s", exc)
+                        return
+
+        self._keepalive = threading.Thread(target=kick, name="rtde-watchdog-keepalive", daemon=True)
+        self._keepalive.start()
+
+    def take_over(self) -> None:
+        """The control loop runs: stop the keepalive thread (the pacer kicks the watchdog every cycle)."""
+        if self._keepalive is not None:
+            self._keepalive_stop.set()
+            self._keepalive.join()
+            self._keepalive = None
 
     def _arm_watchdog(self) -> bool:
         """The controller's watchdog on this bridge, set whenever its control script (re)starts.
@@ -207,12 +247,15 @@ class URRtdeBackend(Backend):
         self.reconnects += 1
         ok = False
         try:
-            if self.control is not None and self.receive is not None:
-                ok = bool(self.receive.reconnect()) and bool(self.control.reconnect())
-            if not ok:
-                self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
-                ok = True
+            # Fresh interfaces, never ur_rtde's reconnect(): after a dropped
+            # connection, RTDEReceiveInterface.reconnect() / RTDEControlInterface.reconnect()
+            # following failed attempts corrupted the heap (ur_rtde 1.6.5: "malloc(): mismatching
+            # next->prev_size", the bridge killed by SIGABRT; tests/test_ur_bridge_e2e.py).
+            self._discard()
+            self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
+            ok = True
             if not self._arm_watchdog():
+                self.control.stopScript()  # never a running script the controller does not watch
                 raise RuntimeError(f"the controller refused the RTDE watchdog at {self.watchdog_hz:g} Hz")
         except (RuntimeError, OSError) as exc:
             self.fault_reason = f"reconnection {self.reconnects} failed ({exc})"
@@ -220,6 +263,7 @@ class URRtdeBackend(Backend):
         if ok:
             log.info("reconnected to the UR controller at %s (attempt %d)", self.robot_ip, self.reconnects)
             self.connected = True
+            self.watchdog_armed = True
             self.streaming = None
             self.backoff_s = self.reconnect_min_s
             self.last_sent = None
@@ -228,8 +272,19 @@ class URRtdeBackend(Backend):
             log.warning("%s: next attempt in %.1f s", self.fault_reason, self.backoff_s)
             self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
 
+    def _discard(self) -> None:
+        """Close and drop the interfaces of a lost connection (errors ignored: it is gone)."""
+        for interface in (self.control, self.receive):
+            if interface is not None:
+                try:
+                    interface.disconnect()
+                except RuntimeError as exc:
+                    log.debug("closing a lost interface: %s", exc)
+        self.control = self.receive = None
+
     def disconnect(self) -> None:
         """Release the robot: end the stream, stop the control script, close both interfaces."""
+        self.take_over()
         control, receive = self.control, self.receive
         if control is not None:
             for call in (self._end_stream, control.stopScript, control.disconnect):
@@ -251,6 +306,10 @@ class URRtdeBackend(Backend):
         return np.asarray(self.receive.getActualQ(), dtype=float)
 
     def get_observation(self) -> Observation:
+        with self._control_lock:
+            return self._observe()
+
+    def _observe(self) -> Observation:
         if not self.connected or self.receive is None or self.control is None:
             self._try_reconnect()
             if not self.connected:
@@ -276,22 +335,40 @@ class URRtdeBackend(Backend):
                                    "protective stop: check the cell, then unlock it on the pendant")
             if not self.control.isProgramRunning():
                 self.streaming = None
+                self.watchdog_armed = False  # the watchdog lives in the script
                 if self.clock() >= self.next_attempt:
                     # Uploading the script moves nothing; the bridge sends a
-                    # setpoint only after the fault has cleared.
+                    # setpoint only after the fault has cleared and the
+                    # script runs with the watchdog armed (below).
                     self.next_attempt = self.clock() + self.backoff_s
                     self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
                     if self.control.reuploadScript():
                         if self._arm_watchdog():
+                            self.watchdog_armed = True
                             self.backoff_s = self.reconnect_min_s
                             log.info("control script re-uploaded")
                         else:  # never a running script the controller does not watch
                             self.control.stopScript()
-                            log.warning("control script re-uploaded, but the controller refused the RTDE "
-                                        "watchdog: stopped it again; retrying with backoff")
+                            log.warning("control script re-uploaded, but the RTDE watchdog could not be armed (the "
+                                        "script not running yet, or the controller refuses it): stopped it again; "
+                                        "retrying with backoff")
                 return Observation(q, dq, "script_not_running",
                                    "the ur_rtde control script is not running (remote control mode? program stopped "
                                    "on the pendant?): re-uploading it with backoff")
+            if not self.watchdog_armed:
+                # A re-uploaded script that started after all: ur_rtde's
+                # reuploadScript() does not wait for it to run, and
+                # setWatchdog() fails until it does (so may stopScript()).
+                if not self._arm_watchdog():  # never a running script the controller does not watch
+                    self.control.stopScript()
+                    log.warning("the controller refused the RTDE watchdog: stopped the control script again; "
+                                "retrying with backoff")
+                    return Observation(q, dq, "script_not_running",
+                                       "the controller refused the RTDE watchdog: control script stopped, "
+                                       "re-uploading it with backoff")
+                self.watchdog_armed = True
+                self.backoff_s = self.reconnect_min_s
+                log.info("control script running again, RTDE watchdog armed")
         except RuntimeError as exc:
             self.lost(str(exc))
             return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)

@@ -23,6 +23,36 @@ What it serves
   watchdog and stopping the script; every other command is acknowledged
   without an effect.
 
+Fault injection
+---------------
+``--control-port PORT`` opens a line-based control port on 127.0.0.1 (never
+elsewhere), one answer line per command line:
+
+* ``protective stop``: safety mode PROTECTIVE_STOP and its status bits, the
+  control script stops and the arm decelerates to rest (a stop of category
+  2). Cleared by the dashboard's ``unlock protective stop``, refused for
+  ``--protective-unlock-delay`` seconds after the stop (5 s, as on e-Series).
+* ``emergency stop``: safety mode ROBOT_EMERGENCY_STOP and its bits, the
+  script stops, the arm decelerates to rest and is then powered off (category
+  1). Cleared by ``release emergency stop`` (the button), then the
+  dashboard's ``power on`` and ``brake release``.
+* ``stop program``: the control script stopped as from the pendant (the
+  dashboard's ``stop`` does the same).
+* ``drop [S]``: every RTDE, dashboard and script connection closed; new ones
+  refused for S seconds (default 0).
+* ``stall S``: RTDE input ignored for S seconds, as if the client had gone
+  silent: the RTDE watchdog, once armed, stops the script.
+* ``state``: the controller's state as one JSON line (joints, modes, whether
+  the script runs, each fault with the controller's monotonic time of the
+  fault, of the arm's rest after it and of the script's next start, motion
+  commands received meanwhile, and every change of the command register with
+  its receipt time).
+* anything else: answered as the dashboard server would (``unlock protective
+  stop``, ``power on``, ``brake release``, ``power off``, ...).
+
+While the arm is not powered, its brakes are not released or a safety stop is
+in force, an uploaded control script is not started, as on a real controller.
+
 The arm is a kinematic 6-joint UR10e integrated at 500 Hz with the joint
 position and speed limits of the packaged URDF and the acceleration limits of
 ``common/robots/ur10e/robot.toml``.
@@ -40,7 +70,9 @@ defaults. Nothing here resolves names: bind addresses are used as given.
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
+import json
 import logging
 import math
 import re
@@ -312,13 +344,19 @@ def variable_type(name: str, direction: str) -> str | None:
 
 # --------------------------------------------------------------------------- the arm
 
-ROBOT_MODE_RUNNING = 7
-SAFETY_MODE_NORMAL = 1
+ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
+ROBOT_MODE_NAMES = {3: "POWER_OFF", 5: "IDLE", 7: "RUNNING"}
+SAFETY_MODE_NORMAL, SAFETY_MODE_PROTECTIVE_STOP, SAFETY_MODE_ROBOT_EMERGENCY_STOP = 1, 3, 7
+SAFETY_MODE_NAMES = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
 ROBOT_STATUS_POWER_ON, ROBOT_STATUS_PROGRAM_RUNNING = 1, 2
 SAFETY_NORMAL = 1 << 0
 SAFETY_PROTECTIVE_STOPPED = 1 << 2
+SAFETY_ROBOT_EMERGENCY_STOPPED = 1 << 6
 SAFETY_EMERGENCY_STOPPED = 1 << 7
+SAFETY_STOPPED_DUE_TO_SAFETY = 1 << 10
+#: e-Series: "Cannot unlock protective stop until 5s after occurrence".
+PROTECTIVE_UNLOCK_DELAY_S = 5.0
 JOINT_MODE_RUNNING = 253
 DT = 0.002  # the e-Series control period
 
@@ -473,7 +511,8 @@ class Controller:
     ``tick()`` advances one 2 ms control period.
     """
 
-    def __init__(self, arm: Arm, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, arm: Arm, clock: Callable[[], float] = time.monotonic, *,
+                 protective_unlock_delay_s: float = PROTECTIVE_UNLOCK_DELAY_S) -> None:
         self.lock = threading.RLock()
         self.arm = arm
         self.clock = clock
@@ -501,13 +540,35 @@ class Controller:
         self.watchdog_last = 0.0
         self.commands: dict[int, int] = {}  # command id -> how often the script processed it
         self.messages: list[str] = []
+        # Faults (see "Fault injection" in the module's docstring).
+        self.protective_unlock_delay_s = protective_unlock_delay_s
+        self.protective_since = 0.0
+        self.power_off_at_rest = False
+        self.stall_until = 0.0
+        self.faults: list[dict[str, Any]] = []
+        # (receipt time, value) of every change of the command register, and motion commands received
+        self.command_changes: collections.deque[tuple[float, int]] = collections.deque(maxlen=20000)
+        self.motion_writes = 0
 
     # -- the program ---------------------------------------------------------------------
     def load_script(self, text: str) -> None:
-        """A program arrived on the script port: (re)start the emulated control script."""
+        """A program arrived on the script port: (re)start the emulated control script.
+
+        As a real controller, it runs only on a powered arm with its brakes
+        released and no safety stop in force; otherwise it is refused.
+        """
         with self.lock:
             self.script = text
             self.scripts_received += 1
+            if not self.can_run():
+                log.warning("control script received but not started: robot mode %s, safety mode %s",
+                            ROBOT_MODE_NAMES.get(self.robot_mode, self.robot_mode),
+                            SAFETY_MODE_NAMES.get(self.safety_mode, self.safety_mode))
+                return
+            now = self.clock()
+            for fault in self.faults:
+                if fault["cleared_t"] is None:
+                    fault["cleared_t"] = now
             offset = 0
             for line in text.splitlines():  # ur_rtde injects the offset: "global reg_offset_int = 24"
                 if line.strip().startswith("global reg_offset_int"):
@@ -525,6 +586,87 @@ class Controller:
             log.info("control script received (%d characters, register offset %d): running",
                      len(text), self.register_offset)
 
+    def can_run(self) -> bool:
+        return self.robot_mode == ROBOT_MODE_RUNNING and self.safety_mode == SAFETY_MODE_NORMAL
+
+    # -- faults --------------------------------------------------------------------------
+    def fault(self, name: str) -> dict[str, Any]:
+        """Record a fault: when it happened, when the arm came to rest, motion commands received until cleared."""
+        with self.lock:
+            record: dict[str, Any] = {"fault": name, "t": self.clock(), "rest_t": None, "cleared_t": None,
+                                      "motion_writes": 0, "last_motion_t": None, "q": self.arm.q.tolist()}
+            self.faults.append(record)
+            return record
+
+    def protective_stop(self, reason: str = "injected") -> None:
+        """A protective stop: safety bits set, the arm decelerates to rest, the control script stops."""
+        with self.lock:
+            self.safety_mode = SAFETY_MODE_PROTECTIVE_STOP
+            self.safety_status_bits = SAFETY_PROTECTIVE_STOPPED | SAFETY_STOPPED_DUE_TO_SAFETY
+            self.protective_since = self.clock()
+            self.fault("protective_stop")
+            self.stop_script(f"protective stop ({reason})")
+
+    def unlock_protective_stop(self) -> str:
+        """The dashboard's ``unlock protective stop`` (refused within 5 s of the stop, as on e-Series)."""
+        with self.lock:
+            if self.safety_mode == SAFETY_MODE_PROTECTIVE_STOP:
+                if self.clock() - self.protective_since < self.protective_unlock_delay_s:
+                    return (f"Cannot unlock protective stop until {self.protective_unlock_delay_s:g}s after "
+                            "occurrence. Always inspect cause of protective stop before unlocking")
+                self.safety_mode = SAFETY_MODE_NORMAL
+                self.safety_status_bits = SAFETY_NORMAL
+                log.info("protective stop unlocked")
+            return "Protective stop releasing"
+
+    def emergency_stop(self) -> None:
+        """The emergency stop pressed: the arm stops (category 1), then its power is removed."""
+        with self.lock:
+            self.safety_mode = SAFETY_MODE_ROBOT_EMERGENCY_STOP
+            self.safety_status_bits = (SAFETY_EMERGENCY_STOPPED | SAFETY_ROBOT_EMERGENCY_STOPPED
+                                       | SAFETY_STOPPED_DUE_TO_SAFETY)
+            self.power_off_at_rest = True
+            self.fault("emergency_stop")
+            self.stop_script("emergency stop")
+
+    def release_emergency_stop(self) -> str:
+        """The emergency stop button released: safety normal again, the arm stays powered off."""
+        with self.lock:
+            if self.safety_mode != SAFETY_MODE_ROBOT_EMERGENCY_STOP:
+                return "not emergency stopped"
+            self.safety_mode = SAFETY_MODE_NORMAL
+            self.safety_status_bits = SAFETY_NORMAL
+            log.info("emergency stop released: power on and release the brakes to run again")
+            return "emergency stop released"
+
+    def power_on(self) -> str:
+        with self.lock:
+            if self.safety_mode == SAFETY_MODE_ROBOT_EMERGENCY_STOP:
+                return "Failed to execute: power on (emergency stopped)"
+            if self.robot_mode == ROBOT_MODE_POWER_OFF and not self.power_off_at_rest:
+                self.robot_mode = ROBOT_MODE_IDLE
+            return "Powering on"
+
+    def brake_release(self) -> str:
+        with self.lock:
+            if self.robot_mode == ROBOT_MODE_IDLE:
+                self.robot_mode = ROBOT_MODE_RUNNING
+            return "Brake releasing"
+
+    def power_off(self) -> str:
+        with self.lock:
+            if self.robot_mode != ROBOT_MODE_POWER_OFF:
+                self.fault("power_off")
+                self.power_off_at_rest = True
+                self.stop_script("power off")
+            return "Powering off"
+
+    def stall(self, seconds: float) -> None:
+        """Ignore RTDE input for ``seconds``, as if the bridge had gone silent (hung, starved, network)."""
+        with self.lock:
+            self.stall_until = self.clock() + seconds
+            self.fault("stall")
+
     def stop_script(self, reason: str) -> None:
         with self.lock:
             if self.script_running:
@@ -539,7 +681,12 @@ class Controller:
     def write_inputs(self, names: Sequence[str], values: Sequence[Any]) -> None:
         with self.lock:
             now = self.clock()
+            if now < self.stall_until:
+                return
+            command = f"input_int_register_{self.register_offset}"
             for name, value in zip(names, values, strict=True):
+                if name == command:
+                    self._log_command(now, int(value))
                 if (i := _register(name, "input_int_register_", 0, N_REGISTERS - 1)) is not None:
                     self.input_int[i] = int(value)
                 elif (i := _register(name, "input_double_register_", 0, N_REGISTERS - 1)) is not None:
@@ -555,6 +702,30 @@ class Controller:
                 if name == self.watchdog_variable:
                     self.watchdog_last = now
 
+    def _log_command(self, now: float, value: int) -> None:
+        if not self.command_changes or self.command_changes[-1][1] != value:
+            self.command_changes.append((now, value))
+        if value in (CMD_SERVOJ, CMD_SPEEDJ):
+            self.motion_writes += 1
+            for fault in self.faults:
+                if fault["cleared_t"] is None:
+                    fault["motion_writes"] += 1
+                    fault["last_motion_t"] = now
+
+    def state(self) -> dict[str, Any]:
+        """The controller's state for a test or an operator (the control port's ``state``)."""
+        with self.lock:
+            return {
+                "t": self.clock(), "q": self.arm.q.tolist(), "qd": self.arm.qd.tolist(), "arm_mode": self.arm.mode,
+                "at_rest": not bool(np.any(self.arm.qd)), "robot_mode": self.robot_mode,
+                "safety_mode": self.safety_mode, "safety_status_bits": self.safety_status_bits,
+                "script_running": self.script_running, "scripts_received": self.scripts_received,
+                "watchdog_hz": self.watchdog_hz, "motion_writes": self.motion_writes,
+                "commands": {str(k): v for k, v in self.commands.items()},
+                "faults": [dict(f) for f in self.faults],
+                "command_changes": [list(c) for c in self.command_changes],
+            }
+
     def read_outputs(self, names: Sequence[str]) -> list[Any]:
         with self.lock:
             return [self._output(name) for name in names]
@@ -569,7 +740,8 @@ class Controller:
             "actual_TCP_speed": arm.tcp_speed.tolist(), "target_TCP_speed": arm.tcp_speed.tolist(),
             "robot_mode": self.robot_mode, "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
             "safety_status_bits": self.safety_status_bits,
-            "robot_status_bits": ROBOT_STATUS_POWER_ON | (ROBOT_STATUS_PROGRAM_RUNNING if self.script_running else 0),
+            "robot_status_bits": ((ROBOT_STATUS_POWER_ON if self.robot_mode != ROBOT_MODE_POWER_OFF else 0)
+                                  | (ROBOT_STATUS_PROGRAM_RUNNING if self.script_running else 0)),
             "runtime_state": self.runtime_state,
             "joint_mode": [JOINT_MODE_RUNNING] * 6, "speed_scaling": 1.0, "target_speed_fraction": 1.0,
             "joint_temperatures": [30.0] * 6, "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0,
@@ -601,9 +773,18 @@ class Controller:
                 self._script_step()
             if (self.script_running and self.watchdog_hz > 0.0
                     and self.clock() - self.watchdog_last > 1.0 / self.watchdog_hz):
+                self.fault("watchdog")
                 self.stop_script(f"RTDE watchdog: {self.watchdog_variable} not updated for "
                                  f"{1e3 / self.watchdog_hz:.0f} ms")
             self.arm.step(dt)
+            if not np.any(self.arm.qd):
+                if self.power_off_at_rest:
+                    self.power_off_at_rest = False
+                    self.robot_mode = ROBOT_MODE_POWER_OFF
+                for fault in self.faults:
+                    if fault["rest_t"] is None:
+                        fault["rest_t"] = self.clock()
+                        fault["q_rest"] = self.arm.q.tolist()
 
     def _script_step(self) -> None:
         """One pass of the control script's main loop (see ur_rtde's rtde_control.script)."""
@@ -782,11 +963,11 @@ class Dashboard:
         if lower == "version":
             return ".".join(map(str, CONTROLLER_VERSION))
         if lower == "robotmode":
-            return "Robotmode: RUNNING"
+            return f"Robotmode: {ROBOT_MODE_NAMES.get(c.robot_mode, c.robot_mode)}"
         if lower == "safetymode":
-            return "Safetymode: NORMAL"
+            return f"Safetymode: {SAFETY_MODE_NAMES.get(c.safety_mode, c.safety_mode)}"
         if lower == "safetystatus":
-            return "Safetystatus: NORMAL"
+            return f"Safetystatus: {SAFETY_MODE_NAMES.get(c.safety_mode, c.safety_mode)}"
         if lower == "is in remote control":
             return "true"
         if lower == "programstate":
@@ -804,11 +985,16 @@ class Dashboard:
             return "Failed to execute: play"
         if lower.startswith("load "):
             return f"File not found: {command[5:]}"
-        if lower in ("power on", "brake release", "unlock protective stop", "close popup",
-                     "close safety popup", "clear operational mode"):
-            return {"power on": "Powering on", "brake release": "Brake releasing",
-                    "unlock protective stop": "Protective stop releasing", "close popup": "closing popup",
-                    "close safety popup": "closing safety popup",
+        if lower == "power on":
+            return c.power_on()
+        if lower == "power off":
+            return c.power_off()
+        if lower == "brake release":
+            return c.brake_release()
+        if lower == "unlock protective stop":
+            return c.unlock_protective_stop()
+        if lower in ("close popup", "close safety popup", "clear operational mode"):
+            return {"close popup": "closing popup", "close safety popup": "closing safety popup",
                     "clear operational mode": "No longer controlling the operational mode. "}[lower]
         if lower == "isprogramsaved":
             return f"true {self.loaded}"
@@ -830,21 +1016,28 @@ class Emulator:
     """The controller thread and the three TCP servers."""
 
     def __init__(self, host: str = "127.0.0.1", rtde_port: int = 30004, dashboard_port: int = 29999,
-                 script_ports: Sequence[int] = (30003,), controller: Controller | None = None) -> None:
+                 script_ports: Sequence[int] = (30003,), controller: Controller | None = None,
+                 control_port: int | None = None) -> None:
         self.host = host
         self.controller = controller or Controller(ur10e_arm())
         self.stopping = threading.Event()
+        self.connections: set[socket.socket] = set()
+        self.connections_lock = threading.Lock()
+        self.refuse_until = 0.0
         self.claims: dict[str, int] = {}
         self.claims_lock = threading.Lock()
         self.threads: list[threading.Thread] = []
         self.listeners: list[socket.socket] = []
         self.ports = {"rtde": rtde_port, "dashboard": dashboard_port}
-        for name, port, serve in [("rtde", rtde_port, self._serve_rtde),
-                                  ("dashboard", dashboard_port, self._serve_dashboard)] + [
-                                      (f"script{p}", p, self._serve_script) for p in script_ports]:
+        servers: list[tuple[str, str, int, Callable[[socket.socket], None]]] = [
+            (host, "rtde", rtde_port, self._serve_rtde), (host, "dashboard", dashboard_port, self._serve_dashboard),
+            *[(host, f"script{p}", p, self._serve_script) for p in script_ports]]
+        if control_port is not None:  # fault injection: on the loopback only, whatever --host says
+            servers.append(("127.0.0.1", "control", control_port, self._serve_control))
+        for address, name, port, serve in servers:
             listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            listener.bind((host, port))
+            listener.bind((address, port))
             listener.listen(8)
             listener.settimeout(0.2)
             self.listeners.append(listener)
@@ -886,17 +1079,85 @@ class Emulator:
                 continue
             except OSError:
                 return
+            if time.monotonic() < self.refuse_until and serve != self._serve_control:
+                conn.close()  # the controller is "unreachable"
+                continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.settimeout(0.2)
             log.info("%s: connection from %s:%d", threading.current_thread().name, *peer[:2])
             self._spawn(self._guarded, serve, conn, name=f"{threading.current_thread().name}-{peer[1]}")
 
     def _guarded(self, serve: Callable[[socket.socket], None], conn: socket.socket) -> None:
+        if serve != self._serve_control:
+            with self.connections_lock:
+                self.connections.add(conn)
         try:
             with conn:
                 serve(conn)
         except (OSError, RtdeProtocolError) as exc:
             log.info("%s: connection closed (%s)", threading.current_thread().name, exc)
+        finally:
+            with self.connections_lock:
+                self.connections.discard(conn)
+
+    def drop(self, refuse_s: float = 0.0) -> int:
+        """Close every RTDE, dashboard and script connection; refuse new ones for ``refuse_s``."""
+        self.refuse_until = time.monotonic() + refuse_s
+        self.controller.fault("drop")
+        with self.connections_lock:
+            dropped = list(self.connections)
+        for conn in dropped:
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        log.warning("dropped %d connection(s); refusing new ones for %.1f s", len(dropped), refuse_s)
+        return len(dropped)
+
+    def control(self, line: str) -> str:
+        """One fault-injection command (see the module's docstring); anything else goes to the dashboard."""
+        c = self.controller
+        words = line.strip().lower().split()
+        command = " ".join(words)
+        try:
+            if command == "state":
+                return json.dumps(c.state())
+            if command == "protective stop":
+                c.protective_stop()
+                return "protective stop"
+            if command == "emergency stop":
+                c.emergency_stop()
+                return "emergency stop"
+            if command == "release emergency stop":
+                return c.release_emergency_stop()
+            if command == "stop program":
+                with c.lock:
+                    c.fault("script_stopped")
+                    c.stop_script("stopped at the pendant")
+                return "Stopped"
+            if words[:1] == ["drop"]:
+                return f"dropped {self.drop(float(words[1]) if len(words) > 1 else 0.0)}"
+            if words[:1] == ["stall"] and len(words) == 2:
+                c.stall(float(words[1]))
+                return f"stalling RTDE input for {float(words[1]):g} s"
+        except ValueError as exc:
+            return f"error: {exc}"
+        return Dashboard(c).answer(line)
+
+    def _serve_control(self, conn: socket.socket) -> None:
+        buffer = b""
+        while not self.stopping.is_set():
+            data = self._recv(conn)
+            if data is None:
+                return
+            buffer += data
+            while b"\n" in buffer:
+                line, buffer = buffer.split(b"\n", 1)
+                text = line.decode("utf-8", "replace")
+                answer = self.control(text)
+                if not text.strip().lower() == "state":
+                    log.info("control: %r -> %r", text, answer)
+                conn.sendall((answer + "\n").encode())
 
     def _recv(self, conn: socket.socket) -> bytes | None:
         """Bytes received, b'' on a timeout, None once the peer closed."""
@@ -1012,12 +1273,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--script-port", type=int, action="append",
                         help="where programs are accepted (repeatable; default 30003, ur_rtde's choice)")
     parser.add_argument("--q0", type=float, nargs=6, metavar="RAD", help="initial joint positions (default: home)")
+    parser.add_argument("--control-port", type=int, metavar="PORT",
+                        help="fault injection: a line-based control port on 127.0.0.1 (see the docstring)")
+    parser.add_argument("--protective-unlock-delay", type=float, default=PROTECTIVE_UNLOCK_DELAY_S, metavar="S",
+                        help="'unlock protective stop' is refused this long after the stop (e-Series: 5 s)")
     parser.add_argument("--verbose", "-v", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(threadName)s: %(message)s")
     emulator = Emulator(args.host, args.rtde_port, args.dashboard_port, args.script_port or [30003],
-                        Controller(ur10e_arm(args.q0)))
+                        Controller(ur10e_arm(args.q0), protective_unlock_delay_s=args.protective_unlock_delay),
+                        control_port=args.control_port)
     emulator.start()
     print(f"ready {emulator.ports}", flush=True)
     try:
