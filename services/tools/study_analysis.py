@@ -341,17 +341,19 @@ def _radar(result: Analysis, path: Path) -> Path | None:
     ax.set_xticks(angles)
     ax.set_xticklabels([])
     # The counts beside each question's name: points of equal count would hide each other's numbers.
+    # Just outside the outer ring whatever the counts (a fixed offset in votes is far out for a few votes).
+    outside = 1.2 * (top + 1)
     for angle, choice in zip(angles, q.choice):
-        ax.text(angle, top + 1.9, choice.short, ha="center", va="center", fontsize=11, fontweight="bold")
+        ax.text(angle, outside, choice.short, ha="center", va="center", fontsize=11, fontweight="bold")
         short = [*(q.label(c) for c in result.conditions), "none"]
         tally = "  ".join(f"{n} {result.votes[choice.id][o]}" for n, o in zip(short, options))
-        ax.text(angle, top + 1.9, "\n\n" + tally, ha="center", va="center", fontsize=9, color="0.3")
+        ax.text(angle, outside, "\n\n" + tally, ha="center", va="center", fontsize=9, color="0.3")
     ax.set_ylim(0, top + 1)
     ax.set_yticks(range(0, top + 2, max(1, (top + 1) // 4)))
     ax.tick_params(axis="y", labelsize=7, labelcolor="0.5")
     ax.set_title(f"Forced choice: votes of {sum(result.votes[q.choice[0].id].values())} participants", fontsize=12,
-                 pad=40)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=len(options), fontsize=9, frameon=False)
+                 pad=48)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=len(options), fontsize=9, frameon=False)
     fig.savefig(path, dpi=150, bbox_inches="tight")
     plt.close(fig)
     return path
