@@ -73,6 +73,6 @@ def test_the_live_demo_prints_no_warning_and_no_error(tmp_path: Path, reflex: st
     loud = [line for line in out.splitlines()
             if re.search(r"\b(WARNING|ERROR|CRITICAL)\b|Traceback", line) and not LOAD.search(line)
             and not (late and LATE_COMMAND.search(line))]
-    assert not loud, "\n".join(loud)
+    assert not loud, "\n".join(loud) + "\n--- the run's output, its end ---\n" + out[-6000:]
     # The orderly end: the bridge stopped first, the arm brought to rest while the skin still came.
     assert "the touch script has ended" in out and "[stale_skin] skin data" not in out and "planner_lost" not in out
