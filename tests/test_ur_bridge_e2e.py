@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from ur_support import emulator_process, skip_unless_free
 
 from nwr.common import keys
 from nwr.common.recordings import read_recording
@@ -37,7 +38,6 @@ from nwr.services.tools import ur_emulator as u
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 SCRIPT = Path(__file__).parent / "data" / "short.toml"
-UR_PORTS = (30004, 29999, 30003)
 CONTROL_PORT = 29990  # the emulator's fault injection (its own option: free to choose)
 SESSION_PORT = 18650  # a Zenoh mesh of its own
 FAULT_PORT = 18670
@@ -57,14 +57,6 @@ def units(layout):
 supervisor.units = units
 sys.exit(main(sys.argv[1:]))
 """
-
-
-def _ports_free() -> bool:
-    for port in (*UR_PORTS, CONTROL_PORT):
-        with socket.socket() as probe:
-            if probe.connect_ex(("127.0.0.1", port)) == 0:
-                return False
-    return True
 
 
 class Emulator:
@@ -105,31 +97,14 @@ def _brief(state: dict[str, Any]) -> dict[str, Any]:
 
 @pytest.fixture
 def emulator(tmp_path: Path) -> Iterator[Emulator]:
-    if not _ports_free():
-        pytest.skip(f"ports {UR_PORTS} or {CONTROL_PORT} on 127.0.0.1 are in use (ur_rtde cannot use others)")
-    log = open(tmp_path / "emulator.log", "w")  # its log: a pipe nobody drains would block it
-    process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.ur_emulator", "--host", "127.0.0.1",
-                                "--control-port", str(CONTROL_PORT), "--protective-unlock-delay", "0.5"],
-                               stdout=subprocess.PIPE, stderr=log, text=True)
-    emu = None
-    try:
-        assert process.stdout is not None
-        line = process.stdout.readline()
-        assert line.startswith("ready"), line
+    skip_unless_free(CONTROL_PORT)
+    with emulator_process(tmp_path / "emulator.log", "--control-port", str(CONTROL_PORT),
+                          "--protective-unlock-delay", "0.5") as process:
         emu = Emulator(process)
-        yield emu
-    finally:
-        if emu is not None:
-            emu.close()
-        process.terminate()
         try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-        if process.stdout is not None:
-            process.stdout.close()
-        log.close()
+            yield emu
+        finally:
+            emu.close()
 
 
 def write_profile(tmp_path: Path, port: int) -> Path:

@@ -7,15 +7,14 @@ something else holds them.
 
 from __future__ import annotations
 
-import socket
 import struct
 import subprocess
-import sys
 import threading
 import time
 
 import numpy as np
 import pytest
+from ur_support import emulator_process, skip_unless_free
 
 from nwr.services.tools import ur_emulator as u
 
@@ -274,36 +273,11 @@ def test_take_program() -> None:
 # --------------------------------------------------------------------------- e2e
 
 
-def _ports_free() -> bool:
-    for port in (30004, 29999, 30003):
-        with socket.socket() as probe:
-            if probe.connect_ex(("127.0.0.1", port)) == 0:
-                return False
-    return True
-
-
 @pytest.fixture
 def emulator(tmp_path):
-    if not _ports_free():
-        pytest.skip("ports 30004 / 29999 / 30003 on 127.0.0.1 are in use (ur_rtde cannot use others)")
-    log = open(tmp_path / "emulator.log", "w")  # its log: a pipe nobody drains would block it
-    process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.ur_emulator", "--host", "127.0.0.1"],
-                               stdout=subprocess.PIPE, stderr=log, text=True)
-    try:
-        assert process.stdout is not None
-        line = process.stdout.readline()
-        assert line.startswith("ready"), line
+    skip_unless_free()
+    with emulator_process(tmp_path / "emulator.log") as process:
         yield process
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-        if process.stdout is not None:
-            process.stdout.close()
-        log.close()
 
 
 @pytest.mark.slow

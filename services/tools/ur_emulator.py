@@ -1145,6 +1145,10 @@ class Emulator:
         return Dashboard(c).answer(line)
 
     def _serve_control(self, conn: socket.socket) -> None:
+        self._serve_lines(conn, self.control, "control")
+
+    def _serve_lines(self, conn: socket.socket, answer: Callable[[str], str], what: str) -> None:
+        """A line-based server (the dashboard, the control port): one answer a line, logged (not ``state``)."""
         buffer = b""
         while not self.stopping.is_set():
             data = self._recv(conn)
@@ -1154,10 +1158,10 @@ class Emulator:
             while b"\n" in buffer:
                 line, buffer = buffer.split(b"\n", 1)
                 text = line.decode("utf-8", "replace")
-                answer = self.control(text)
-                if not text.strip().lower() == "state":
-                    log.info("control: %r -> %r", text, answer)
-                conn.sendall((answer + "\n").encode())
+                reply = answer(text)
+                if text.strip().lower() != "state":
+                    log.info("%s: %r -> %r", what, text, reply)
+                conn.sendall((reply + "\n").encode())
 
     def _recv(self, conn: socket.socket) -> bytes | None:
         """Bytes received, b'' on a timeout, None once the peer closed."""
@@ -1212,18 +1216,7 @@ class Emulator:
     def _serve_dashboard(self, conn: socket.socket) -> None:
         dashboard = Dashboard(self.controller)
         conn.sendall((dashboard.welcome + "\n").encode())
-        buffer = b""
-        while not self.stopping.is_set():
-            data = self._recv(conn)
-            if data is None:
-                return
-            buffer += data
-            while b"\n" in buffer:
-                line, buffer = buffer.split(b"\n", 1)
-                text = line.decode("utf-8", "replace")
-                answer = dashboard.answer(text)
-                log.info("dashboard: %r -> %r", text, answer)
-                conn.sendall((answer + "\n").encode())
+        self._serve_lines(conn, dashboard.answer, "dashboard")
 
     def _serve_script(self, conn: socket.socket) -> None:
         """Collects programs: a program is complete at a top-level ``end`` or after 100 ms of silence."""
