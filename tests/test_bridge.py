@@ -642,3 +642,36 @@ def test_the_tracker_and_the_guard_compute_what_numpy_computes():
         q_ref, dq_ref = _numpy_guard(env, previous, sp, 0.002)
         assert sent.q.tolist() == q_ref.tolist() and sent.dq.tolist() == dq_ref.tolist()
         assert (why is None) == (q_ref.tolist() == sp.q.tolist() and dq_ref.tolist() == sp.dq.tolist())
+
+
+def test_every_fault_of_the_controller_and_its_end_is_reported_however_soon_after_the_last():
+    """A program stopped 0.3 s after an emergency stop's restart is heard: fault changes are never rate limited."""
+    from nwr.common.clock import ManualClock
+    from nwr.common.journal import Untracked
+    from nwr.services.bridge.backend import Observation
+    from nwr.services.bridge.wiring import BridgeWiring
+
+    class Faulting(SimBackend):
+        fault: m.RobotStatus | None = None
+
+        def get_observation(self) -> Observation:
+            return Observation(self.q.copy(), self.dq.copy(), self.fault, "injected")
+
+    profile = Profile()
+    env, q0, _ = envelope_for(profile)
+    backend = Faulting(env, 1.0 / profile.bridge.rate_hz, q0)
+    clock = ManualClock()
+    clock.t_ns = 10**9
+    reports: list[tuple[str, float]] = []
+    wiring = BridgeWiring(profile, journal=Untracked(clock), out=lambda k, msg: None, backend=backend,
+                          diag=lambda level, code, message, every_s=1.0: reports.append((code, every_s)))
+    for fault in ("emergency_stop", None, "script_not_running", None, "script_not_running", None):
+        backend.fault = fault
+        for _ in range(3):
+            wiring.tick()
+            clock.t_ns += 2_000_000
+    changes = [r for r in reports if r[0] in ("emergency_stop", "script_not_running", "robot_recovered")]
+    assert [code for code, _ in changes] == ["emergency_stop", "robot_recovered", "script_not_running",
+                                             "robot_recovered", "script_not_running", "robot_recovered"]
+    assert {every_s for _, every_s in changes} == {0.0}
+    assert all(every_s == 1.0 for code, every_s in reports if (code, every_s) not in changes)

@@ -89,6 +89,36 @@ def test_an_unnamed_planner_is_waited_for_under_the_profiles_name() -> None:
     assert got[-1].args[:2] == ("--wait-for", "bridge,planner-lab,gain")
 
 
+@pytest.mark.parametrize(
+    ("argv", "bridge", "error"),
+    [
+        ([], ("--active", "cartesian"), None),
+        (["--backend", "sim"], ("--active", "cartesian", "--backend", "sim"), None),
+        (["--backend", "ur_rtde", "--robot-ip", "192.0.2.10", "--i-am-next-to-the-robot"],
+         ("--active", "cartesian", "--backend", "ur_rtde", "--robot-ip", "192.0.2.10", "--i-am-next-to-the-robot"),
+         None),
+        (["--backend", "ur_rtde", "--i-am-next-to-the-robot"], None, "--robot-ip"),
+        (["--backend", "ur_rtde", "--robot-ip", "192.0.2.10"], None, "--i-am-next-to-the-robot"),
+        (["--robot-ip", "192.0.2.10", "--i-am-next-to-the-robot"], None, "for the ur_rtde backend"),
+    ],
+)
+def test_up_and_demo_hand_the_arms_flags_to_the_bridge_or_refuse_before_anything_starts(
+        argv: list[str], bridge: tuple[str, ...] | None, error: str | None) -> None:
+    from nwr.common.config import Profile
+    from nwr.common.errors import ConfigError
+    from nwr.services.cli import build_parser
+    from nwr.services.tools.demo import layout_for
+
+    for command in ("up", "demo"):
+        args = build_parser().parse_args([command, "--reflex", "cartesian", *argv])
+        if error is not None:
+            with pytest.raises(ConfigError, match=error):
+                layout_for(args, Profile(), None)
+            continue
+        unit = next(u for u in units(layout_for(args, Profile(), None)) if u.service == "bridge")
+        assert unit.args == bridge
+
+
 def test_stop_order_bridge_first_then_gateway_recorder_after_the_others_router_last() -> None:
     labels = [u.label for u in units(Layout(active="uniform", recorder=[], router=["--listen", "tcp/127.0.0.1:1"]))]
     assert labels == ["router", "recorder", "bridge", "planner-uniform", "gain", "gateway"]

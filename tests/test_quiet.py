@@ -34,7 +34,7 @@ def test_a_demo_session_in_lockstep_reports_no_warning(strategy: str, closed_loo
     profile.gateway.sim.closed_loop = closed_loop
     reports: list[tuple[str, str, str]] = []
     chain = Lockstep(profile, strategy=strategy, journal=False,
-                     diag=lambda level, code, message: reports.append((level, code, message)))
+                     diag=lambda level, code, message, every_s=1.0: reports.append((level, code, message)))
     with caplog.at_level(logging.WARNING, logger="nwr"):
         chain.run(SimulatedSkin(profile, load_script("demo")), lambda *_: None)
     loud = [r for r in reports if r[0] not in ("info", "debug")]

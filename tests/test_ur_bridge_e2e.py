@@ -2,10 +2,9 @@
 
 The real ``ur_rtde`` talks to ``services/tools/ur_emulator.py`` on 127.0.0.1
 (ur_rtde fixes its ports, RTDE 30004, dashboard 29999, script 30003: the tests
-skip when something else holds them). ``nwr demo`` cannot pass the bridge its
-``--robot-ip`` and confirmation flag, so the tests start it through a small
-driver that adds them to the bridge's unit; everything else is the unmodified
-pipeline. Faults are injected through the emulator's control port.
+skip when something else holds them): ``nwr demo --backend ur_rtde
+--robot-ip 127.0.0.1 --i-am-next-to-the-robot``, the unmodified pipeline.
+Faults are injected through the emulator's control port.
 
 Figures (printed; see docs/bridge.md): the reflex onset through the emulator,
 from the touching skin sample's stamp to the emulator's receipt of the first
@@ -42,22 +41,6 @@ CONTROL_PORT = 29990  # the emulator's fault injection (its own option: free to 
 SESSION_PORT = 18650  # a Zenoh mesh of its own
 FAULT_PORT = 18670
 REFLEX = "cartesian"  # velocity reflexes: the withdrawal is the switch from servoJ to speedJ
-
-# `nwr demo` with the bridge's unit on the ur_rtde backend against 127.0.0.1.
-DRIVER = """
-import sys
-from nwr.services.cli import main
-from nwr.services.pipeline import graph, supervisor
-
-def units(layout):
-    extra = ("--backend", "ur_rtde", "--robot-ip", "127.0.0.1", "--i-am-next-to-the-robot")
-    return [graph.Unit(x.label, x.service, (*x.args, *extra)) if x.service == "bridge" else x
-            for x in graph.units(layout)]
-
-supervisor.units = units
-sys.exit(main(sys.argv[1:]))
-"""
-
 
 class Emulator:
     """The emulator's process and its control port."""
@@ -121,8 +104,9 @@ def write_profile(tmp_path: Path, port: int) -> Path:
 def demo(tmp_path: Path, port: int, script: Path, output: Path) -> subprocess.Popen[str]:
     with open(tmp_path / "demo.log", "w") as log:  # the child keeps its own descriptor
         return subprocess.Popen(
-            [sys.executable, "-c", DRIVER, "--profile", str(write_profile(tmp_path, port)), "demo",
-             "--script", str(script), "--output", str(output), "--reflex", REFLEX, "--stop-on-exit"],
+            [sys.executable, "-m", "nwr.services.cli", "--profile", str(write_profile(tmp_path, port)), "demo",
+             "--script", str(script), "--output", str(output), "--reflex", REFLEX, "--stop-on-exit",
+             "--backend", "ur_rtde", "--robot-ip", "127.0.0.1", "--i-am-next-to-the-robot"],
             stdout=log, stderr=subprocess.STDOUT, text=True)
 
 
@@ -237,8 +221,8 @@ FAULTS: list[tuple[str, str, list[str], str]] = [
 HANG_S = 1.5
 
 
-def bridge_pid(driver: subprocess.Popen[str]) -> int:
-    """The bridge's process: the driver's child running `nwr run bridge` (started by this test)."""
+def bridge_pid(demo: subprocess.Popen[str]) -> int:
+    """The bridge's process: the demo's child running `nwr run bridge` (started by this test)."""
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -248,7 +232,7 @@ def bridge_pid(driver: subprocess.Popen[str]) -> int:
         except OSError:
             continue
         ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == driver.pid and b"run" in cmdline and b"bridge" in cmdline:
+        if ppid == demo.pid and b"run" in cmdline and b"bridge" in cmdline:
             return int(entry.name)
     raise AssertionError("the bridge's process was not found")
 

@@ -48,17 +48,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--print-envelope", action="store_true", help="print the enforced envelope and exit")
 
 
+def check_arm_flags(backend: str, robot_ip: str, confirmed: bool) -> None:
+    """A real arm needs its controller's address and a person's confirmation; the simulated one neither."""
+    if backend == "sim":
+        if robot_ip or confirmed:
+            raise ConfigError(f"--robot-ip and {CONFIRM_FLAG} are for the ur_rtde backend "
+                              "(add --backend ur_rtde or set bridge.backend)")
+        return
+    if not robot_ip:
+        raise ConfigError("the ur_rtde backend moves a real arm: give the controller's address with --robot-ip")
+    if not confirmed:
+        raise ConfigError(f"the ur_rtde backend moves a real arm at {robot_ip}: add {CONFIRM_FLAG} once a person "
+                          "watches it with the emergency stop at hand (docs/bridge.md)")
+
+
 def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
     dt = 1.0 / cfg.rate_hz
+    check_arm_flags(cfg.backend, getattr(args, "robot_ip", ""), getattr(args, "confirmed", False))
     if cfg.backend == "sim":
         return SimBackend(env, dt, q0)
-    if not getattr(args, "robot_ip", ""):
-        raise ConfigError("the ur_rtde backend moves a real arm: give the controller's address with --robot-ip")
-    if not getattr(args, "confirmed", False):
-        raise ConfigError(
-            f"the ur_rtde backend moves a real arm at {args.robot_ip}: add {CONFIRM_FLAG} once a person watches it "
-            "with the emergency stop at hand (docs/bridge.md)"
-        )
     from nwr.services.bridge.ur_rtde import URRtdeBackend
 
     return URRtdeBackend(env, dt, args.robot_ip, lookahead_s=cfg.servo_lookahead_s, gain=cfg.servo_gain,

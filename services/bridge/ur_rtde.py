@@ -66,7 +66,11 @@ def rtde_factory(robot_ip: str, frequency_hz: float) -> tuple[Any, Any]:
         ) from exc
     # Receive first: it fails fast when the IP is wrong, before a script is uploaded.
     receive = rtde_receive.RTDEReceiveInterface(robot_ip, frequency_hz)
-    control = rtde_control.RTDEControlInterface(robot_ip, frequency_hz)
+    try:
+        control = rtde_control.RTDEControlInterface(robot_ip, frequency_hz)
+    except BaseException:
+        receive.disconnect()  # now, not whenever the failed attempt's traceback is collected
+        raise
     return control, receive
 
 

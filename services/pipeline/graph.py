@@ -103,6 +103,7 @@ class Layout:
     gateway: list[str] | None = field(default_factory=list)  # the gateway's arguments; None: no gateway
     view_port: int | None = None
     router: list[str] | None = None  # a router's arguments; None: no router
+    bridge: list[str] = field(default_factory=list)  # the bridge's arguments (its backend, the robot's address)
 
     def __post_init__(self) -> None:
         if self.active and self.planners and self.active not in self.planners:
@@ -120,7 +121,8 @@ def units(layout: Layout) -> list[Unit]:
         elif service == "recorder" and layout.recorder is not None:
             out.append(Unit("recorder", "recorder", tuple(layout.recorder)))
         elif service == "bridge":
-            out.append(Unit("bridge", "bridge", ("--active", layout.active) if layout.active else ()))
+            active = ("--active", layout.active) if layout.active else ()
+            out.append(Unit("bridge", "bridge", (*active, *layout.bridge)))
         elif service == "planner":
             named: list[str | None] = list(layout.planners) or [layout.active]
             for p in named:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
+from nwr.services.bridge.main import CONFIRM_FLAG, check_arm_flags
 from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
 from nwr.services.planner import strategies
@@ -40,6 +41,12 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reflex", choices=strategies.names(),
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
+    robot = p.add_argument_group("the arm (passed to the bridge; see docs/lab.md)")
+    robot.add_argument("--backend", choices=["sim", "ur_rtde"], help="the bridge's backend (overrides bridge.backend)")
+    robot.add_argument("--robot-ip", default="", help="the UR controller's address (ur_rtde backend)")
+    robot.add_argument(CONFIRM_FLAG, dest="i_am_next_to_the_robot", action="store_true",
+                       help="confirm that a person watches the arm and holds the emergency stop "
+                            "(required by the ur_rtde backend)")
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
@@ -66,7 +73,16 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
     if args.closed_loop:
         gateway.append("--closed-loop")
     layout.gateway = gateway
+    layout.bridge = bridge_arguments(args, profile)
     return layout
+
+
+def bridge_arguments(args: argparse.Namespace, profile: Profile) -> list[str]:
+    """The bridge's backend flags; checked here, before any process starts, as the bridge checks them."""
+    backend = args.backend or profile.bridge.backend
+    check_arm_flags(backend, args.robot_ip, args.i_am_next_to_the_robot)
+    flags = ["--backend", args.backend] if args.backend else []
+    return [*flags, "--robot-ip", args.robot_ip, CONFIRM_FLAG] if backend == "ur_rtde" else flags
 
 
 def run_up(args: argparse.Namespace) -> int:
@@ -96,7 +112,9 @@ def run_demo_fast(args: argparse.Namespace) -> int:
     from nwr.services.tools.replay import simulate
 
     unsupported = [flag for flag, value in (("--planners", args.planners), ("--follow-target", args.follow_target),
-                                            ("--view", args.view), ("--no-record", args.no_record)) if value]
+                                            ("--view", args.view), ("--no-record", args.no_record),
+                                            ("--robot-ip", args.robot_ip), ("--backend", args.backend == "ur_rtde"))
+                   if value]
     if unsupported:
         raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")
     profile = profile_for(args)
