@@ -127,8 +127,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             open_part, files.close, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
             chunk_interval_ns=round(cfg.chunk_interval_s * 1e9), split=split, disk=files,
             retry_ns=round(RETRY_S * 1e9),
-            diag=lambda level, code, text, every_s=DISK_DIAG_EVERY_S: node.diag(level, code, text,
-                                                                                  every_s=every_s),
+            diag=lambda level, code, text: node.diag(level, code, text, every_s=DISK_DIAG_EVERY_S),
         )
 
         def on_sample(sample: zenoh.Sample) -> None:
