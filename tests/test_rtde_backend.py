@@ -310,3 +310,46 @@ def test_no_watchdog_no_arm(setup):
     robot.connected = True
     clock.t = 100.0
     assert backend.get_observation().fault == "disconnected" and "watchdog" in backend.fault_reason
+
+
+HUNG = """
+import sys, threading, time
+sys.path.insert(0, {tests!r})
+from test_rtde_backend import FakeControl, FakeReceive, FakeRobot
+from nwr.common.config import Profile
+from nwr.services.bridge.ur_rtde import URRtdeBackend
+from nwr.services.bridge.wiring import envelope_for
+
+class Hung(FakeControl):
+    def setWatchdog(self, min_frequency=10.0, /):
+        threading.Event().wait()  # as ur_rtde waiting for an acknowledgement that never comes
+
+env, q0, _ = envelope_for(Profile())
+robot = FakeRobot(q0)
+backend = URRtdeBackend(env, 0.002, "192.0.2.10", factory=lambda ip, hz: (Hung(robot), FakeReceive(robot)),
+                        stall_exit_s=0.5)
+started = time.monotonic()
+backend.connect()
+print("connect() returned", flush=True)
+"""
+
+
+def test_a_call_into_ur_rtde_that_never_returns_ends_the_process_for_a_fresh_start():
+    """ur_rtde can wait 300 s for a command's answer from a controller that dropped the connection: the stall
+    guard exits the bridge (EXIT_STALLED) so that its supervisor starts a fresh one."""
+    from pathlib import Path
+
+    from nwr.services.bridge.ur_rtde import EXIT_STALLED
+
+    run = subprocess.run([sys.executable, "-c", HUNG.format(tests=str(Path(__file__).parent))],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == EXIT_STALLED, (run.returncode, run.stdout, run.stderr)
+    assert "connect() returned" not in run.stdout
+    assert "has not returned" in run.stderr and "fresh bridge" in run.stderr, run.stderr
+
+
+def test_the_stall_guard_watches_only_the_real_library_unless_asked(setup):
+    backend, *_ = setup
+    assert backend.stall_exit_s == 0.0  # a test double's factory: no guard (it would end the test's process)
+    backend.connect()
+    assert backend._guard is None

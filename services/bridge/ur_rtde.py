@@ -22,6 +22,15 @@
   is starved of CPU for longer than ``1 / watchdog_hz`` has the controller
   stop its control script, and with it the arm, without the bridge's help.
 
+- A call into ur_rtde that never returns is the one thing the loop cannot
+  handle itself: ur_rtde waits up to 300 s for a command's acknowledgement
+  (``setWatchdog``, ``servoStop``, ``stopScript``) from a controller whose
+  connection dropped meanwhile, and its own reconnection thread may end the
+  process. A guard thread exits the process (code ``EXIT_STALLED``) when the
+  loop has made no progress for ``stall_exit_s``, so that the supervisor
+  (``nwr up``, compose) starts a fresh bridge; the controller holds the arm
+  meanwhile (no command arrives) or has stopped it (its watchdog).
+
 ``rtde_control`` / ``rtde_receive`` are imported only when this backend
 connects, so the simulated bridge and the tests never need them: the tests
 pass a ``factory`` returning test doubles of the two interfaces.
@@ -30,6 +39,8 @@ pass a ``factory`` returning test doubles of the two interfaces.
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -49,6 +60,9 @@ RTDE_PORT = 30004  # RTDE: joint state out, registers in
 SCRIPT_PORTS = (30001, 30002, 30003)  # primary / secondary / real-time: the control script is sent here
 
 Factory = Callable[[str, float], tuple[Any, Any]]
+# The loop stuck in one call into ur_rtde for this long has hung (see the module's docstring), s.
+STALL_EXIT_S = 20.0
+EXIT_STALLED = 75  # EX_TEMPFAIL: try again, i.e. start a fresh bridge
 
 
 class RobotConnectionError(NwrError):
@@ -87,6 +101,7 @@ class RtdePacer:
 
     def sleep(self, stop: threading.Event | None = None) -> bool:
         self.backend.take_over()  # the loop kicks the watchdog from now on
+        self.backend.progress_at = time.monotonic()  # a cycle went through: nothing hung (the stall guard)
         control = self.backend.control
         if control is not None and self.backend.connected:
             try:
@@ -134,7 +149,10 @@ class URRtdeBackend(Backend):
         watchdog_hz: float = 10.0,
         factory: Factory = rtde_factory,
         clock: Callable[[], float] = time.monotonic,
+        stall_exit_s: float | None = None,
     ) -> None:
+        """``stall_exit_s``: the stall guard's limit (default :data:`STALL_EXIT_S` with the real ur_rtde;
+        none with a test double's ``factory`` unless given)."""
         super().__init__(env, dt)
         if not robot_ip:
             raise RobotConnectionError("the ur_rtde backend needs the robot's IP address (--robot-ip)")
@@ -163,6 +181,12 @@ class URRtdeBackend(Backend):
         self._control_lock = threading.RLock()
         self._keepalive: threading.Thread | None = None
         self._keepalive_stop = threading.Event()
+        # The stall guard: the loop's last sign of progress (monotonic s), watched from a thread.
+        self.stall_exit_s = stall_exit_s if stall_exit_s is not None else (
+            STALL_EXIT_S if factory is rtde_factory else 0.0)
+        self.progress_at = time.monotonic()
+        self._guard: threading.Thread | None = None
+        self._guard_stop = threading.Event()
         self.last_q = np.zeros(env.n)
         # The controller's own ramps: never steeper than the envelope's
         # slowest joint (the bridge's setpoints already are).
@@ -172,6 +196,7 @@ class URRtdeBackend(Backend):
     # -- connection -------------------------------------------------------------------
     def connect(self) -> None:
         """Connect, or raise RobotConnectionError with what to check."""
+        self._start_guard()
         try:
             self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
             armed = self._arm_watchdog()
@@ -197,6 +222,35 @@ class URRtdeBackend(Backend):
             self._start_keepalive()
         log.info("connected to the UR controller at %s (RTDE at %.0f Hz)", self.robot_ip, 1.0 / self.dt)
 
+    def _start_guard(self) -> None:
+        """Exit the process when the loop has made no progress for ``stall_exit_s`` (a hung ur_rtde call)."""
+        if self.stall_exit_s <= 0.0 or self._guard is not None:
+            return
+        self.progress_at = time.monotonic()
+        self._guard_stop.clear()
+
+        def watch() -> None:
+            while not self._guard_stop.wait(min(1.0, self.stall_exit_s / 4)):
+                stalled = time.monotonic() - self.progress_at
+                if stalled > self.stall_exit_s:
+                    log.critical("a call into ur_rtde has not returned for %.0f s (the connection to %s dropped "
+                                 "while it waited for the controller?): exiting so that a fresh bridge is started; "
+                                 "the controller holds the arm or its watchdog has stopped it", stalled,
+                                 self.robot_ip)
+                    for handler in logging.getLogger().handlers:
+                        handler.flush()
+                    sys.stderr.flush()
+                    os._exit(EXIT_STALLED)
+
+        self._guard = threading.Thread(target=watch, name="rtde-stall-guard", daemon=True)
+        self._guard.start()
+
+    def _stop_guard(self) -> None:
+        if self._guard is not None:
+            self._guard_stop.set()
+            self._guard.join()
+            self._guard = None
+
     def _start_keepalive(self) -> None:
         """Kick the watchdog from a thread until the control loop's first cycle (:meth:`take_over`)."""
         self._keepalive_stop.clear()
@@ -208,6 +262,7 @@ class URRtdeBackend(Backend):
                     try:
                         if self.control is not None:
                             self.control.kickWatchdog()
+                            self.progress_at = time.monotonic()
                     except RuntimeError as exc:
                         log.warning("kicking the RTDE watchdog before the control loop: %s", exc)
                         return
@@ -289,6 +344,7 @@ class URRtdeBackend(Backend):
     def disconnect(self) -> None:
         """Release the robot: end the stream, stop the control script, close both interfaces."""
         self.take_over()
+        self.progress_at = time.monotonic()  # releasing may hang too: the guard still watches
         control, receive = self.control, self.receive
         if control is not None:
             for call in (self._end_stream, control.stopScript, control.disconnect):
@@ -304,6 +360,7 @@ class URRtdeBackend(Backend):
         self.control = self.receive = None
         self.connected = False
         self.streaming = None
+        self._stop_guard()
 
     # -- observation ------------------------------------------------------------------
     def _read_q(self) -> np.ndarray:

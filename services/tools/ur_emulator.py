@@ -722,6 +722,9 @@ class Controller:
                 "script_running": self.script_running, "scripts_received": self.scripts_received,
                 "watchdog_hz": self.watchdog_hz, "motion_writes": self.motion_writes,
                 "commands": {str(k): v for k, v in self.commands.items()},
+                # the control script's command handshake: what the client wrote, what the script answers
+                "command_register": self.input_int[self.register_offset],
+                "answer_register": self.output_int[self.register_offset], "executing": self.executing,
                 "faults": [dict(f) for f in self.faults],
                 "command_changes": [list(c) for c in self.command_changes],
             }
