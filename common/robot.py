@@ -470,12 +470,22 @@ class RobotModel:
         q = np.asarray(q, dtype=float)
         if q.shape != (self.nq,):
             raise ValueError(f"q has shape {q.shape}; expected ({self.nq},) joint angles in rad")
-        if not np.all(np.isfinite(q)):
+        if not np.isfinite(q).all():
             raise ValueError(f"q = {q} contains non-finite values")
         return q
 
+    def _posed(self, q: Any) -> np.ndarray:
+        """``_update(_as_q(q))``, returning the checked ``q``: the bridge asks several times per control cycle
+        at one pose, and a ``q`` equal to the cached pose (finite; NaN equals nothing) needs no more checks."""
+        q = np.asarray(q, dtype=float)
+        if self._fk_valid and q.shape == self._q.shape and (q == self._q).all():
+            return q
+        q = self._as_q(q)
+        self._update(q)
+        return q
+
     def _update(self, q: np.ndarray) -> None:
-        if self._fk_valid and np.array_equal(q, self._q):
+        if self._fk_valid and (q == self._q).all():  # np.array_equal's test, for arrays of one shape
             return
         pin.forwardKinematics(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
@@ -486,7 +496,7 @@ class RobotModel:
 
     def fk(self, q: Any) -> None:
         """Update joint and frame placements for ``q``; a no-op if ``q`` is unchanged."""
-        self._update(self._as_q(q))
+        self._posed(q)
 
     # ------------------------------------------------------------------ helpers
 
@@ -519,29 +529,29 @@ class RobotModel:
             raise ConfigError(
                 f"{self.desc.urdf_path}: no frame {frame!r}; expected one of {', '.join(self._frame_ids)}"
             )
-        self._update(self._as_q(q))
+        self._posed(q)
         return (self._base_inverse * self.data.oMf[frame_id]).homogeneous
 
     def tool_position(self, q: Any) -> np.ndarray:
         """Origin of the tool frame (m), shape (3,), in base_frame."""
-        self._update(self._as_q(q))
+        self._posed(q)
         return self._to_base(self.data.oMf[self._tool_id].translation)
 
     def pad_point(self, q: Any, pad: int) -> np.ndarray:
         """Surface point of pad ``pad`` (its id) in base_frame, shape (3,)."""
         frame_id = self._pad_frame(pad)
-        self._update(self._as_q(q))
+        self._posed(q)
         return self._to_base(self.data.oMf[frame_id].translation)
 
     def pad_normal(self, q: Any, pad: int) -> np.ndarray:
         """Outward unit normal of pad ``pad`` in base_frame, shape (3,)."""
         frame_id = self._pad_frame(pad)
-        self._update(self._as_q(q))
+        self._posed(q)
         return self._rotate_to_base(self.data.oMf[frame_id].rotation[:, 2])
 
     def pad_points(self, q: Any) -> np.ndarray:
         """All pad points in base_frame, shape (n_pads, 3), row i = pad id i."""
-        self._update(self._as_q(q))
+        self._posed(q)
         points = np.empty((len(self._pad_ids), 3))
         for row, frame_id in enumerate(self._pad_ids):
             points[row] = self.data.oMf[frame_id].translation
@@ -549,7 +559,7 @@ class RobotModel:
 
     def pad_normals(self, q: Any) -> np.ndarray:
         """All outward pad normals in base_frame, shape (n_pads, 3), row i = pad id i."""
-        self._update(self._as_q(q))
+        self._posed(q)
         normals = np.empty((len(self._pad_ids), 3))
         for row, frame_id in enumerate(self._pad_ids):
             normals[row] = self.data.oMf[frame_id].rotation[:, 2]
@@ -560,8 +570,7 @@ class RobotModel:
         rows 3-5 angular velocity, both with base_frame axes (pinocchio's
         LOCAL_WORLD_ALIGNED, i.e. the velocity of the pad point itself)."""
         frame_id = self._pad_frame(pad)
-        q = self._as_q(q)
-        self._update(q)
+        q = self._posed(q)
         if not self._jacobians_valid:
             # Also redoes forward kinematics for the same q; harmless, and then all
             # pads share one Jacobian computation per configuration.
@@ -574,8 +583,7 @@ class RobotModel:
         return jacobian
 
     def _linear_jacobians(self, q: Any, frame_ids: tuple[int, ...]) -> np.ndarray:
-        q = self._as_q(q)
-        self._update(q)
+        q = self._posed(q)
         if not self._jacobians_valid:
             pin.computeJointJacobians(self.model, self.data, q)
             self._jacobians_valid = True
@@ -623,7 +631,7 @@ class RobotModel:
         """Origins of every movable joint in chain order, then the tool frame origin,
         in base_frame, shape (nq + 1, 3): the polyline used for drawing and for
         distance checks."""
-        self._update(self._as_q(q))
+        self._posed(q)
         points = np.empty((self.model.njoints, 3))
         for row in range(self.model.njoints - 1):
             points[row] = self.data.oMi[row + 1].translation

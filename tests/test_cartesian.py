@@ -10,7 +10,7 @@ import pytest
 from nwr.common.config import CartesianLimits, Profile, load_profile
 from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.bridge.cartesian import CartesianLimiter, Limits
+from nwr.services.bridge.cartesian import CartesianLimiter, Limits, row_norms
 
 DESC = load_description()
 MODEL = RobotModel(DESC)
@@ -36,6 +36,23 @@ def test_point_velocities_are_the_derivative_of_the_points() -> None:
                                       MODEL.tool_position(x)])
         numeric = (points(q + h * dq) - points(q - h * dq)) / (2 * h)
         assert MODEL.speed_jacobians(q) @ dq == pytest.approx(numeric, abs=1e-6)
+
+
+def test_row_norms_are_numpy_s_norm_bit_for_bit() -> None:
+    rng = np.random.default_rng(19)
+    for _ in range(2000):
+        x = rng.normal(size=(int(rng.integers(1, 14)), 3)) * 10.0 ** rng.uniform(-8, 3)
+        assert row_norms(x).tobytes() == np.linalg.norm(x, axis=1).tobytes()
+    x = MODEL.speed_jacobians(HOME) @ rng.uniform(-1, 1, 6)
+    assert row_norms(x).tobytes() == np.linalg.norm(x, axis=1).tobytes()
+
+
+def test_the_stop_from_given_speeds_is_the_stop_from_the_velocity() -> None:
+    lim = CartesianLimiter(MODEL, Limits(0.25, 0.5, 10.0), a_max=np.full(6, 3.0), j_max=np.full(6, 30.0))
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        q, dq = HOME + rng.uniform(-1, 1, 6), rng.uniform(-2, 2, 6)
+        assert lim.stopping(q, dq, lim.speeds(q, dq)) == lim.stopping(q, dq)
 
 
 def test_within_the_limits_nothing_is_scaled() -> None:

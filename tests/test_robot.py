@@ -174,6 +174,19 @@ def test_bad_q_is_rejected() -> None:
         MODEL.frame_pose(np.zeros(6), "tool1")
 
 
+def test_bad_q_is_rejected_at_a_cached_pose_too() -> None:
+    model = RobotModel(DESC)
+    q = np.zeros(6)
+    model.speed_jacobians(q)  # the pose cached: an equal q skips the checks, any other is checked in full
+    for bad in (np.array([0, 0, np.nan, 0, 0, 0]), np.array([np.inf, 0, 0, 0, 0, 0]), np.full(6, np.nan)):
+        with pytest.raises(ValueError, match="non-finite"):
+            model.speed_jacobians(bad)
+    for shape in ((5,), (6, 1), (1, 6)):
+        with pytest.raises(ValueError, match=r"expected \(6,\)"):
+            model.com_jacobians(np.zeros(shape))
+    assert model.speed_jacobians([0.0] * 6) is model.speed_jacobians(-q)  # -0.0 == 0.0: the same pose, as before
+
+
 # ---------------------------------------------------------------- description
 
 

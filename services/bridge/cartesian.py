@@ -108,6 +108,12 @@ UNITS = {"momentum": "kg m/s", "power": "W", "stopping time": "s", "stopping dis
 BISECTION_STEPS = 12
 
 
+def row_norms(x: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(x, axis=1)`` of a real array, bit for bit: the same ufuncs in the same order
+    (its own path for one axis), without its dispatch, several times per control cycle."""
+    return np.sqrt(np.add.reduce(x * x, axis=1))
+
+
 class CartesianLimiter:
     """The per-cycle check of a joint velocity against a set of :class:`Limits` (see the module docstring)."""
 
@@ -132,22 +138,23 @@ class CartesianLimiter:
         t = np.where(v >= a * a / j, v / a + a / j, 2.0 * np.sqrt(v / j))
         return float(t.max())
 
-    def stopping(self, q: np.ndarray, dq: np.ndarray) -> tuple[float, float, int]:
+    def stopping(self, q: np.ndarray, dq: np.ndarray, speeds: np.ndarray | None = None) -> tuple[float, float, int]:
         """The stop from ``dq`` at ``q``: its time (s), the farthest any point moves (m), and that point.
 
         Every joint ends together, so each slows along the same normalised
         profile, symmetric in time: a point moving at ``s`` covers ``s T / 2``
-        (to first order in the motion).
+        (to first order in the motion). ``speeds``: :meth:`speeds` of ``q`` and ``dq``, if the caller has them.
         """
         t = self.stop_time(dq)
-        speeds = self.speeds(q, dq)
+        if speeds is None:
+            speeds = self.speeds(q, dq)
         k = int(np.argmax(speeds))
         return t, float(speeds[k]) * t / 2.0, k
 
-    def _stopping_scale(self, q: np.ndarray, dq: np.ndarray) -> Scaling | None:
+    def _stopping_scale(self, q: np.ndarray, dq: np.ndarray, speeds: np.ndarray | None = None) -> Scaling | None:
         """The factor that brings the stop from ``dq`` within the stopping time and distance."""
         limits = self.limits
-        t, distance, k = self.stopping(q, dq)
+        t, distance, k = self.stopping(q, dq, speeds)
         if t <= limits.stopping_time_s and distance <= limits.stopping_distance_m:
             return None
         assert self.a_max is not None and self.j_max is not None
@@ -196,11 +203,11 @@ class CartesianLimiter:
 
     def speeds(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """The speed (m/s) of every speed-limited point at ``q`` moving at ``dq``."""
-        return np.linalg.norm(self.model.speed_jacobians(q) @ dq, axis=1)
+        return row_norms(self.model.speed_jacobians(q) @ dq)
 
     def momentum(self, q: np.ndarray, dq: np.ndarray) -> float:
         """Sum over the moving links of mass times centre-of-mass speed, kg m/s."""
-        return float(self.masses @ np.linalg.norm(self.model.com_jacobians(q) @ dq, axis=1))
+        return float(self.masses @ row_norms(self.model.com_jacobians(q) @ dq))
 
     def scale(self, q: np.ndarray, dq: np.ndarray, *, withdrawal: bool = False,
               toward: np.ndarray | None = None, speed_cap: float | None = None) -> Scaling | None:
@@ -213,7 +220,7 @@ class CartesianLimiter:
         """
         limits = self.limits
         velocities = self.model.speed_jacobians(q) @ dq  # (P, 3)
-        speeds = np.linalg.norm(velocities, axis=1)
+        speeds = row_norms(velocities)
         worst: Scaling | None = None
         limit = limits.withdrawal_speed_m_s if withdrawal else limits.speed_m_s
         what = "speed"
@@ -236,7 +243,9 @@ class CartesianLimiter:
             if worst is None or factor < worst.factor:
                 worst = Scaling(factor, "momentum", "arm", momentum, limits.momentum_kg_m_s)
         if self.a_max is not None:
-            stopping = self._stopping_scale(q, dq if worst is None else worst.factor * dq)
+            # Unscaled, the speeds of the stop's start are those above (the same product, not computed twice).
+            stopping = self._stopping_scale(q, dq, speeds) if worst is None else \
+                self._stopping_scale(q, worst.factor * dq)
             if stopping is not None:
                 factor = stopping.factor * (1.0 if worst is None else worst.factor)
                 worst = Scaling(factor, stopping.what, stopping.point, stopping.value, stopping.limit)
