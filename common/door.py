@@ -65,7 +65,10 @@ class Door:
         self.q_lo = np.asarray(desc.q_min) - JOINT_MARGIN_RAD
         self.q_hi = np.asarray(desc.q_max) + JOINT_MARGIN_RAD
         self.v_top = np.asarray(desc.v_max) * SPEED_MARGIN
-        self._state: tuple[int, int, np.ndarray] | None = None  # the stream's last (seq, stamp, q)
+        # The same bounds as Python floats: a check of six values per message is cheaper without numpy.
+        self._q_bounds = list(zip(self.q_lo.tolist(), self.q_hi.tolist()))
+        self._v_top = self.v_top.tolist()
+        self._state: tuple[int, int, list[float]] | None = None  # the stream's last (seq, stamp, q)
         self._checks: dict[type, Callable[[Any], Refusal | None]] = {
             m.SkinPressure: self._pressure,
             m.SkinPain: self._pain,
@@ -111,6 +114,12 @@ class Door:
     def _joints(self, values: Sequence[float], what: str, *, speeds: bool = False) -> Refusal | None:
         if len(values) != self.n:
             return Refusal("wrong joint count", f"{what} has {len(values)} values, the robot has {self.n} joints")
+        # The common case first, on floats; the arrays below only name the first value outside.
+        if speeds:
+            if all(-top <= x <= top for x, top in zip(values, self._v_top)):
+                return None
+        elif all(lo <= x <= hi for x, (lo, hi) in zip(values, self._q_bounds)):
+            return None
         v = np.asarray(values, dtype=float)
         if speeds:
             outside = np.abs(v) > self.v_top
@@ -172,11 +181,23 @@ class Door:
         refused = self._trace(msg.trace) or self._pads(msg.level, "level") or self._pads(msg.gain, "gain")
         if refused:
             return refused
-        for i, (level, gain) in enumerate(zip(msg.level, msg.gain)):
-            refused = self._level(level, f"pad {i} level") or self._gain(gain, f"pad {i} gain")
+        lo, hi = LEVELS
+        levels, gains = msg.level, msg.gain
+        total = sum(gains)  # NaN if any is (min and max may pass over one)
+        if not levels or not (lo <= min(levels) and max(levels) <= hi and total == total
+                              and 0.0 <= min(gains) and max(gains) <= 1.0):
+            refused = self._pads_pain(levels, gains)
             if refused:
                 return refused
         return self._contact(msg.strongest) if msg.strongest is not None else None
+
+    def _pads_pain(self, levels: Sequence[int], gains: Sequence[float]) -> Refusal | None:
+        """The first pad whose level or gain is out of range (the slow path, for the refusal's detail)."""
+        for i, (level, gain) in enumerate(zip(levels, gains)):
+            refused = self._level(level, f"pad {i} level") or self._gain(gain, f"pad {i} gain")
+            if refused:
+                return refused
+        return None
 
     def _touch(self, msg: m.SkinTouch) -> Refusal | None:
         refused = self._pad(msg.pad, "pad")
@@ -220,7 +241,7 @@ class Door:
 
     def _continues(self, msg: m.RobotState) -> Refusal | None:
         """Does the state continue the bridge's stream (seq and stamp rising, a pose the arm can reach)?"""
-        q = np.asarray(msg.q, dtype=float)
+        q = [float(x) for x in msg.q]
         last = self._state
         if last is not None:
             seq, stamp, q_last = last
@@ -231,13 +252,12 @@ class Door:
                 return Refusal("robot state out of order",
                                f"seq {msg.seq} at {msg.stamp_ns} after seq {seq} at {stamp}: not the bridge's stream")
             else:
-                reach = self.v_top * dt + STREAM_SLACK_RAD
-                jump = np.abs(q - q_last) > reach
-                if jump.any():
-                    i = int(np.argmax(jump))
-                    return Refusal("robot state jumps",
-                                   f"{self.desc.joints[i]} moved {abs(q[i] - q_last[i]):.4f} rad in {dt:.4f} s: "
-                                   "not the bridge's stream")
+                # Joint by joint on floats: the same IEEE operations as on arrays, without numpy's per-call cost.
+                for i, (x, x_last, top) in enumerate(zip(q, q_last, self._v_top)):
+                    if abs(x - x_last) > top * dt + STREAM_SLACK_RAD:
+                        return Refusal("robot state jumps",
+                                       f"{self.desc.joints[i]} moved {abs(x - x_last):.4f} rad in {dt:.4f} s: "
+                                       "not the bridge's stream")
         self._state = (msg.seq, msg.stamp_ns, q)
         return None
 

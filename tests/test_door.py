@@ -64,6 +64,36 @@ def test_the_door_lets_a_whole_session_through() -> None:
     assert not refused, refused[:5]
 
 
+def test_the_door_s_quick_checks_refuse_the_value_its_full_ones_name_wherever_it_is() -> None:
+    """The checks over a whole list (min, max) fall back to the pad-by-pad ones, which name the value: a NaN
+    (which min and max may pass over) or a value out of range at any pad is refused as before."""
+    door = Door(DESC)
+    base = m.SkinPressure(seq=1, stamp_ns=1, absolute_hpa=[1000.0] * PADS, baseline_hpa=[1000.0] * PADS,
+                          change_hpa=[0.0] * PADS, contact=[False] * PADS)
+    pain = m.SkinPain(seq=1, stamp_ns=1, trace=m.Trace(1, 1), model="continuous", level=[1] * PADS,
+                      gain=[0.0] * PADS)
+    assert door.refuse(base) is None and door.refuse(pain) is None
+    for i in (0, PADS // 2, PADS - 1):
+        for bad in (float("nan"), -1.0, 6000.0):
+            values = [1000.0] * PADS
+            values[i] = bad
+            refusal = door.refuse(replace(base, baseline_hpa=values))
+            assert refusal is not None and refusal.cause == "pressure out of range" and str(bad) in refusal.detail
+        for bad_gain in (float("nan"), -0.5, 1.5):
+            gains = [0.0] * PADS
+            gains[i] = bad_gain
+            refusal = door.refuse(replace(pain, gain=gains))
+            assert refusal is not None and refusal.cause == "gain out of range" and f"pad {i} gain" in refusal.detail
+        levels = [1] * PADS
+        levels[i] = 5
+        refusal = door.refuse(replace(pain, level=levels))
+        assert refusal is not None and refusal.cause == "level out of range" and f"pad {i} level" in refusal.detail
+        change = [0.0] * PADS
+        change[i] = -2500.0
+        refusal = door.refuse(replace(base, change_hpa=change))
+        assert refusal is not None and "-2500.0" in refusal.detail
+
+
 def test_a_command_on_no_skin_sample_yet_passes_and_no_other_negative_trace() -> None:
     """A planner's task commands before its first pain message carry NO_TRACE: the live bridge refused them
     (``trace out of range``) at every start-up, while the gain estimator was still starting."""

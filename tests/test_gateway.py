@@ -150,3 +150,64 @@ def test_the_pads_pose_is_needed_only_when_a_touch_uses_it(closed_loop):
     touches.start(1.0, points, normals)
     assert touches.needs_pose(1.5) == closed_loop  # under way: only the closed loop follows the pad
     assert not touches.needs_pose(2.01)  # over
+
+
+def _reference_update(cfg, state, t, absolute):
+    """The baseline filter as numpy array expressions (its form before it went pad by pad on floats)."""
+    baseline, contact, since, last_t = state
+    dt = 0.0 if last_t is None else max(0.0, t - last_t)
+    finite = np.isfinite(absolute)
+    fresh = finite & np.isnan(baseline)
+    baseline[fresh] = absolute[fresh]
+    change = absolute - baseline
+    starting = finite & ~contact & (change > cfg.contact_hpa)
+    ending = finite & contact & (change < cfg.release_hpa)
+    since[starting] = t
+    contact = (contact | starting) & ~ending
+    too_long = contact & (t - since > cfg.max_contact_s)
+    reacquired = [int(i) for i in np.flatnonzero(too_long)]
+    if too_long.any():
+        baseline[too_long] = absolute[too_long]
+        contact[too_long] = False
+        change[too_long] = 0.0
+    track = finite & ~contact
+    if dt > 0 and track.any():
+        alpha = 1.0 - np.exp(-dt / cfg.baseline_tau_s)
+        baseline[track] += np.clip(alpha * change[track], -cfg.max_drift_hpa_s * dt, cfg.max_drift_hpa_s * dt)
+    return (baseline, contact, since, t), change, reacquired, [int(i) for i in np.flatnonzero(~finite)]
+
+
+@pytest.mark.parametrize("max_contact_s,max_drift", [(10.0, 0.5), (0.05, 0.5), (10.0, 0.0)])
+def test_filter_on_floats_matches_the_array_expressions_bit_for_bit(max_contact_s, max_drift):
+    """Touches, reacquisitions, NaN and infinite readings, repeated and backward stamps."""
+    cfg = GatewaySection(max_contact_s=max_contact_s, max_drift_hpa_s=max_drift)
+    n = 10
+    rng = np.random.default_rng(7)
+    gateway = Gateway(cfg, n)
+    state = (np.full(n, np.nan), np.zeros(n, dtype=bool), np.zeros(n), None)
+    base = 1000 + rng.normal(0, 5, n)
+    t = 0.0
+    reacquisitions = 0
+    for k in range(4000):
+        t += rng.choice([0.0, 0.04, -0.001]) if k % 97 == 0 else 0.001
+        absolute = base + rng.normal(0, 0.3, n) + (rng.random(n) < 0.05) * rng.uniform(0, 30, n) * (k % 400 < 200)
+        absolute[(k // 300) % n] += 15.0 * ((k // 300) % 2 == 0)  # sustained presses (reacquired at 0.05 s)
+        if k < 3:
+            absolute[:] = np.nan
+        if k % 53 == 0:
+            absolute[rng.integers(n)] = np.nan
+        if k % 301 == 0:
+            absolute[rng.integers(n)] = rng.choice([np.inf, -np.inf])
+        msg, events = gateway.process(t, k, absolute.copy())
+        state, change, reacquired, non_finite = _reference_update(cfg, state, t, absolute.copy())
+        baseline, contact = state[0], state[1]
+        valid = np.isfinite(change)
+        assert msg.change_hpa == np.where(valid, change, 0.0).tolist()
+        assert msg.baseline_hpa == np.where(np.isfinite(baseline), baseline, 0.0).tolist()
+        assert msg.absolute_hpa == np.where(valid, absolute, 0.0).tolist()
+        assert msg.contact == (contact & valid).tolist() and msg.valid == valid.tolist()
+        assert (events.reacquired, events.non_finite) == (reacquired, non_finite)
+        assert all(type(x) is float for x in (*msg.absolute_hpa, *msg.baseline_hpa, *msg.change_hpa))
+        np.testing.assert_array_equal(gateway.filter.baseline, baseline)
+        reacquisitions += len(reacquired)
+    assert reacquisitions > 0 if max_contact_s < 1.0 else reacquisitions == 0

@@ -125,7 +125,13 @@ class GainEstimator:
         levels: list[int] = []
         gains: list[float] = []
         best = -1
+        per_pad = self.per_pad
         for i, p in enumerate(change):
+            if -math.inf < p < per_pad[i].thresholds[0]:
+                # PL 1 (a finite change below the first threshold): G = 0 in both models, and no contact.
+                levels.append(1)
+                gains.append(0.0)
+                continue
             if not math.isfinite(p):
                 self.non_finite += 1
             level, g = self.gain(i, p)

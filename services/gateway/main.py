@@ -77,7 +77,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             with lock:
                 wiring.on_state(state)
 
-        node.subscribe(keys.ROBOT_STATE, on_state)
+        # On Zenoh's network thread (direct): the handler only keeps the state (the bridge's 500 Hz at 1 kHz skin
+        # would each cost a hand-off to a Python thread), and nothing this process puts, under the lock or not,
+        # reaches a subscription of its own.
+        node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
         if args.follow_target:
 
             def on_status(key: str, status: m.PlannerStatus) -> None:
