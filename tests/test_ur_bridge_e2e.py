@@ -117,16 +117,22 @@ def demo_log(tmp_path: Path) -> str:
     return (tmp_path / "demo.log").read_text()
 
 
+def interrupt(proc: subprocess.Popen[str], grace_s: float) -> None:
+    """Ctrl-C, as a person would stop it; killed if it has not ended within ``grace_s``."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def finish(proc: subprocess.Popen[str], timeout: float) -> int:
     try:
         return proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc, 30)
         raise
 
 
@@ -286,13 +292,7 @@ def test_faults_through_the_emulator(tmp_path: Path, emulator: Emulator) -> None
             assert state["watchdog_hz"] == 2.0, "the bridge drives a script the controller does not watch"
             results.append({"inject": inject, "status": status, **fault, "injected": injected})
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc, 60)
     log = demo_log(tmp_path)
 
     records, _ = read_recording(output)

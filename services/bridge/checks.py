@@ -54,6 +54,7 @@ class Event:
     level: Level
     code: str
     message: str
+    every_s: float = 1.0  # repeats of the code within this are counted, not sent (0: a change of state, always sent)
 
 
 @dataclass(frozen=True)

@@ -388,9 +388,11 @@ class BridgeCore:
         self.last_command_ns = 0
         if fault is None:
             self.events.append(Event("info", "robot_recovered",
-                                     f"robot recovered from {self.fault}: waiting for commands"))
+                                     f"robot recovered from {self.fault}: waiting for commands", every_s=0.0))
         else:
-            self.events.append(Event("error", fault, f"robot in {fault}: {detail}"))
+            # a change of the controller's state: each one is heard, however soon after the last of its code
+            # (a program stopped 0.3 s after an emergency stop's restart, say)
+            self.events.append(Event("error", fault, f"robot in {fault}: {detail}", every_s=0.0))
         self.fault = fault
         self.fault_detail = detail
         self._evaluate(now_ns)

@@ -40,12 +40,17 @@ SWITCH_INTERVAL_S = 0.0005
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--active", help="the planner whose commands move the arm (overrides bridge.active_planner)")
-    parser.add_argument("--backend", choices=["sim", "ur_rtde"], help="overrides bridge.backend")
+    add_arm_arguments(parser)
+    parser.add_argument("--print-envelope", action="store_true", help="print the enforced envelope and exit")
+
+
+def add_arm_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The backend, the robot's address and the confirmation (the bridge's, and `nwr up` / `nwr demo` pass them on)."""
+    parser.add_argument("--backend", choices=["sim", "ur_rtde"], help="the bridge's backend (overrides bridge.backend)")
     parser.add_argument("--robot-ip", default="", help="IP address of the UR controller (ur_rtde backend only)")
     parser.add_argument(CONFIRM_FLAG, dest="confirmed", action="store_true",
                         help="confirm that a person watches the real arm with the emergency stop at hand "
                              "(required by the ur_rtde backend)")
-    parser.add_argument("--print-envelope", action="store_true", help="print the enforced envelope and exit")
 
 
 def check_arm_flags(backend: str, robot_ip: str, confirmed: bool) -> None:

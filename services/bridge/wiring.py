@@ -38,8 +38,6 @@ from nwr.services.bridge.envelope import Envelope, make_envelope
 from nwr.services.wiring import Diag, Out
 
 SERVICE = "bridge"
-# The events that are changes of the controller's state (BridgeCore.on_fault): never rate limited.
-TRANSITIONS = frozenset({"protective_stop", "emergency_stop", "script_not_running", "disconnected", "robot_recovered"})
 
 
 def envelope_for(profile: Profile) -> tuple[Envelope, np.ndarray, int]:
@@ -203,10 +201,7 @@ class BridgeWiring:
 
     def _report(self) -> None:
         for event in self.core.drain_events():
-            # a fault of the controller and its end are changes of state: each one is heard, however soon after
-            # the last of its code (a program stopped 0.3 s after an emergency stop's restart, say)
-            every_s = 0.0 if event.code in TRANSITIONS else 1.0
-            self.diag(event.level, event.code, event.message, every_s=every_s)
+            self.diag(event.level, event.code, event.message, every_s=event.every_s)
 
     def replay(self, entry: m.JournalEntry, message: Any) -> None:
         match entry.input:

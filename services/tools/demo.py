@@ -12,7 +12,7 @@ from pathlib import Path
 
 from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
-from nwr.services.bridge.main import CONFIRM_FLAG, check_arm_flags
+from nwr.services.bridge.main import CONFIRM_FLAG, add_arm_arguments, check_arm_flags
 from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
 from nwr.services.planner import strategies
@@ -41,12 +41,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reflex", choices=strategies.names(),
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
-    robot = p.add_argument_group("the arm (passed to the bridge; see docs/lab.md)")
-    robot.add_argument("--backend", choices=["sim", "ur_rtde"], help="the bridge's backend (overrides bridge.backend)")
-    robot.add_argument("--robot-ip", default="", help="the UR controller's address (ur_rtde backend)")
-    robot.add_argument(CONFIRM_FLAG, dest="i_am_next_to_the_robot", action="store_true",
-                       help="confirm that a person watches the arm and holds the emergency stop "
-                            "(required by the ur_rtde backend)")
+    add_arm_arguments(p.add_argument_group("the arm (passed to the bridge; see docs/lab.md)"))
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
@@ -80,7 +75,7 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
 def bridge_arguments(args: argparse.Namespace, profile: Profile) -> list[str]:
     """The bridge's backend flags; checked here, before any process starts, as the bridge checks them."""
     backend = args.backend or profile.bridge.backend
-    check_arm_flags(backend, args.robot_ip, args.i_am_next_to_the_robot)
+    check_arm_flags(backend, args.robot_ip, args.confirmed)
     flags = ["--backend", args.backend] if args.backend else []
     return [*flags, "--robot-ip", args.robot_ip, CONFIRM_FLAG] if backend == "ur_rtde" else flags
 
