@@ -13,6 +13,7 @@ import pytest
 
 from nwr.common import messages as m
 from nwr.common.config import Profile, load_profile, load_script
+from nwr.common.errors import ConfigError
 from nwr.common.pacing import Rate
 from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description
@@ -154,6 +155,16 @@ def test_profile_written_as_toml_loads_back_unchanged(tmp_path):
     assert load_profile(str(path)) == profile
 
 
+def test_cpus_are_parsed_as_numbers_and_ranges_among_those_available():
+    assert bench.parse_cpus("0", {0, 1}) == {0}
+    assert bench.parse_cpus("0-2,5", set(range(8))) == {0, 1, 2, 5}
+    assert bench.parse_cpus(" 1 , 0 ", {0, 1}) == {0, 1}
+    for bad, why in (("2", r"\[2\] are not available"), ("a", "not a CPU number"), ("1-0", "not a CPU number"),
+                     ("-1", "not a CPU number"), ("0,", "not a CPU number")):
+        with pytest.raises(ConfigError, match=why):
+            bench.parse_cpus(bad, {0, 1})
+
+
 def test_recorder_soak_writes_every_message(tmp_path):
     soak = bench.recorder_soak(0.05, tmp_path / "soak.mcap")
     assert soak["lost"] == 0
@@ -166,15 +177,17 @@ def test_recorder_soak_writes_every_message(tmp_path):
 @pytest.mark.e2e
 def test_quick_bench_measures_every_configuration(tmp_path):
     out = tmp_path / "bench"
+    cpus = sorted(os.sched_getaffinity(0))  # pinned to every CPU it has: the option's path, the same figures
     proc = subprocess.run(
         [sys.executable, "-m", "nwr.services.cli", "bench", "--quick", "--soak-minutes", "0.1", "--base-port", "18080",
-         "--output", str(out)],
+         "--cpus", ",".join(map(str, cpus)), "--output", str(out)],
         capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads((out / "bench.json").read_text())
     assert (out / "bench.md").read_text().startswith("# nwr bench")
     assert result["machine"]["cores"] >= 1
+    assert result["machine"]["pinned"] and result["machine"]["cpus"] == cpus
     summary = result["summary"]
     assert len(summary) == 4
     for name, s in summary.items():

@@ -149,9 +149,29 @@ def machine() -> dict[str, Any]:
             libs[lib] = version(lib)
         except PackageNotFoundError:
             libs[lib] = "-"
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
-            "system": f"{platform.system()} {platform.release()}", "libraries": libs,
-            "load_before": os.getloadavg()[0]}
+    return {"cpu": model, "cores": os.cpu_count(), "cpus": sorted(os.sched_getaffinity(0)),
+            "python": platform.python_version(), "system": f"{platform.system()} {platform.release()}",
+            "libraries": libs, "load_before": os.getloadavg()[0]}
+
+
+def parse_cpus(text: str, available: set[int] | None = None) -> set[int]:
+    """``--cpus``: a list of CPU numbers and ranges ("0", "0,1", "0-3,6") among those this process may use."""
+    usable = os.sched_getaffinity(0) if available is None else available
+    cpus: set[int] = set()
+    for part in (p.strip() for p in text.split(",")):
+        first, sep, last = part.partition("-")
+        try:
+            lo = int(first)
+            hi = int(last) if sep else lo
+        except ValueError:
+            raise ConfigError(f"--cpus {text!r}: {part!r} is not a CPU number or a range like 0-3") from None
+        if lo < 0 or hi < lo:
+            raise ConfigError(f"--cpus {text!r}: {part!r} is not a CPU number or a range like 0-3")
+        cpus.update(range(lo, hi + 1))
+    if not cpus <= usable:
+        raise ConfigError(f"--cpus {text!r}: CPU(s) {sorted(cpus - usable)} are not available to this process "
+                          f"(it may use {sorted(usable)})")
+    return cpus
 
 
 # ------------------------------------------------------------------------------ one run
@@ -508,7 +528,9 @@ def report_markdown(result: dict[str, Any]) -> str:
         f"# nwr bench, {result['started']}",
         "",
         f"Machine: {mach['cpu']}, {mach['cores']} cores, {mach['system']}; Python {mach['python']}; {libs}. "
-        f"Load average before the run: {mach['load_before']:.2f}.",
+        f"Load average before the run: {mach['load_before']:.2f}."
+        + (f" Every process of the bench pinned to CPU(s) {', '.join(map(str, mach['cpus']))} (`--cpus`)."
+           if mach.get("pinned") else ""),
         "",
         f"{result['reps']} repetition(s) of each configuration, interleaved; every figure is the median over them. "
         "Latencies in ms on the machine's monotonic clock; *lost*: messages missing from the recording (sequence "
@@ -560,12 +582,15 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                               f"{[c.name for c in configurations(args.quick, onsets)]}")
     reps = args.reps if args.reps else (1 if args.quick else 3)
     profile = load_profile(args.profile)
+    if args.cpus:
+        # Inherited by every process the bench starts: the services, the router, the bare chain.
+        os.sched_setaffinity(0, parse_cpus(args.cpus))
     started = dt.datetime.now()
     out_dir = Path(args.output) if args.output else Path("bench") / started.strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="nwr-bench-", dir=out_dir if args.keep else None))
     result: dict[str, Any] = {"started": started.isoformat(timespec="seconds"), "quick": args.quick, "reps": reps,
-                              "machine": machine(), "runs": [], "failures": []}
+                              "machine": {**machine(), "pinned": bool(args.cpus)}, "runs": [], "failures": []}
     total = reps * len(configs)
     done = 0
     t_start = time.monotonic()
@@ -663,6 +688,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "chain use (default 18050)")
     p.add_argument("--bare-seconds", type=float, default=BARE_S,
                    help=f"how long the bare chain runs after each run (default {BARE_S:g}; --quick 3)")
+    p.add_argument("--cpus", metavar="LIST",
+                   help="pin the bench and every process it starts to these CPUs (e.g. 0 or 0-1,4): what the "
+                        "pipeline does with fewer cores than the machine has")
     p.add_argument("--output", "-o", help="directory for bench.json and bench.md (default: bench/<time>/)")
     p.add_argument("--keep", action="store_true", help="keep every run's recording, logs and profile")
     p.add_argument("--tracking", action="store_true",
