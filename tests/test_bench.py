@@ -19,7 +19,7 @@ from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
 from nwr.services.gateway.core import Gateway, SimSkin
-from nwr.services.tools import bench, bench_core
+from nwr.services.tools import bench, bench_core, bench_ros1
 
 DESC = load_description()
 MS = 1_000_000
@@ -155,6 +155,16 @@ def test_profile_written_as_toml_loads_back_unchanged(tmp_path):
     assert load_profile(str(path)) == profile
 
 
+def test_skipped_source_periods_are_counted_from_the_stamps_without_sequence_gaps():
+    period = MS  # 1 kHz
+    on_time = [k * period + 300_000 for k in range(100)]  # every deadline, each woken 0.3 ms late
+    assert bench_core.source_skipped(on_time, 1000.0) == 0
+    # A loop 3.4 periods late once: one late sample, then the next deadline on the grid (two never taken).
+    late = [*on_time[:10], 10 * period + 3_400_000, *on_time[14:]]
+    assert bench_core.source_skipped(late, 1000.0) == 3
+    assert bench_core.source_skipped(on_time[:1], 1000.0) == bench_core.source_skipped([], 1000.0) == 0
+
+
 def test_cpus_are_parsed_as_numbers_and_ranges_among_those_available():
     assert bench.parse_cpus("0", {0, 1}) == {0}
     assert bench.parse_cpus("0-2,5", set(range(8))) == {0, 1, 2, 5}
@@ -200,6 +210,7 @@ def test_quick_bench_measures_every_configuration(tmp_path):
         assert latency["lower bound: sample"]["p50"] < latency["sample"]["p50"], name
         assert latency["lower bound: onset"]["p50"] < latency["onset"]["p50"], name
         assert set(s["cpu_percent"]) >= {"gateway", "gain", "planner", "bridge", "recorder"}
+        assert s["skipped_at_source"] >= 0, name
         assert set(s["loops"]) == {"planner", "bridge"}
         # The baseline, measured right after each run: the bare chain's three hops, and the ratio to them.
         assert s["bare"]["p50"] > result["in_process_ms"]["p50"] > 0, name
@@ -208,6 +219,15 @@ def test_quick_bench_measures_every_configuration(tmp_path):
         assert 0 <= s["bare"]["lost"] < 0.05 * 3.0 * 1000, name
         assert s["ratio_to_bare"]["p50"] > 0, name
     assert "reflex onset against the bare zenoh chain" in proc.stdout
+    # The ROS 1 chain, after each embedded run, wherever Debian's ROS 1 is installed (CI: it must be).
+    if bench_ros1.available() is None or os.environ.get("NWR_REQUIRE_ROS") == "1":
+        assert result["ros1"] == {"ran": True, "why_not": None}
+        for name, s in summary.items():
+            if "embedded" in name:
+                assert s["ros1"]["p50"] > 0 and 0 <= s["ros1"]["lost"] < 0.05 * 3.0 * 1000, name
+            else:
+                assert "ros1" not in s, name
+        assert "ROS 1 p50" in proc.stdout
     assert "Reflex onset against the baseline" in (out / "bench.md").read_text()
     assert result["recorder_soak"]["lost"] == 0
 

@@ -19,6 +19,12 @@ pipeline's Zenoh configuration, messages and rate, and no other work; every
 onset figure is also given as a ratio to it, measured in the same
 repetition (on a shared machine the ratios hold better than the absolute
 figures), with the same chain as function calls in one process as the floor.
+Where Debian's ROS 1 is installed (rospy, rosmaster), the same chain as
+rospy nodes (:mod:`nwr.services.tools.bench_ros1`) runs after each run of
+the embedded mesh too: a lab's older stack in the same table.
+
+``--cpus`` pins the bench and every process it starts to a set of CPUs:
+what the pipeline does with fewer cores than the machine has.
 
 A recorder soak test writes an hour of a busy session (a command every cycle,
 state at 125 Hz) through the recorder's own decode-and-write path in this
@@ -56,7 +62,14 @@ from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
 from nwr.services.tools import bench_bare
-from nwr.services.tools.bench_core import lower_bound, match_traces, median_over, summarize, touch_script
+from nwr.services.tools.bench_core import (
+    lower_bound,
+    match_traces,
+    median_over,
+    source_skipped,
+    summarize,
+    touch_script,
+)
 
 log = logging.getLogger(__name__)
 
@@ -278,6 +291,7 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
                      "orphan_decisions": traces.orphan_decisions, "reflexes": traces.reflexes,
                      "onsets": len(traces.onset), "unmatched_onsets": traces.unmatched_onsets},
         "lost": {k.removeprefix(prefix): v for k, v in gaps.items()},
+        "skipped_at_source": source_skipped([x.stamp_ns for x in skin], config.rate_hz),
         "messages": {k.removeprefix(prefix): v for k, v in counts.items()},
         "cpu_s": cpu,
         "cpu_percent": {n: 100.0 * c / wall for n, c in cpu.items()},
@@ -295,6 +309,21 @@ def bare_once(config: Config, base_port: int, work: Path, seconds: float, profil
                                   router=[f"tcp/127.0.0.1:{base_port + 5}"] if router else [])
     run = bench_bare.measure(cfg, config.rate_hz, seconds, work,
                              router_listen=f"tcp/127.0.0.1:{base_port + 5}" if router else None)
+    return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
+            "cpu_percent_total": run.cpu_percent_total}
+
+
+def _ros1_missing() -> str | None:
+    from nwr.services.tools import bench_ros1
+
+    return bench_ros1.available()
+
+
+def ros1_once(config: Config, port: int, work: Path, seconds: float) -> dict[str, float]:
+    """The same three hops in ROS 1 (:mod:`.bench_ros1`) at ``config``'s rate: latency p50/p99 (ms), lost, CPU %."""
+    from nwr.services.tools import bench_ros1
+
+    run = bench_ros1.measure(config.rate_hz, seconds, work, port)
     return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
             "cpu_percent_total": run.cpu_percent_total}
 
@@ -435,6 +464,7 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             },
             "lost": median_over([{k: float(v) for k, v in r["lost"].items()} for r in mine]),
             "lost_total": statistics_median([sum(r["lost"].values()) for r in mine]),
+            "skipped_at_source": statistics_median([r.get("skipped_at_source", float("nan")) for r in mine]),
             "cpu_percent": {s: statistics_median([r["cpu_percent"].get(s, float("nan")) for r in mine])
                             for s in services},
             "cpu_percent_total": statistics_median([r["cpu_percent_total"] for r in mine]),
@@ -443,6 +473,9 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             "loops": loops,
             "matching": {k: int(sum(r["matching"][k] for r in mine)) for k in mine[0]["matching"]},
         }
+        ros1 = [r["ros1"] for r in mine if r.get("ros1")]
+        if ros1:
+            out[name]["ros1"] = median_over(ros1)
         bare = [r["bare"] for r in mine if r.get("bare")]
         if bare:
             out[name]["bare"] = median_over(bare)
@@ -457,15 +490,22 @@ def baseline_table(summary: dict[str, dict[str, Any]], floor_p50: float) -> tupl
     """Reflex onset against the bare chain of the same rate and topology (the ratios: the headline)."""
     header = ["configuration", "onset p50", "bare p50", "x bare", "onset p99", "bare p99", "x bare",
               "bare lost", "in-process p50"]
+    with_ros1 = any(s.get("ros1") for s in summary.values())
+    if with_ros1:
+        header += ["ROS 1 p50", "ROS 1 p99", "ROS 1 lost"]
     rows = []
     for name, s in summary.items():
         bare = s.get("bare")
         if not bare:
             continue
         onset = s["latency_ms"]["onset"]
-        rows.append([name, _f(onset["p50"], ".3f"), _f(bare["p50"], ".3f"), _f(s["ratio_to_bare"]["p50"], ".2f"),
-                     _f(onset["p99"], ".3f"), _f(bare["p99"], ".3f"), _f(s["ratio_to_bare"]["p99"], ".2f"),
-                     _f(bare["lost"], ".0f"), _f(floor_p50, ".4f")])
+        row = [name, _f(onset["p50"], ".3f"), _f(bare["p50"], ".3f"), _f(s["ratio_to_bare"]["p50"], ".2f"),
+               _f(onset["p99"], ".3f"), _f(bare["p99"], ".3f"), _f(s["ratio_to_bare"]["p99"], ".2f"),
+               _f(bare["lost"], ".0f"), _f(floor_p50, ".4f")]
+        if with_ros1:
+            ros1 = s.get("ros1")
+            row += [_f(ros1["p50"], ".3f"), _f(ros1["p99"], ".3f"), _f(ros1["lost"], ".0f")] if ros1 else ["-"] * 3
+        rows.append(row)
     return header, rows
 
 
@@ -480,7 +520,7 @@ def _f(x: float, fmt: str = ".2f") -> str:
 
 def tables(summary: dict[str, dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str], list[list[str]]]:
     """The latency table and the cost/loop table."""
-    header = ["configuration", "latency (ms)", "n", "p50", "p90", "p99", "max", "lost", "CPU %"]
+    header = ["configuration", "latency (ms)", "n", "p50", "p90", "p99", "max", "lost", "skipped", "CPU %"]
     rows: list[list[str]] = []
     for name, s in summary.items():
         first = True
@@ -490,6 +530,7 @@ def tables(summary: dict[str, dict[str, Any]]) -> tuple[list[str], list[list[str
             rows.append([name if first else "", metric, str(int(st["n"])), _f(st["p50"], ".3f"), _f(st["p90"], ".3f"),
                          _f(st["p99"], ".3f"), _f(st["max"], ".3f"),
                          _f(s["lost_total"], ".0f") if first else "",
+                         _f(s.get("skipped_at_source", float("nan")), ".0f") if first else "",
                          _f(s["cpu_percent_total"], ".1f") if first else ""])
             first = False
     cost_header = ["configuration", "service", "CPU % of a core", "peak RSS (MB)", "loop p50 (ms)", "loop p99 (ms)",
@@ -534,7 +575,9 @@ def report_markdown(result: dict[str, Any]) -> str:
         "",
         f"{result['reps']} repetition(s) of each configuration, interleaved; every figure is the median over them. "
         "Latencies in ms on the machine's monotonic clock; *lost*: messages missing from the recording (sequence "
-        "gaps, all keys); *CPU %*: all services together, % of one core, from the script's start to its end.",
+        "gaps, all keys); *skipped*: skin sample periods the simulated skin's loop, late, let pass without a "
+        "sample (no sequence gap: never taken); *CPU %*: all services together, % of one core, from the script's "
+        "start to its end.",
         "",
         markdown_table(header, rows),
         "",
@@ -544,7 +587,9 @@ def report_markdown(result: dict[str, Any]) -> str:
         lines += [
             "Reflex onset against the baseline: the same three hops as a bare chain of zenoh-python processes "
             "(the pipeline's Zenoh configuration, messages and rate; no other work), run right after each "
-            "repetition; *x bare*: the ratio per repetition, median; *in-process*: the chain as function calls.",
+            "repetition; *x bare*: the ratio per repetition, median; *in-process*: the chain as function calls"
+            + ("; *ROS 1*: the same chain as rospy nodes with their own rosmaster (Debian's ROS 1), peers only."
+               if any(s.get("ros1") for s in result["summary"].values()) else "."),
             "",
             markdown_table(base_header, base_rows),
             "",
@@ -591,6 +636,11 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     work = Path(tempfile.mkdtemp(prefix="nwr-bench-", dir=out_dir if args.keep else None))
     result: dict[str, Any] = {"started": started.isoformat(timespec="seconds"), "quick": args.quick, "reps": reps,
                               "machine": {**machine(), "pinned": bool(args.cpus)}, "runs": [], "failures": []}
+    # The optional ROS 1 chain: where Debian's rospy and rosmaster are installed, unless --no-ros1.
+    ros1: str | None = "--no-ros1" if args.no_ros1 else _ros1_missing()
+    result["ros1"] = {"ran": ros1 is None, "why_not": ros1}
+    if ros1 is not None:
+        print(f"the ROS 1 chain does not run: {ros1}", flush=True)
     total = reps * len(configs)
     done = 0
     t_start = time.monotonic()
@@ -627,6 +677,17 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                         print(f"  bare chain: p50 {_f(run['bare']['p50'], '.3f')} ms, p99 "
                               f"{_f(run['bare']['p99'], '.3f')} ms, {run['bare']['lost']:.0f} lost; onset p50 "
                               f"{lat['onset']['p50'] / run['bare']['p50']:.2f}x the chain's", flush=True)
+                if config.onsets and ros1 is None and config.topology == "embedded":
+                    ros_port = args.base_port + 2 * PORTS_PER_RUN * PORT_BLOCKS + done % PORT_BLOCKS
+                    try:
+                        run["ros1"] = ros1_once(config, ros_port, work / f"ros1-{done}", args.bare_seconds)
+                    except (RuntimeError, OSError, ValueError, NwrError) as exc:
+                        print(f"  the ROS 1 chain failed: {exc}", flush=True)
+                        result["failures"].append({"config": f"ROS 1 chain: {config.name}", "rep": rep,
+                                                   "error": str(exc)})
+                    else:
+                        print(f"  ROS 1 chain: p50 {_f(run['ros1']['p50'], '.3f')} ms, p99 "
+                              f"{_f(run['ros1']['p99'], '.3f')} ms, {run['ros1']['lost']:.0f} lost", flush=True)
         if args.soak_minutes > 0:
             print(f"recorder soak: {args.soak_minutes:g} simulated minutes ...", end="", flush=True)
             result["recorder_soak"] = recorder_soak(args.soak_minutes, work / "soak.mcap", profile)
@@ -684,10 +745,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--soak-minutes", type=float, default=None,
                    help="simulated minutes of the recorder soak (default 60; --quick 0.5; 0 = none)")
     p.add_argument("--base-port", type=int, default=18050,
-                   help=f"first of the {2 * PORTS_PER_RUN * PORT_BLOCKS} loopback ports the runs and the bare "
-                        "chain use (default 18050)")
+                   help=f"first of the {(2 * PORTS_PER_RUN + 1) * PORT_BLOCKS} loopback ports the runs, the bare "
+                        "chain and the ROS 1 chain's rosmaster use (default 18050)")
     p.add_argument("--bare-seconds", type=float, default=BARE_S,
                    help=f"how long the bare chain runs after each run (default {BARE_S:g}; --quick 3)")
+    p.add_argument("--no-ros1", action="store_true",
+                   help="skip the ROS 1 chain (by default it runs after each embedded run where Debian's rospy "
+                        "and rosmaster are installed)")
     p.add_argument("--cpus", metavar="LIST",
                    help="pin the bench and every process it starts to these CPUs (e.g. 0 or 0-1,4): what the "
                         "pipeline does with fewer cores than the machine has")

@@ -181,6 +181,20 @@ def lower_bound(profile: Profile, strategy: str, samples: Sequence[m.SkinPressur
     return [x / 1e6 for x in sample_ns], [x / 1e6 for x in onset_ns]
 
 
+def source_skipped(stamps_ns: Sequence[int], rate_hz: float) -> int:
+    """Sample periods the skin source let pass without a sample, from its samples' stamps.
+
+    The simulated skin is paced on absolute deadlines (:class:`~nwr.common.pacing.Rate`): a loop late
+    by more than a period takes one sample and skips the deadlines it missed, with no gap in the
+    sequence numbers (the samples were never taken, not lost on the way). The periods between the
+    first and the last stamp, less the samples between them, are those skipped (to within one).
+    """
+    if len(stamps_ns) < 2:
+        return 0
+    expected = round((max(stamps_ns) - min(stamps_ns)) * rate_hz / 1e9) + 1
+    return max(0, expected - len(stamps_ns))
+
+
 # ------------------------------------------------------------------------------ the touch script
 
 
