@@ -112,6 +112,11 @@ class Rate:
         self.ticks += n
         return n
 
+    @property
+    def next_ns(self) -> int:
+        """The next deadline not yet taken, ns (``time.monotonic_ns``)."""
+        return self._next
+
     def restart(self, now_ns: int) -> None:
         """Start the schedule afresh at ``now_ns`` (after a slow start-up; not an overrun)."""
         self._next = now_ns + self.period_ns

@@ -211,3 +211,56 @@ def test_filter_on_floats_matches_the_array_expressions_bit_for_bit(max_contact_
         np.testing.assert_array_equal(gateway.filter.baseline, baseline)
         reacquisitions += len(reacquired)
     assert reacquisitions > 0 if max_contact_s < 1.0 else reacquisitions == 0
+
+
+def test_a_late_loop_takes_the_periods_it_missed_each_of_its_own_time_and_replays_them():
+    """The live loop, late, ticks once per missed period with that period's deadline: the samples are those an
+    on-time loop takes (the touch's pressure at each deadline), stamped when taken; the journal replays them."""
+    from nwr.common.clock import ManualClock
+    from nwr.common.config import Profile
+    from nwr.common.journal import Playback, Recording
+    from nwr.services.gateway.wiring import GatewayWiring
+
+    profile = Profile()
+    profile.gateway.rate_hz = 1000.0
+    profile.gateway.sim.noise_hpa = 0.0
+    script = TouchScript(duration_s=1.0, touch=[Touch(pad="forearm_top", start_s=0.05, duration_s=0.2, peak_hpa=12.0,
+                                                      shape="ramp", ramp_s=0.05)])
+    period = 1_000_000
+
+    def run(stall: range) -> tuple[list, Recording]:
+        clock = ManualClock(10**9)
+        journal = Recording(clock)
+        outs: list = []
+        wiring = GatewayWiring(profile, journal=journal, out=lambda k, msg: outs.append(msg) if k == "skin/pressure"
+                               else None, diag=lambda *a: None, script=script)
+        origin = wiring.origin()
+        for k in range(1, 150):
+            due = origin + k * period
+            if k in stall:  # the loop sleeps through these; they are taken at the stall's end, in order
+                continue
+            if k == stall.stop:
+                for missed in (*stall, k):
+                    clock.t_ns = due + 20_000  # each taken a little later than the one before
+                    wiring.tick(origin + missed * period)
+                    due += 1
+                continue
+            clock.t_ns = due + 20_000
+            wiring.tick(due)
+        return outs, journal
+
+    on_time, _ = run(range(0))
+    late, journal = run(range(60, 90))  # 30 ms asleep in the touch's ramp
+    assert len(late) == len(on_time) == 149
+    assert [s.change_hpa for s in late] == [s.change_hpa for s in on_time]
+    assert [s.touch_hpa for s in late] == [s.touch_hpa for s in on_time]
+    assert late[70].stamp_ns > on_time[70].stamp_ns + 10 * period  # stamped when taken
+    assert max(late[70].change_hpa) > 1.0  # in the touch: the ramp's pressure of its own time
+
+    again: list = []
+    entries = journal.take()
+    rerun = GatewayWiring(profile, journal=Playback(entries), out=lambda k, msg: again.append(msg)
+                          if k == "skin/pressure" else None, diag=lambda *a: None, script=script)
+    for entry in entries[1:]:
+        rerun.replay(entry, None)
+    assert again == late

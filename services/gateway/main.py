@@ -15,6 +15,7 @@ import argparse
 import logging
 import os
 import threading
+import time
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -25,6 +26,9 @@ from nwr.common.pacing import Rate
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
 
 log = logging.getLogger(__name__)
+
+# The most a late loop catches up with, s of sample periods: longer stalls lose the periods beyond it.
+CATCH_UP_S = 0.1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,14 +107,23 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             log.info("closed loop: a touch's pressure falls as its pad withdraws (depth %.3f m)",
                      cfg.sim.contact_depth_m)
         rate = Rate(cfg.rate_hz, "gateway")
+        # A late loop takes the sample periods it missed, each of its own time (a device's samples, read
+        # late, are all there), up to CATCH_UP_S of them; beyond that, the periods are skipped (an overrun).
+        catch_up = max(1, round(CATCH_UP_S * cfg.rate_hz))
         with lock:
-            wiring.origin()
+            rate.restart(wiring.origin())
         notify = getattr(args, "notify_fd", None)
         ended = False
+        t = 0.0
         try:
-            while rate.sleep(node.stop):
-                with lock:
-                    t = wiring.tick()
+            while rate.wait(node.stop):
+                now = time.monotonic_ns()
+                first = rate.next_ns
+                due = rate.take(now, limit=catch_up)
+                rate.skip(now)
+                for k in range(due):
+                    with lock:
+                        t = wiring.tick(first + k * rate.period_ns)
                 if not ended and script is not None and t >= script.duration_s:
                     ended = True
                     log.info("touch script finished after %.1f s", t)

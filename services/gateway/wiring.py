@@ -12,7 +12,8 @@ runs and ``nwr verify`` run this code.
   simulated participant presses only while the active planner does its task;
 - :meth:`GatewayWiring.origin` starts the touch script's clock;
 - each tick: the follower's touch, the touches that start (forward
-  kinematics only when one needs the pose), the sample;
+  kinematics only when one needs the pose), the sample (of the period's
+  deadline: a late loop takes the periods it missed one by one);
 - a real skin (``gateway.source = "ros1"``, :mod:`.ros1`) has no ticks: each
   of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`).
 """
@@ -90,11 +91,16 @@ class GatewayWiring:
         self.origin_ns = self.journal.now_ns()
         return self.origin_ns
 
-    def tick(self) -> float:
-        """One sample period: the touches that start, the sample; the script's time, s."""
-        self.journal.begin("tick")
+    def tick(self, due_ns: int = 0) -> float:
+        """One sample period: the touches that start, the sample; the script's time, s.
+
+        ``due_ns``: the period's deadline, when the loop is late and takes the periods it missed one after
+        the other (a device's samples, read late, are the device's all the same); the sample is of that
+        time, stamped when it is taken. 0: now.
+        """
+        self.journal.begin("tick", arg=due_ns)
         now = self.journal.now_ns()
-        t = (now - self.origin_ns) / 1e9
+        t = ((min(due_ns, now) if due_ns else now) - self.origin_ns) / 1e9
         sim = self.sim
         if self.follower is not None:
             # A participant presses the lit target while the arm does its task, not during a reflex or return.
@@ -144,7 +150,7 @@ class GatewayWiring:
             case "origin":
                 self.origin()
             case "tick":
-                self.tick()
+                self.tick(entry.arg)
             case "sample":
                 absolute = np.array(entry.data, dtype=float)
                 for i in (int(x) for x in entry.text.split(",") if x):
