@@ -20,6 +20,15 @@ Frames
 :class:`RobotModel` keeps one pinocchio ``Data`` and caches the last
 configuration, so it is cheap to call several accessors for the same ``q`` but it
 is not thread-safe: give each thread its own instance.
+
+Bounds that hold in every configuration
+---------------------------------------
+:class:`ChainBounds` (``RobotModel.bounds``) bounds, without kinematics, how
+fast the speed-limited points and the centres of mass can move, how fast
+their Jacobians change with ``q``, and the power of a motion: from the norms
+of the URDF's fixed placements (the triangle inequality; rotations keep
+norms). The bridge's Cartesian limiter uses them to skip the exact
+computation in the cycles where they prove it cannot bind.
 """
 
 from __future__ import annotations
@@ -373,6 +382,157 @@ def _rotation_with_z(z: np.ndarray) -> np.ndarray:
     return np.column_stack((x, y, z))
 
 
+_REVOLUTE: frozenset[str] = frozenset(
+    {"JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned"})
+_PRISMATIC: frozenset[str] = frozenset(
+    {"JointModelPX", "JointModelPY", "JointModelPZ", "JointModelPrismaticUnaligned"})
+
+
+@dataclass(frozen=True, eq=False)
+class ChainBounds:
+    """Configuration-independent bounds on the motion of points fixed to the arm's links (see below).
+
+    For a chain of revolute and prismatic joints, column ``i`` of a point
+    ``p``'s linear Jacobian is ``z_i x (p - o_i)`` for a revolute joint ``i``
+    upstream of ``p`` (axis ``z_i``, a unit vector, through its origin
+    ``o_i``), ``z_i`` for a prismatic one, and zero for a joint not upstream
+    of ``p``. ``p - o_i`` is a sum of fixed vectors each turned by some
+    rotation (the placements between ``o_i`` and ``p``) and of prismatic
+    travels ``q_k z_k``; by the triangle inequality its norm is at most
+    ``reach[p, i]``, the sum of those placements' norms and of the travels'
+    bounds ``max(|q_min_k|, |q_max_k|)``. So, wherever the prismatic joints are
+    within their limits (no bound on their travel otherwise), every
+    configuration ``q`` and velocity ``dq``:
+
+    - ``|J_p(q) dq| <= reach[p] . |dq|`` (``reach[p, i]`` is 1 for a prismatic ``i``);
+    - ``|d/dq_k (J_p(q) dq)| <= sum_i |dq_i| bend[p, i, k]``, hence, along the
+      segment between two such configurations,
+      ``|J_p(q) dq - J_p(q0) dq| <= |dq| . bend[p] . |q - q0|``. Turning about an
+      upstream joint ``k`` (or ``k = i``) turns column ``i`` (or moves ``p``
+      about ``z_i``): at most ``reach[p, i]``; turning about a downstream ``k``
+      moves ``p`` at most ``reach[p, k]`` across the fixed ``z_i``; a prismatic
+      ``k`` downstream of a revolute ``i``, or a revolute ``k`` upstream of a
+      prismatic ``i``, at most 1; a prismatic ``k`` turns nothing (0);
+    - the power of a motion (``RobotModel.motion_power``, the rate of change of
+      the kinetic energy: sum over the links of ``m v_c . a_c + w . I a_w``, the
+      gyroscopic term being orthogonal to ``w``) is at most
+      ``|dq| . power_rate . |ddq| + power_cubic(|dq|, |dq|, |dq|)``: ``|v_c|``
+      and ``|a_c| <= J_c ddq + |dq| . bend . |dq|`` as above, ``|w| <=`` the
+      sum of the upstream revolute joints' ``|dq_i|``, ``|a_w| <=`` that of
+      their ``|ddq_i|`` plus ``|dq_i|`` times the turn of their axes (the sum of
+      the ``|dq_k|`` upstream of ``i``), ``|I w| <= `` its largest principal
+      moment times ``|w|``; the joints' armature is counted as a diagonal
+      ``power_rate``.
+
+    Rows of ``speed_*`` follow :attr:`RobotModel.speed_points`, rows of ``com_*``
+    :attr:`RobotModel.link_masses`. ``gravity[i]``: the gravity torque's bound
+    at joint ``i`` (the magnitude of the terms the exact power subtracts).
+    ``travel``: the prismatic joints whose travel the bounds count, with
+    ``travel_min``/``travel_max`` the limits it was counted within.
+    """
+
+    speed_reach: np.ndarray  # (P, n)
+    speed_bend: np.ndarray  # (P, n, n)
+    com_reach: np.ndarray  # (L, n)
+    com_bend: np.ndarray  # (L, n, n)
+    power_rate: np.ndarray  # (n, n)
+    power_cubic: np.ndarray  # (n, n, n)
+    gravity: np.ndarray  # (n,)
+    travel: np.ndarray  # joint indices (int)
+    travel_min: np.ndarray
+    travel_max: np.ndarray
+
+
+def _chain_bounds(model: pin.Model, speed_ids: tuple[int, ...], com_joints: tuple[int, ...]) -> ChainBounds | None:
+    """:class:`ChainBounds` of a pinocchio model; None if a joint is neither revolute nor prismatic."""
+    n = model.nv
+    kinds: dict[int, str] = {}
+    for joint in range(1, model.njoints):
+        name = model.joints[joint].shortname()
+        if name in _REVOLUTE:
+            kinds[joint] = "R"
+        elif name in _PRISMATIC:
+            kinds[joint] = "P"
+        else:
+            return None
+    column = {joint: model.joints[joint].idx_v for joint in kinds}
+    travel = {joint: max(abs(model.lowerPositionLimit[model.joints[joint].idx_q]),
+                         abs(model.upperPositionLimit[model.joints[joint].idx_q]))
+              for joint, kind in kinds.items() if kind == "P"}
+
+    def path(joint: int) -> list[int]:
+        """The joints from ``joint`` up to the root, ``joint`` first (its upstream chain)."""
+        out = []
+        while joint > 0:
+            out.append(joint)
+            joint = model.parents[joint]
+        return out
+
+    def point(joint: int, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``reach`` (n) and ``bend`` (n, n) of the point ``offset`` in ``joint``'s frame."""
+        reach = np.zeros(n)
+        distance: dict[int, float] = {}
+        d = float(np.linalg.norm(offset))
+        chain = path(joint)
+        for k in chain:  # d: from o_k (after its own motion) to the point
+            distance[k] = d
+            reach[column[k]] = d if kinds[k] == "R" else 1.0
+            d += float(np.linalg.norm(model.jointPlacements[k].translation)) + travel.get(k, 0.0)
+        bend = np.zeros((n, n))
+        for position_i, i in enumerate(chain):
+            for position_k, k in enumerate(chain):
+                upstream = position_k >= position_i  # k upstream of i, or k = i
+                if kinds[i] == "R":
+                    if kinds[k] == "R":
+                        value = distance[i] if upstream else distance[k]
+                    else:
+                        value = 0.0 if upstream else 1.0
+                else:
+                    value = 1.0 if kinds[k] == "R" and position_k > position_i else 0.0
+                bend[column[i], column[k]] = value
+        return reach, bend
+
+    def stacked(points: list[tuple[np.ndarray, np.ndarray]], rows: int) -> tuple[np.ndarray, np.ndarray]:
+        reach = np.array([r for r, _ in points]).reshape(rows, n)
+        bend = np.array([b for _, b in points]).reshape(rows, n, n)
+        return _readonly(reach), _readonly(bend)
+
+    speed_reach, speed_bend = stacked(
+        [point(model.frames[f].parentJoint, model.frames[f].placement.translation) for f in speed_ids], len(speed_ids))
+    com_reach, com_bend = stacked([point(j, model.inertias[j].lever) for j in com_joints], len(com_joints))
+
+    # The power: every moving body, its mass at its centre of mass and its largest principal moment there.
+    rate = np.diag(np.abs(np.asarray(model.armature, dtype=float)))
+    cubic = np.zeros((n, n, n))
+    gravity = np.zeros(n)
+    g = float(np.linalg.norm(model.gravity.linear))
+    for joint in range(1, model.njoints):
+        inertia = model.inertias[joint]
+        mass = float(inertia.mass)
+        moment = float(np.linalg.eigvalsh(np.asarray(inertia.inertia)).max(initial=0.0))
+        reach, bend = point(joint, inertia.lever)
+        spin = np.zeros(n)  # |w| <= spin . |dq|
+        turn = np.zeros((n, n))  # |a_w| <= spin . |ddq| + |dq| . turn . |dq|
+        chain = path(joint)
+        for position_i, i in enumerate(chain):
+            if kinds[i] == "R":
+                spin[column[i]] = 1.0
+                for k in chain[position_i + 1:]:
+                    if kinds[k] == "R":
+                        turn[column[i], column[k]] = 1.0
+        rate += mass * np.outer(reach, reach) + max(moment, 0.0) * np.outer(spin, spin)
+        cubic += mass * reach[:, None, None] * bend[None] + max(moment, 0.0) * spin[:, None, None] * turn[None]
+        gravity += g * mass * reach
+    joints = sorted(travel)
+    return ChainBounds(
+        speed_reach=speed_reach, speed_bend=speed_bend, com_reach=com_reach, com_bend=com_bend,
+        power_rate=_readonly(rate), power_cubic=_readonly(cubic), gravity=_readonly(gravity),
+        travel=np.array([column[j] for j in joints], dtype=int),
+        travel_min=_readonly(np.array([-travel[j] for j in joints])),
+        travel_max=_readonly(np.array([travel[j] for j in joints])),
+    )
+
+
 class RobotModel:
     """Forward kinematics of a :class:`RobotDescription` with pinocchio.
 
@@ -422,6 +582,7 @@ class RobotModel:
         names.append("flange")
         # One frame at each moving body's centre of mass, for its momentum.
         com_ids: list[int] = []
+        com_joints: list[int] = []
         masses: list[float] = []
         for joint in range(1, model.njoints):
             inertia = model.inertias[joint]
@@ -430,11 +591,14 @@ class RobotModel:
                 com = pin.Frame(f"com_{model.names[joint]}", joint, parent, pin.SE3(np.eye(3), inertia.lever),
                                 pin.FrameType.OP_FRAME)
                 com_ids.append(model.addFrame(com))
+                com_joints.append(joint)
                 masses.append(float(inertia.mass))
         self.speed_points: tuple[str, ...] = tuple(names)
         self._speed_ids: tuple[int, ...] = tuple(speed_ids)
         self._com_ids: tuple[int, ...] = tuple(com_ids)
         self.link_masses: np.ndarray = _readonly(np.array(masses))
+        # Bounds that hold in every configuration (None: a joint type they do not cover).
+        self.bounds: ChainBounds | None = _chain_bounds(model, self._speed_ids, tuple(com_joints))
 
         self.model: pin.Model = model
         # Created after the pad and centre-of-mass frames were added, so data.oMf has room for them.

@@ -716,16 +716,28 @@ class Tracker:
         env = self.env
         cap = None
         v_ref = frame[1]
-        own = float("inf")  # the stream's own fastest point, m/s (a velocity stream: not a reference to catch up)
+        # The stream's own fastest point, m/s (a velocity stream: not a reference to catch up); None: not computed,
+        # only needed for a scaling reported below (self.q and v_ref do not change before).
+        own: float | None = float("inf")
         if self.mode == "position":
-            own = float(limiter.speeds(self.q, v_ref).max()) if v_ref.any() else 0.0
-            self.stream_peak = min(max(self.stream_peak, own), limiter.limits.speed_m_s)
+            top = limiter.limits.speed_m_s
+            if not v_ref.any():
+                own = 0.0
+                self.stream_peak = min(max(self.stream_peak, own), top)
+            elif self.stream_peak >= top or limiter.within_speed(self.q, v_ref, self.stream_peak):
+                # The running peak keeps its value (capped at the limit): own <= stream_peak, or both beyond the limit.
+                own = None
+                self.stream_peak = min(self.stream_peak, top)
+            else:
+                own = limiter.top_speed(self.q, v_ref)
+                self.stream_peak = min(max(self.stream_peak, own), top)
             if self.rejoining:
                 cap = self.rejoin_cap if self.rejoin_cap is not None else max(self.stream_peak, REJOIN_FLOOR_M_S)
         else:
             self.rejoining = False
-        if self.withdrawal and not self.reflex and \
-                float(limiter.speeds(self.q, self.dq).max()) <= limiter.limits.speed_m_s:
+        if self.withdrawal and not self.reflex and (
+                limiter.within_speed(self.q, self.dq, limiter.limits.speed_m_s)
+                or limiter.top_speed(self.q, self.dq) <= limiter.limits.speed_m_s):
             self.withdrawal = False
             self.toward = None
         q1, v1, a1 = state
@@ -787,6 +799,8 @@ class Tracker:
         self.limited += 1
         if self._clip_reported:
             return (q1, v1, a1), None
+        if own is None:
+            own = limiter.top_speed(self.q, v_ref)
         self.catching_up = own <= limiter.limits.speed_m_s * (1.0 - CAP_MARGIN)
         return (q1, v1, a1), self._clip("cartesian_limit", f"{self.mode} command from {active!r}: {scaling.describe()}")
 
