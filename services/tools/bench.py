@@ -47,6 +47,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -666,28 +667,16 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                       f"CPU {run['cpu_percent_total']:.0f} %", flush=True)
                 if config.onsets:
                     bare_port = args.base_port + (PORT_BLOCKS + done % PORT_BLOCKS) * PORTS_PER_RUN
-                    try:
-                        run["bare"] = bare_once(config, bare_port, work / f"bare-{done}", args.bare_seconds,
-                                                profile)
-                    except (RuntimeError, OSError, ValueError, NwrError) as exc:
-                        print(f"  the bare chain failed: {exc}", flush=True)
-                        result["failures"].append({"config": f"bare chain: {config.name}", "rep": rep,
-                                                   "error": str(exc)})
-                    else:
-                        print(f"  bare chain: p50 {_f(run['bare']['p50'], '.3f')} ms, p99 "
-                              f"{_f(run['bare']['p99'], '.3f')} ms, {run['bare']['lost']:.0f} lost; onset p50 "
-                              f"{lat['onset']['p50'] / run['bare']['p50']:.2f}x the chain's", flush=True)
+                    bare = _baseline(result, run, rep, config, "bare", "bare chain", partial(
+                        bare_once, config, bare_port, work / f"bare-{done}", args.bare_seconds, profile))
+                    if bare is not None:
+                        print(f"; onset p50 {lat['onset']['p50'] / bare['p50']:.2f}x the chain's", end="")
+                    print(flush=True)
                 if config.onsets and ros1 is None and config.topology == "embedded":
                     ros_port = args.base_port + 2 * PORTS_PER_RUN * PORT_BLOCKS + done % PORT_BLOCKS
-                    try:
-                        run["ros1"] = ros1_once(config, ros_port, work / f"ros1-{done}", args.bare_seconds)
-                    except (RuntimeError, OSError, ValueError, NwrError) as exc:
-                        print(f"  the ROS 1 chain failed: {exc}", flush=True)
-                        result["failures"].append({"config": f"ROS 1 chain: {config.name}", "rep": rep,
-                                                   "error": str(exc)})
-                    else:
-                        print(f"  ROS 1 chain: p50 {_f(run['ros1']['p50'], '.3f')} ms, p99 "
-                              f"{_f(run['ros1']['p99'], '.3f')} ms, {run['ros1']['lost']:.0f} lost", flush=True)
+                    _baseline(result, run, rep, config, "ros1", "ROS 1 chain", partial(
+                        ros1_once, config, ros_port, work / f"ros1-{done}", args.bare_seconds))
+                    print(flush=True)
         if args.soak_minutes > 0:
             print(f"recorder soak: {args.soak_minutes:g} simulated minutes ...", end="", flush=True)
             result["recorder_soak"] = recorder_soak(args.soak_minutes, work / "soak.mcap", profile)
@@ -714,6 +703,21 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     print(text_table(cost_header, cost))
     print(f"\nraw numbers: {out_dir / 'bench.json'}; table: {out_dir / 'bench.md'} ({result['elapsed_s']:.0f} s)")
     return result
+
+
+def _baseline(result: dict[str, Any], run: dict[str, Any], rep: int, config: Config, key: str, label: str,
+              measure: Callable[[], dict[str, float]]) -> dict[str, float] | None:
+    """A chain measured after a run (``run[key]``), its figures printed on a line left open; a failure is noted in
+    ``result`` and loses nothing else."""
+    try:
+        figures = run[key] = measure()
+    except (RuntimeError, OSError, ValueError, NwrError) as exc:
+        print(f"  the {label} failed: {exc}", end="")
+        result["failures"].append({"config": f"{label}: {config.name}", "rep": rep, "error": str(exc)})
+        return None
+    print(f"  {label}: p50 {_f(figures['p50'], '.3f')} ms, p99 {_f(figures['p99'], '.3f')} ms, "
+          f"{figures['lost']:.0f} lost", end="")
+    return figures
 
 
 def _jsonable(x: Any) -> Any:
