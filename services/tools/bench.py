@@ -62,7 +62,7 @@ from nwr.common.recordings import SessionRecorder, read_recording, session_metad
 from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
-from nwr.services.tools import bench_bare
+from nwr.services.tools import bench_bare, bench_ros1
 from nwr.services.tools.bench_core import (
     lower_bound,
     match_traces,
@@ -308,23 +308,17 @@ def bare_once(config: Config, base_port: int, work: Path, seconds: float, profil
     router = config.topology == "router"
     cfg = msgspec.structs.replace(profile.zenoh, base_port=base_port,
                                   router=[f"tcp/127.0.0.1:{base_port + 5}"] if router else [])
-    run = bench_bare.measure(cfg, config.rate_hz, seconds, work,
-                             router_listen=f"tcp/127.0.0.1:{base_port + 5}" if router else None)
-    return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
-            "cpu_percent_total": run.cpu_percent_total}
-
-
-def _ros1_missing() -> str | None:
-    from nwr.services.tools import bench_ros1
-
-    return bench_ros1.available()
+    return chain_figures(bench_bare.measure(cfg, config.rate_hz, seconds, work,
+                                            router_listen=f"tcp/127.0.0.1:{base_port + 5}" if router else None))
 
 
 def ros1_once(config: Config, port: int, work: Path, seconds: float) -> dict[str, float]:
     """The same three hops in ROS 1 (:mod:`.bench_ros1`) at ``config``'s rate: latency p50/p99 (ms), lost, CPU %."""
-    from nwr.services.tools import bench_ros1
+    return chain_figures(bench_ros1.measure(config.rate_hz, seconds, work, port))
 
-    run = bench_ros1.measure(config.rate_hz, seconds, work, port)
+
+def chain_figures(run: bench_bare.BareRun) -> dict[str, float]:
+    """A baseline chain's run as the bench reports it: latency p50/p99 (ms), samples lost, CPU %."""
     return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
             "cpu_percent_total": run.cpu_percent_total}
 
@@ -638,7 +632,7 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     result: dict[str, Any] = {"started": started.isoformat(timespec="seconds"), "quick": args.quick, "reps": reps,
                               "machine": {**machine(), "pinned": bool(args.cpus)}, "runs": [], "failures": []}
     # The optional ROS 1 chain: where Debian's rospy and rosmaster are installed, unless --no-ros1.
-    ros1: str | None = "--no-ros1" if args.no_ros1 else _ros1_missing()
+    ros1: str | None = "--no-ros1" if args.no_ros1 else bench_ros1.available()
     result["ros1"] = {"ran": ros1 is None, "why_not": ros1}
     if ros1 is not None:
         print(f"the ROS 1 chain does not run: {ros1}", flush=True)

@@ -184,10 +184,11 @@ def lower_bound(profile: Profile, strategy: str, samples: Sequence[m.SkinPressur
 def source_skipped(stamps_ns: Sequence[int], rate_hz: float) -> int:
     """Sample periods the skin source let pass without a sample, from its samples' stamps.
 
-    The simulated skin is paced on absolute deadlines (:class:`~nwr.common.pacing.Rate`): a loop late
-    by more than a period takes one sample and skips the deadlines it missed, with no gap in the
-    sequence numbers (the samples were never taken, not lost on the way). The periods between the
-    first and the last stamp, less the samples between them, are those skipped (to within one).
+    The simulated skin is paced on absolute deadlines (:class:`~nwr.common.pacing.Rate`): a late loop
+    takes the periods it missed one after the other, up to ``CATCH_UP_S`` of them
+    (:mod:`nwr.services.gateway.main`), and skips those beyond, with no gap in the sequence numbers
+    (the samples were never taken, not lost on the way). The periods between the first and the last
+    stamp, less the samples between them, are those skipped (to within one).
     """
     if len(stamps_ns) < 2:
         return 0
