@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import msgspec
-import zenoh
 
 from nwr.common import messages as m
 from nwr.common.errors import DecodeError
@@ -58,14 +57,17 @@ class Topic:
 
     pattern: str  # may contain one '*' chunk, e.g. "reflex/*/status"
     type: Any
-    priority: zenoh.Priority
+    priority: str  # a zenoh.Priority's name (the transport maps it: this module does not import Zenoh)
     express: bool
     drop: bool
     doc: str
-    # Who puts on the key and who subscribes to it: the pipeline's services
-    # (the graph in nwr.services.pipeline.graph), "operator" (nwr switch,
-    # nwr study), "replay" (nwr replay), "status" (nwr status); ANY_SERVICE
-    # for a key every service has its own instance of.
+    # Who puts on the key: the pipeline's services (the graph in
+    # nwr.services.pipeline.graph), "operator" (nwr switch, nwr study),
+    # "replay" (nwr replay), "status" (nwr status); ANY_SERVICE for a key
+    # every service has its own instance of. Who subscribes to it, besides
+    # the services with a wiring (gateway, gain, planner, bridge), whose
+    # declared inputs say what they read (nwr.services.wiring.Input): the
+    # recorder, the view and the tools.
     producers: tuple[str, ...]
     consumers: tuple[str, ...]
 
@@ -74,37 +76,37 @@ ANY_SERVICE = "*"
 
 
 TOPICS: tuple[Topic, ...] = (
-    Topic("skin/pressure", m.SkinPressure, zenoh.Priority.REAL_TIME, True, False,
+    Topic("skin/pressure", m.SkinPressure, "REAL_TIME", True, False,
           "per-pad absolute pressure, change from baseline, contact flags",
-          ("gateway", "replay"), ("gain", "bridge", "recorder", "view")),
-    Topic("skin/touch", m.SkinTouch, zenoh.Priority.DATA, False, False,
+          ("gateway", "replay"), ("recorder", "view")),
+    Topic("skin/touch", m.SkinTouch, "DATA", False, False,
           "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts",
           ("gateway",), ("recorder",)),
-    Topic("skin/pain", m.SkinPain, zenoh.Priority.REAL_TIME, True, False,
+    Topic("skin/pain", m.SkinPain, "REAL_TIME", True, False,
           "per-pad gain and pain level, strongest contact",
-          ("gain",), ("planner", "bridge", "recorder", "view", "status")),
-    Topic("robot/command/*", m.PositionCommand | m.VelocityCommand, zenoh.Priority.REAL_TIME, True, False,
+          ("gain",), ("recorder", "view", "status")),
+    Topic("robot/command/*", m.PositionCommand | m.VelocityCommand, "REAL_TIME", True, False,
           "a planner's joint position or velocity target, on its own key",
-          ("planner",), ("bridge", "recorder")),
-    Topic("robot/state", m.RobotState, zenoh.Priority.INTERACTIVE_HIGH, False, True,
+          ("planner",), ("recorder",)),
+    Topic("robot/state", m.RobotState, "INTERACTIVE_HIGH", False, True,
           "joint positions and velocities, status, command owner, reflex onsets",
-          ("bridge",), ("planner", "gateway", "recorder", "view", "operator", "status")),
-    Topic("reflex/*/status", m.PlannerStatus, zenoh.Priority.DATA, False, True,
+          ("bridge",), ("recorder", "view", "operator", "status")),
+    Topic("reflex/*/status", m.PlannerStatus, "DATA", False, True,
           "a planner's state machine: mode, strategy, saved pose, reflex",
-          ("planner",), ("planner", "gateway", "recorder", "view", "status")),
-    Topic("reflex/*/decision", m.PlannerDecision, zenoh.Priority.DATA, False, False,
+          ("planner",), ("recorder", "view", "status")),
+    Topic("reflex/*/decision", m.PlannerDecision, "DATA", False, False,
           "when a planner acted on each pain message (the sample latency's end)",
           ("planner",), ("recorder",)),
-    Topic("control/active", m.SwitchRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
+    Topic("control/active", m.SwitchRequest, "INTERACTIVE_HIGH", True, False,
           "which planner should be active (the bridge carries the switch out)",
-          ("operator",), ("bridge", "recorder")),
-    Topic("control/safety", m.SafetyModeRequest, zenoh.Priority.INTERACTIVE_HIGH, True, False,
+          ("operator",), ("recorder",)),
+    Topic("control/safety", m.SafetyModeRequest, "INTERACTIVE_HIGH", True, False,
           "the bridge's Cartesian limits: the normal or the reduced set (the operator's role only)",
-          ("operator",), ("bridge", "recorder")),
-    Topic("diag/*", m.Diagnostic, zenoh.Priority.DATA_LOW, False, True,
+          ("operator",), ("recorder",)),
+    Topic("diag/*", m.Diagnostic, "DATA_LOW", False, True,
           "warnings and errors with a code and a readable message",
           (ANY_SERVICE,), ("recorder",)),
-    Topic("journal/*", m.Journal, zenoh.Priority.DATA, False, False,
+    Topic("journal/*", m.Journal, "DATA", False, False,
           "what a service received, in order, with its clock readings: enough to re-run it exactly (nwr verify)",
           ("gateway", "gain", "planner", "bridge"), ("recorder",)),
 )
@@ -171,10 +173,15 @@ def alive(service: str) -> str:
     return f"alive/{service}"
 
 
+def matches(relative: str, pattern: str) -> bool:
+    """Whether a relative key is one of a pattern's (a '*' stands for one chunk)."""
+    return fnmatch.fnmatchcase(relative, pattern) and relative.count("/") == pattern.count("/")
+
+
 def topic_for(relative: str) -> Topic:
     """The registry entry matching a relative key; DecodeError if none does."""
     for topic in TOPICS:
-        if fnmatch.fnmatchcase(relative, topic.pattern) and relative.count("/") == topic.pattern.count("/"):
+        if matches(relative, topic.pattern):
             return topic
     raise DecodeError(f"key {relative!r} is not in the key registry (known: {[t.pattern for t in TOPICS]})")
 

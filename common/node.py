@@ -62,6 +62,12 @@ def endpoints(cfg: ZenohSection) -> list[str]:
     return [f"tcp/{cfg.host}:{cfg.base_port + slot}" for slot in SLOTS.values()]
 
 
+def qos(topic: keys.Topic) -> dict[str, Any]:
+    """A registry key's QoS as Zenoh's publisher options (priority, express, congestion control)."""
+    return {"priority": getattr(zenoh.Priority, topic.priority), "express": topic.express,
+            "congestion_control": zenoh.CongestionControl.DROP if topic.drop else zenoh.CongestionControl.BLOCK}
+
+
 def zenoh_config(cfg: ZenohSection, listen_slot: str | None = None) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -294,12 +300,7 @@ class Node:
         """A ``publish(message)`` function for a registry key, declared once."""
         codec = keys.codec(relative)
         topic = codec.topic
-        pub = self.session.declare_publisher(
-            keys.key(self.robot, relative),
-            priority=topic.priority,
-            express=topic.express,
-            congestion_control=zenoh.CongestionControl.DROP if topic.drop else zenoh.CongestionControl.BLOCK,
-        )
+        pub = self.session.declare_publisher(keys.key(self.robot, relative), **qos(topic))
         self._publishers.append(pub)
         encode = codec.encode
 

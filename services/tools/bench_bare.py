@@ -39,7 +39,7 @@ import zenoh
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import ZenohSection
-from nwr.common.node import zenoh_config
+from nwr.common.node import qos, zenoh_config
 from nwr.services.pipeline.supervisor import wait_listening
 
 ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source last
@@ -69,10 +69,7 @@ def command(p: m.SkinPain, now_ns: int) -> m.PositionCommand:
 
 def declare(session: zenoh.Session, role_key: str, relative: str) -> zenoh.Publisher:
     """A publisher on the chain's own key with the QoS the pipeline gives ``relative`` (priority, express, block)."""
-    topic = keys.topic_for(relative)
-    return session.declare_publisher(
-        KEY.format(role_key), priority=topic.priority, express=topic.express,
-        congestion_control=zenoh.CongestionControl.DROP if topic.drop else zenoh.CongestionControl.BLOCK)
+    return session.declare_publisher(KEY.format(role_key), **qos(keys.topic_for(relative)))
 
 
 # ------------------------------------------------------------------------------ one role
