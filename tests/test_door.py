@@ -172,28 +172,12 @@ class Pipeline:
             ls.drain()
 
     def consumers(self, key: str) -> list[tuple[str, Callable[[Any], Any]]]:
+        """Every handler any wiring declares for ``key`` (the gateway's statuses too, follower or not)."""
         ls = self.ls
-        if key == keys.SKIN_PRESSURE:
-            return [("bridge", ls.bridge.on_skin), ("gain", ls.gain.on_pressure)]
-        if key == keys.SKIN_PAIN:
-            return [("bridge", ls.bridge.on_pain), ("planner", lambda msg: ls.planner.on_pain(msg, ls.clock.t_ns))]
-        if keys.is_command(key):
-            return [("bridge", lambda msg: ls.bridge.on_command(key, msg))]
-        if key == keys.ROBOT_STATE:
-            out: list[tuple[str, Callable[[Any], Any]]] = [("planner", ls.planner.on_state)]
-            if ls.gateway is not None:
-                out.append(("gateway", ls.gateway.on_state))
-            return out
-        if key == keys.CONTROL_ACTIVE:
-            return [("bridge", ls.bridge.on_switch)]
-        if key == keys.CONTROL_SAFETY:
-            return [("bridge", ls.bridge.on_safety)]
-        if key.startswith("reflex/") and key.endswith("/status"):
-            out = [("planner", lambda msg: ls.planner.on_peer_status(key, msg))]
-            if ls.gateway is not None:
-                out.append(("gateway", lambda msg: ls.gateway.on_status(key, msg)))
-            return out
-        return []  # skin/touch, diag: the view's and the recorder's
+        return [("planner" if wiring is ls.planner else wiring.service,
+                 lambda msg, wiring=wiring, inp=inp: wiring.deliver(inp, key, msg, ls.clock.t_ns))
+                for wiring in ls.wirings for inp in wiring.inputs.values()
+                if inp.key is not None and keys.matches(key, inp.key)]
 
     def deliver(self, key: str, message: Any, name: str = "") -> None:
         """As each subscribing service's node would: its door, then its handler (whose exception it would catch)."""

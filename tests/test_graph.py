@@ -3,7 +3,8 @@
 - ``deploy/compose.yaml`` runs the graph's services with the graph's waits;
 - ``deploy/acl.json5`` lets each service put exactly on the keys the key
   registry says it produces;
-- each service's wiring writes only keys its service produces, and the
+- each service's wiring writes only keys its service produces, reads what
+  its declared inputs say (and the registry does not say it again), and the
   registry's producers and consumers name only known parties;
 - imports go downward only: common, services, pipeline, tools, CLI.
 """
@@ -28,12 +29,14 @@ from nwr.services.pipeline.graph import (
     ROUTER,
     SERVICES,
     START_ORDER,
+    WIRINGS,
     Layout,
     Unit,
     process_name,
     reads,
     stop_order,
     units,
+    wiring_for,
     writes,
 )
 from nwr.services.planner import strategies
@@ -55,11 +58,26 @@ def test_the_registry_names_only_known_parties_and_every_key_has_both_ends() -> 
     known = {*SERVICES, *TOOLS, keys.ANY_SERVICE}
     for topic in keys.TOPICS:
         assert topic.producers and topic.consumers, topic.pattern
+        assert topic.pattern in reads("recorder"), topic.pattern
         assert set(topic.producers) <= known and set(topic.consumers) <= known, topic.pattern
         assert "recorder" in topic.consumers, f"{topic.pattern} would not be recorded"
     assert "skin/pain" in reads("planner") and "skin/pain" in reads("bridge")
     assert writes("gain") == ("skin/pain", "diag/*", "journal/*")
     assert writes("recorder") == ("diag/*",)
+
+
+def test_what_a_wired_service_reads_is_its_declared_inputs_and_written_nowhere_else() -> None:
+    for service in WIRINGS:
+        wiring = wiring_for(service)
+        declared = [inp.key for inp in wiring.inputs.values() if inp.key is not None]
+        assert declared and reads(service) == tuple(dict.fromkeys(declared)), service
+        for topic in keys.TOPICS:  # the registry's consumers are the parties without a wiring
+            assert service not in topic.consumers, (service, topic.pattern)
+        for inp in wiring.inputs.values():
+            assert inp.key is None or keys.topic_for(inp.key.replace("*", "x")).pattern == inp.key, inp
+            assert callable(getattr(wiring, inp.method)), inp
+    assert wiring_for("planner-lab") is wiring_for("planner")
+    assert reads("bridge") == ("robot/command/*", "skin/pressure", "skin/pain", "control/active", "control/safety")
 
 
 def test_each_wiring_writes_only_what_its_service_produces() -> None:
@@ -321,3 +339,15 @@ def test_a_routers_clients_start_once_it_listens_and_not_on_a_router_that_died()
         alive.wait()
     with pytest.raises(NwrError, match="exited"):
         wait_listening(f"tcp/127.0.0.1:{port}", alive)
+
+
+def test_a_journal_entry_of_an_input_no_wiring_declares_is_refused_by_name() -> None:
+    from nwr.common import messages as m
+    from nwr.common.clock import ManualClock
+    from nwr.common.config import Profile
+    from nwr.common.journal import Untracked
+    from nwr.services.wiring import no_diag
+
+    wiring = wiring_for("gain")(Profile(), journal=Untracked(ManualClock()), out=lambda k, msg: None, diag=no_diag)
+    with pytest.raises(ValueError, match="no input 'tock'.*pressure"):
+        wiring.replay(m.JournalEntry("tock"), None)

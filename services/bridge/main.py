@@ -12,8 +12,6 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import zenoh
@@ -27,6 +25,7 @@ from nwr.common.pacing import realtime
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.wiring import SERVICE, BridgeWiring, envelope_for
+from nwr.services.wiring import subscribe
 
 log = logging.getLogger(__name__)
 
@@ -101,12 +100,6 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             node.install_signal_handlers()
             bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
 
-            def locked(handler: Callable[..., None]) -> Callable[..., None]:
-                def call(*args: Any) -> None:
-                    with lock:
-                        handler(*args)
-                return call
-
             def on_liveliness(sample: zenoh.Sample) -> None:
                 """Any planner's token (alive/planner-<name>) appearing or vanishing."""
                 name = str(sample.key_expr).rsplit("/", 1)[-1].removeprefix(keys.PLANNER_SERVICE_PREFIX)
@@ -115,11 +108,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
             # Every handler on Zenoh's network thread (direct: no hand-off to a
             # Python thread per command); the bridge subscribes to nothing it publishes.
-            node.subscribe(keys.ROBOT_COMMANDS, locked(bridge.on_command), keyed=True, direct=True)
-            node.subscribe(keys.SKIN_PRESSURE, locked(bridge.on_skin), direct=True)
-            node.subscribe(keys.SKIN_PAIN, locked(bridge.on_pain), direct=True)
-            node.subscribe(keys.CONTROL_ACTIVE, locked(bridge.on_switch), direct=True)
-            node.subscribe(keys.CONTROL_SAFETY, locked(bridge.on_safety), direct=True)
+            subscribe(node, bridge, lock)
             tokens = keys.key(profile.robot.name, keys.alive(keys.PLANNER_SERVICE_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, on_liveliness, history=True)
             node.declare_token()  # alive once subscribed

@@ -35,7 +35,7 @@ from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.core import BridgeCore, at_rest
 from nwr.services.bridge.envelope import Envelope, make_envelope
-from nwr.services.wiring import Diag, Out
+from nwr.services.wiring import Diag, Out, Wiring, event, receives
 
 SERVICE = "bridge"
 
@@ -64,7 +64,7 @@ def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimite
     return peak_point_speed(task, period_s, limiter.model, samples)
 
 
-class BridgeWiring:
+class BridgeWiring(Wiring):
     service = SERVICE
     outputs = (keys.ROBOT_STATE,)
 
@@ -114,8 +114,8 @@ class BridgeWiring:
         return {"backend": self.backend.name}
 
     # -- inputs ------------------------------------------------------------------------
+    @receives("command", keys.ROBOT_COMMANDS, keyed=True)
     def on_command(self, key: str, cmd: m.Command) -> None:
-        self.journal.begin("command", key, cmd)
         now = self.journal.now_ns()
         core = self.core
         verdict = core.on_command(cmd, now, publisher=keys.command_publisher(key))
@@ -128,41 +128,41 @@ class BridgeWiring:
             self._publish(now)
         self._report()
 
+    @receives("skin", keys.SKIN_PRESSURE)
     def on_skin(self, pressure: m.SkinPressure) -> None:
-        self.journal.begin("skin", keys.SKIN_PRESSURE, pressure)
         self.core.on_skin(pressure, self.journal.now_ns())
         self._report()
 
+    @receives("pain", keys.SKIN_PAIN)
     def on_pain(self, pain: m.SkinPain) -> None:
-        self.journal.begin("pain", keys.SKIN_PAIN, pain)
         self.core.on_pain(pain, self.journal.now_ns())
         self._report()
 
+    @event("token", record=lambda name, alive: (int(alive), name, ()), recall=lambda w, e: (e.text, bool(e.arg)))
     def on_token(self, name: str, alive: bool) -> None:
         """The liveliness token of planner ``name`` appeared (``alive``) or vanished."""
-        self.journal.begin("token", arg=int(alive), text=name)
         self.core.on_planner_token(name, alive, self.journal.now_ns())
         self._report()
 
+    @receives("switch", keys.CONTROL_ACTIVE)
     def on_switch(self, request: m.SwitchRequest) -> None:
-        self.journal.begin("switch", keys.CONTROL_ACTIVE, request)
         now = self.journal.now_ns()
         self.core.request_switch(request, now)
         if self.core.publish_now:
             self._publish(now)  # the planners learn who is active at once
         self._report()
 
+    @receives("safety", keys.CONTROL_SAFETY)
     def on_safety(self, request: m.SafetyModeRequest) -> None:
-        self.journal.begin("safety", keys.CONTROL_SAFETY, request)
         now = self.journal.now_ns()
         self.core.set_safety_mode(request.mode, now, request.requested_by)
         if self.core.publish_now:
             self._publish(now)  # the operator's tool learns the mode at once
         self._report()
 
-    def tick(self, *, publish: bool = False) -> None:
+    @event("tick", record=lambda publish=False: (int(publish), "", ()), recall=lambda w, e: (bool(e.arg),))
+    def tick(self, publish: bool = False) -> None:
         """One control cycle; the robot state every ``state_rate_hz`` (``publish``: this cycle too)."""
-        self.journal.begin("tick", arg=int(publish))
         now = self.journal.now_ns()
         core, backend = self.core, self.backend
         self.ticks += 1
@@ -176,9 +176,9 @@ class BridgeWiring:
             self._publish(now)
         self._report()
 
+    @event("stop", record=lambda reason: (0, reason, ()), recall=lambda w, e: (e.text,))
     def stop(self, reason: str) -> float:
         """A controlled stop to rest; how long it takes at most, s."""
-        self.journal.begin("stop", text=reason)
         self.core.request_stop(self.journal.now_ns(), reason)
         self._report()
         return self.core.tracker.stop_time_s
@@ -200,26 +200,5 @@ class BridgeWiring:
         self.seq += 1
 
     def _report(self) -> None:
-        for event in self.core.drain_events():
-            self.diag(event.level, event.code, event.message, every_s=event.every_s)
-
-    def replay(self, entry: m.JournalEntry, message: Any) -> None:
-        match entry.input:
-            case "command":
-                self.on_command(entry.key, message)
-            case "skin":
-                self.on_skin(message)
-            case "pain":
-                self.on_pain(message)
-            case "token":
-                self.on_token(entry.text, bool(entry.arg))
-            case "switch":
-                self.on_switch(message)
-            case "safety":
-                self.on_safety(message)
-            case "tick":
-                self.tick(publish=bool(entry.arg))
-            case "stop":
-                self.stop(entry.text)
-            case _:
-                raise ValueError(f"the bridge has no input {entry.input!r}")
+        for ev in self.core.drain_events():
+            self.diag(ev.level, ev.code, ev.message, every_s=ev.every_s)

@@ -6,12 +6,11 @@ import argparse
 import logging
 import threading
 
-from nwr.common import keys
-from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.services.gain.wiring import SERVICE, GainWiring
+from nwr.services.wiring import subscribe
 
 log = logging.getLogger(__name__)
 
@@ -28,14 +27,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
               door=Door.of(profile)) as node:
         node.install_signal_handlers()
         wiring = node.wire(GainWiring, profile, lock)
-
-        def on_pressure(sample: m.SkinPressure) -> None:
-            with lock:
-                wiring.on_pressure(sample)
-
         # On Zenoh's network thread (direct): the handler never waits, and this
         # process subscribes to nothing it publishes.
-        node.subscribe(keys.SKIN_PRESSURE, on_pressure, direct=True)
+        subscribe(node, wiring, lock)
         node.declare_token()  # alive once subscribed: the gateway starts on it, and loses no sample
         log.info("%s gain model, thresholds %s hPa, k = %s", profile.gain.model, profile.gain.thresholds_hpa,
                  profile.gain.k)

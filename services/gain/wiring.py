@@ -15,12 +15,12 @@ from nwr.common.config import Profile
 from nwr.common.journal import Journal
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
-from nwr.services.wiring import Diag, Out
+from nwr.services.wiring import Diag, Out, Wiring, receives
 
 SERVICE = "gain"
 
 
-class GainWiring:
+class GainWiring(Wiring):
     service = SERVICE
     outputs = (keys.SKIN_PAIN,)
 
@@ -39,17 +39,11 @@ class GainWiring:
     def params(self) -> dict[str, Any]:
         return {}
 
+    @receives("pressure", keys.SKIN_PRESSURE)
     def on_pressure(self, sample: m.SkinPressure) -> None:
-        self.journal.begin("pressure", keys.SKIN_PRESSURE, sample)
         try:
             pain = self.estimator.process(sample, self.journal.now_ns())
         except ValueError as exc:
             self.diag("warning", "bad_skin_sample", str(exc))
             return
         self.out(keys.SKIN_PAIN, pain)
-
-    def replay(self, entry: m.JournalEntry, message: Any) -> None:
-        if entry.input == "pressure":
-            self.on_pressure(message)
-        else:
-            raise ValueError(f"the gain estimator has no input {entry.input!r}")

@@ -17,13 +17,12 @@ import os
 import threading
 import time
 
-from nwr.common import keys
-from nwr.common import messages as m
 from nwr.common.config import Profile, load_script
 from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+from nwr.services.wiring import subscribe
 
 log = logging.getLogger(__name__)
 
@@ -77,21 +76,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         node.install_signal_handlers()
         wiring = node.wire(GatewayWiring, profile, lock, script=script, follow_target_s=args.follow_target)
 
-        def on_state(state: m.RobotState) -> None:
-            with lock:
-                wiring.on_state(state)
-
-        # On Zenoh's network thread (direct): the handler only keeps the state (the bridge's 500 Hz at 1 kHz skin
-        # would each cost a hand-off to a Python thread), and nothing this process puts, under the lock or not,
-        # reaches a subscription of its own.
-        node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
-        if args.follow_target:
-
-            def on_status(key: str, status: m.PlannerStatus) -> None:
-                with lock:
-                    wiring.on_status(key, status)
-
-            node.subscribe(keys.planner_status("*"), on_status, keyed=True)
+        # The robot state on Zenoh's network thread (direct): the handler only keeps it (the bridge's 500 Hz at
+        # 1 kHz skin would each cost a hand-off to a Python thread), and nothing this process puts, under the lock
+        # or not, reaches a subscription of its own; the planners' statuses only with --follow-target.
+        subscribe(node, wiring, lock)
         wait_for = [s for s in args.wait_for.split(",") if s]
         if wait_for:
             missing = node.wait_for(wait_for, timeout_s=30.0)

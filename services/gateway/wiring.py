@@ -31,12 +31,12 @@ from nwr.common.config import Profile, TouchScript
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
-from nwr.services.wiring import Diag, Out
+from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives
 
 SERVICE = "gateway"
 
 
-class GatewayWiring:
+class GatewayWiring(Wiring):
     service = SERVICE
     outputs = (keys.SKIN_PRESSURE, keys.SKIN_TOUCH)
 
@@ -75,22 +75,27 @@ class GatewayWiring:
                 "follow_target_s": self.follow_target_s}
 
     # -- inputs ------------------------------------------------------------------------
+    @receives("state", keys.ROBOT_STATE)
     def on_state(self, state: m.RobotState) -> None:
-        self.journal.begin("state", keys.ROBOT_STATE, state)
         self.pose = state
 
+    @receives("status", keys.planner_status("*"), keyed=True, direct=False)
     def on_status(self, key: str, status: m.PlannerStatus) -> None:
-        self.journal.begin("status", key, status)
         self.target = status.target_pad
         if status.active:
             self.arm_busy = status.mode != "TASK"
 
+    def listens(self, inp: Input) -> bool:
+        """The planners' statuses only for a simulated participant who follows the study's target."""
+        return inp.name != "status" or self.follower is not None
+
+    @event("origin")
     def origin(self) -> int:
         """The touch script's clock starts now; its origin, ns."""
-        self.journal.begin("origin")
         self.origin_ns = self.journal.now_ns()
         return self.origin_ns
 
+    @event("tick", record=lambda due_ns=0: (due_ns, "", ()), recall=lambda w, e: (e.arg,))
     def tick(self, due_ns: int = 0) -> float:
         """One sample period: the touches that start, the sample; the script's time, s.
 
@@ -98,7 +103,6 @@ class GatewayWiring:
         the other (a device's samples, read late, are the device's all the same); the sample is of that
         time, stamped when it is taken. 0: now.
         """
-        self.journal.begin("tick", arg=due_ns)
         now = self.journal.now_ns()
         t = ((min(due_ns, now) if due_ns else now) - self.origin_ns) / 1e9
         sim = self.sim
@@ -123,13 +127,11 @@ class GatewayWiring:
             self.diag("warning", "non_finite_pressure", f"pad {self.pads[pad].name} reported a non-finite pressure")
         return t
 
+    @event("sample", record=lambda absolute: _sample_fields(absolute), recall=lambda w, e: (_sample_values(e),))
     def on_sample(self, absolute: np.ndarray) -> None:
         """A real skin's sample (``gateway.source = "ros1"``): each pad's absolute pressure, hPa, NaN where
         the pad is invalid in it (:func:`nwr.common.skinmap.map_values`, whose caller reports why)."""
         absolute = np.asarray(absolute, dtype=float)
-        finite = np.isfinite(absolute)
-        self.journal.begin("sample", data=np.where(finite, absolute, 0.0).tolist(),
-                           text=",".join(str(int(i)) for i in np.flatnonzero(~finite)))
         now = self.journal.now_ns()
         msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)
         self.out(keys.SKIN_PRESSURE, msg)
@@ -141,20 +143,16 @@ class GatewayWiring:
                       f"pad {self.pads[pad].name} stayed above the contact threshold for more than "
                       f"{self.cfg.max_contact_s} s: its baseline was re-acquired")
 
-    def replay(self, entry: m.JournalEntry, message: Any) -> None:
-        match entry.input:
-            case "state":
-                self.on_state(message)
-            case "status":
-                self.on_status(entry.key, message)
-            case "origin":
-                self.origin()
-            case "tick":
-                self.tick(entry.arg)
-            case "sample":
-                absolute = np.array(entry.data, dtype=float)
-                for i in (int(x) for x in entry.text.split(",") if x):
-                    absolute[i] = np.nan
-                self.on_sample(absolute)
-            case _:
-                raise ValueError(f"the gateway has no input {entry.input!r}")
+
+def _sample_fields(absolute: np.ndarray) -> tuple[int, str, list[float]]:
+    """A real skin's sample in the journal: the finite values (0 elsewhere), and which pads were not finite."""
+    absolute = np.asarray(absolute, dtype=float)
+    finite = np.isfinite(absolute)
+    return 0, ",".join(str(int(i)) for i in np.flatnonzero(~finite)), np.where(finite, absolute, 0.0).tolist()
+
+
+def _sample_values(entry: m.JournalEntry) -> np.ndarray:
+    absolute = np.array(entry.data, dtype=float)
+    for i in (int(x) for x in entry.text.split(",") if x):
+        absolute[i] = np.nan
+    return absolute

@@ -7,8 +7,11 @@ services from :data:`SERVICES`. ``deploy/compose.yaml`` and the router's
 access control (``deploy/acl.json5``) are held against it by
 ``tests/test_graph.py``.
 
-Which keys a service reads and writes is not written here a second time: it
-is the key registry's producers and consumers (:data:`nwr.common.keys.TOPICS`).
+Which keys a service reads and writes is not written here a second time:
+what a service with a wiring reads is its wiring's declared inputs
+(:class:`nwr.services.wiring.Input`), what the others read the key
+registry's consumers; what each writes, the registry's producers
+(:data:`nwr.common.keys.TOPICS`).
 
 Start order: the recorder first (the others start once it is alive, so it
 records every journal from its first batch), then the bridge, the planners
@@ -23,10 +26,13 @@ batches), a router after everything.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from nwr.common import keys
+from nwr.common.errors import ConfigError
 
 # Service -> what it does (the help of ``nwr run SERVICE``).
 SERVICES = {
@@ -45,8 +51,32 @@ START_ORDER = (ROUTER, "recorder", "bridge", "planner", "gain", "view", "gateway
 NOT_WAITED_FOR = ("view",)
 
 
+# Each service with a wiring (the call order the live process, lockstep and nwr verify run): module, class.
+# Imported when asked for, so that a process loads only its own service's code.
+WIRINGS = {
+    "gateway": ("nwr.services.gateway.wiring", "GatewayWiring"),
+    "gain": ("nwr.services.gain.wiring", "GainWiring"),
+    "planner": ("nwr.services.planner.wiring", "PlannerWiring"),
+    "bridge": ("nwr.services.bridge.wiring", "BridgeWiring"),
+}
+
+
+def wiring_for(service: str) -> Any:
+    """The wiring class of a service, or of a process name as journaled (``planner-<name>`` for planners)."""
+    if service.startswith(keys.PLANNER_SERVICE_PREFIX):
+        service = "planner"
+    found = WIRINGS.get(service)
+    if found is None:
+        raise ConfigError(f"no wiring for a service named {service!r} (services with one: {sorted(WIRINGS)})")
+    module, name = found
+    return getattr(importlib.import_module(module), name)
+
+
 def reads(service: str) -> tuple[str, ...]:
-    """The key patterns ``service`` subscribes to (the key registry's consumers)."""
+    """The key patterns ``service`` subscribes to: its wiring's declared inputs, else the key registry's consumers."""
+    if service in WIRINGS:
+        inputs = wiring_for(service).inputs.values()
+        return tuple(dict.fromkeys(inp.key for inp in inputs if inp.key is not None))
     return tuple(t.pattern for t in keys.TOPICS if service in t.consumers)
 
 

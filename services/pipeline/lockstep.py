@@ -6,10 +6,12 @@ publishes are delivered to those that subscribe, through one queue, after
 the publishing handler returns; every control cycle of 2 ms is one step of
 simulated time:
 
-- a skin sample is delivered at its own stamp: the bridge (fresh skin) and
-  the gain estimator, whose pain message goes to the bridge and the
-  planner's event path (a reflex's first command reaches the bridge at once,
-  its retreat check runs once that has been delivered);
+- each message goes to the wirings that declare it an input
+  (:class:`nwr.services.wiring.Input`), in the order bridge, planner, gain,
+  gateway: a skin sample at its own stamp to the bridge (fresh skin) and the
+  gain estimator, whose pain message goes to the bridge and the planner's
+  event path (a reflex's first command reaches the bridge at once, its
+  retreat check runs once that has been delivered);
 - every control cycle the planner's loop ticks, then the bridge's: the
   robot state goes back to the planner (and the simulated skin) at
   ``state_rate_hz``, the planner's status at ``status_rate_hz`` and on every
@@ -45,7 +47,7 @@ from nwr.services.gain.wiring import GainWiring
 from nwr.services.gateway.sources import Emit, Pose, RecordedSkin, SkinSource
 from nwr.services.gateway.wiring import GatewayWiring
 from nwr.services.planner.wiring import PlannerWiring, planner_profile
-from nwr.services.wiring import Diag, no_diag
+from nwr.services.wiring import Diag, Input, Wiring, no_diag
 
 
 @dataclass
@@ -83,6 +85,8 @@ class Lockstep:
         self.cycles = 0
         self.messages = 0
         self.gateway: GatewayWiring | None = None
+        self.wirings: list[Wiring] = []  # in the order a message reaches them
+        self._routes: dict[str, list[tuple[Wiring, Input]]] = {}
         self.state: m.RobotState | None = None  # the newest robot state
 
     def _journal(self) -> Journal:
@@ -96,6 +100,7 @@ class Lockstep:
     def _wire(self, factory: Any, **kwargs: Any) -> Any:
         journal = self._journal()
         wiring = factory(self.profile, journal=journal, out=self._out, diag=self.diag, **kwargs)
+        self.wirings.append(wiring)
         self.journals.append((wiring, journal, Batcher(wiring.service, self.clock.t_ns,
                                                        service_config(self.profile, **wiring.params()))))
         return wiring
@@ -109,6 +114,7 @@ class Lockstep:
         self.gateway = source.wiring(self.clock, journal, self._out)
         if self.gateway is not None:
             gw = self.gateway
+            self.wirings.append(gw)
             origin = t0 if source.origin_ns is None else source.origin_ns
             batcher = Batcher(gw.service, origin, service_config(self.profile, **gw.params()))
             self.journals.append((gw, journal, batcher))
@@ -129,30 +135,29 @@ class Lockstep:
             return self.bridge.backend.get_observation().q, 0
         return m.as_array(self.state.q), self.state.stamp_ns
 
+    def routes(self, key: str) -> list[tuple[Wiring, Input]]:
+        """Which wirings take a message on ``key``, by which input: what each declares (in the wirings' order)."""
+        found = self._routes.get(key)
+        if found is None:
+            found = self._routes[key] = [(w, inp) for w in self.wirings for inp in w.subscriptions()
+                                         if inp.key is not None and keys.matches(key, inp.key)]
+        return found
+
     def drain(self) -> None:
         """Deliver the queued messages, and those they cause, in order (the pipeline's graph)."""
         queue = self.queue
+        planner = self.planner
         assess = False
         while queue:
             key, message = queue.popleft()
-            if key == keys.SKIN_PRESSURE:
-                self.bridge.on_skin(message)
-                self.gain.on_pressure(message)
-            elif key == keys.SKIN_PAIN:
-                self.bridge.on_pain(message)
-                if self.planner.on_pain(message, self.clock.t_ns) is not None:
-                    assess = True
-            elif keys.is_command(key):
-                self.bridge.on_command(key, message)
-            elif key == keys.ROBOT_STATE:
+            if key == keys.ROBOT_STATE:
                 self.state = message
-                self.planner.on_state(message)
-                if self.gateway is not None:
-                    self.gateway.on_state(message)
-            elif key == self.planner.status_key:
-                self.planner.on_peer_status(key, message)
+            for wiring, inp in self.routes(key):
+                # A reflex's command (the planner's pain input returns it): its retreat check comes after.
+                if wiring.deliver(inp, key, message, self.clock.t_ns) is not None and wiring is planner:
+                    assess = True
         if assess:  # the retreat check, once what the reflex caused has been delivered (live: its own thread)
-            self.planner.assess()
+            planner.assess()
 
     def run(self, samples: Iterable[m.SkinPressure] | SkinSource, emit: Emit, *,
             settle_s: float = 2.0, start_ns: int | None = None) -> LockstepReport:

@@ -16,6 +16,7 @@ from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel
 from nwr.services.planner import strategies
 from nwr.services.planner.wiring import PlannerWiring
+from nwr.services.wiring import subscribe
 
 log = logging.getLogger(__name__)
 
@@ -98,11 +99,6 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             if planner.quiet_cycles == 0:
                 wake.set()
 
-        def on_state(state: m.RobotState) -> None:
-            with lock:
-                wiring.on_state(state)
-                wake_if_needed()
-
         # The retreat check (a few ms of kinematics per reflex) runs in a thread
         # of its own, on its own model, outside the lock: neither the next pain
         # message nor the control loop waits for it. Updates that arrive while
@@ -131,25 +127,16 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         checker = threading.Thread(target=check_retreats, name="retreat-check", daemon=True)
         checker.start()
 
-        def on_pain(pain: m.SkinPain) -> None:
-            received = node.clock.now_ns()  # before the lock: the decision's receipt time
-            with lock:
-                command = wiring.on_pain(pain, received)
-                if command is not None:
-                    assess_pending.set()  # the retreat check, in its own thread
-                wake_if_needed()
-
-        def on_peer_status(key: str, status: m.PlannerStatus) -> None:
-            with lock:
-                wiring.on_peer_status(key, status)  # inactive only: it never sleeps then
+        def after_pain(command: m.Command | None) -> None:
+            if command is not None:
+                assess_pending.set()  # the retreat check, in its own thread
+            wake_if_needed()
 
         # The reflex path's input and the arm's state run on Zenoh's network
-        # thread (direct: no hand-off to a Python thread). The statuses may not:
-        # this planner's own status, put while the lock is held, comes back to
-        # this process through that subscription, in the putting thread.
-        node.subscribe(keys.ROBOT_STATE, on_state, direct=True)
-        node.subscribe(keys.planner_status("*"), on_peer_status, keyed=True)
-        node.subscribe(keys.SKIN_PAIN, on_pain, direct=True)
+        # thread (direct: no hand-off to a Python thread); the statuses not
+        # (PlannerWiring.on_peer_status). A status never wakes the loop: an
+        # inactive planner never sleeps.
+        subscribe(node, wiring, lock, then={"pain": after_pain, "state": lambda _: wake_if_needed()})
         node.declare_token()  # alive once subscribed: the gateway starts on it, and no pain message is lost
         log.info("planner %r (%s) at %.0f Hz", cfg.name, planner.strategy.name, cfg.rate_hz)
         failing = Failing(node)

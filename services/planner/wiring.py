@@ -31,10 +31,10 @@ from nwr.common.pacing import Rate
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner import retreat
 from nwr.services.planner.core import Planner, RetreatCheck
-from nwr.services.wiring import Diag, Out
+from nwr.services.wiring import Diag, Out, Wiring, event, receives
 
 
-class PlannerWiring:
+class PlannerWiring(Wiring):
     def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag) -> None:
         cfg = profile.planner
         desc = load_description(profile.robot.description or None)
@@ -73,8 +73,8 @@ class PlannerWiring:
     def _status(self, now: int) -> None:
         self.out(self.status_key, self.planner.status(now))
 
+    @receives("state", keys.ROBOT_STATE)
     def on_state(self, state: m.RobotState) -> None:
-        self.journal.begin("state", keys.ROBOT_STATE, state)
         planner = self.planner
         q = m.as_array(state.q)
         if q.shape != planner.q.shape:
@@ -89,9 +89,9 @@ class PlannerWiring:
         if planner.changed:
             self._status(self.journal.now_ns())
 
+    @receives("pain", keys.SKIN_PAIN, stamped=True)
     def on_pain(self, pain: m.SkinPain, received_ns: int) -> m.Command | None:
         """The event path: a reflex starts the moment its pain message arrives (at ``received_ns``)."""
-        self.journal.begin("pain", keys.SKIN_PAIN, pain, arg=received_ns)
         planner = self.planner
         self._catch_up(received_ns)
         self.rate.starting = False  # the skin flows: the pipeline has started
@@ -109,8 +109,9 @@ class PlannerWiring:
             self._status(self.journal.now_ns())
         return command
 
+    # Not on Zenoh's network thread: this planner's own status, put under the lock, comes back through it.
+    @receives("status", keys.planner_status("*"), keyed=True, direct=False)
     def on_peer_status(self, key: str, status: m.PlannerStatus) -> None:
-        self.journal.begin("status", key, status)
         if key != keys.planner_status(status.name):
             self.diag("warning", "status_spoofed",
                       f"a status on {key} claims to be planner {status.name!r}'s: ignored (a planner's status names "
@@ -123,10 +124,10 @@ class PlannerWiring:
         for level, code, message in self.planner.drain_notes():
             self.diag(level, code, message)
 
+    @event("tick")
     def tick(self) -> None:
         """The control loop woke: step the cycles due, publish the status when it is due."""
         self.failure = None  # a failed cycle, for the adapter to report
-        self.journal.begin("tick")
         now = self.journal.now_ns()
         planner = self.planner
         due = self.rate.take(now, limit=planner.quiet_cycles + 1)
@@ -147,15 +148,16 @@ class PlannerWiring:
             self.status_tick = self.rate.ticks
             self._status(now)
 
+    @event("retreat_take")
     def retreat_take(self) -> RetreatCheck | None:
         """What the retreat check of the current reflex needs (None outside a reflex)."""
-        self.journal.begin("retreat_take")
         self.check = self.planner.retreat_check()
         return self.check
 
+    @event("retreat_apply", record=lambda check, assessment: (0, "", ()),
+           recall=lambda w, e: w.rerun_check())
     def retreat_apply(self, check: RetreatCheck, assessment: retreat.Assessment) -> None:
         """A check's figures, published with the reflex on the next status."""
-        self.journal.begin("retreat_apply")
         self.planner.apply_retreat(check, assessment)
 
     def assess(self) -> None:
@@ -164,24 +166,11 @@ class PlannerWiring:
         if check is not None:
             self.retreat_apply(check, check.run(self.check_model))
 
-    def replay(self, entry: m.JournalEntry, message: Any) -> None:
-        match entry.input:
-            case "state":
-                self.on_state(message)
-            case "pain":
-                self.on_pain(message, entry.arg)
-            case "status":
-                self.on_peer_status(entry.key, message)
-            case "tick":
-                self.tick()
-            case "retreat_take":
-                self.retreat_take()
-            case "retreat_apply":
-                if self.check is None:
-                    raise ValueError("a retreat check applied that was never taken")
-                self.retreat_apply(self.check, self.check.run(self.check_model))
-            case _:
-                raise ValueError(f"the planner has no input {entry.input!r}")
+    def rerun_check(self) -> tuple[RetreatCheck, retreat.Assessment]:
+        """The check taken last, run again here (a re-run: the live process ran it in its own thread)."""
+        if self.check is None:
+            raise ValueError("a retreat check applied that was never taken")
+        return self.check, self.check.run(self.check_model)
 
 
 def planner_profile(profile: Profile, *, name: str | None = None, strategy: str | None = None) -> Profile:

@@ -167,7 +167,7 @@ class _Probe:
         def delayed(key: str, cmd: Any) -> None:
             self.pending.append((clock.t_ns + int(self.rng.integers(0, self.jitter_ns)), key, cmd))
 
-        def late_tick(*, publish: bool = False) -> None:
+        def late_tick(publish: bool = False) -> None:
             t = clock.t_ns
             cycle = t + int(self.rng.integers(0, self.jitter_ns // 4 + 1))
             due = sorted((p for p in self.pending if p[0] <= cycle), key=lambda p: p[0])

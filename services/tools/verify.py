@@ -30,30 +30,16 @@ from typing import Any
 
 import msgspec
 
-from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
 from nwr.common.recordings import Recorded, read_recording
-from nwr.services.bridge.wiring import BridgeWiring
-from nwr.services.gain.wiring import GainWiring
-from nwr.services.gateway.wiring import GatewayWiring
-from nwr.services.planner.wiring import PlannerWiring
+from nwr.services.pipeline.graph import wiring_for
 from nwr.services.wiring import no_diag
 
 NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded by an older nwr, by another tool, "
               "or without the services' journals, so its services cannot be re-run")
-
-
-def wiring_for(service: str) -> Any:
-    """The wiring class of a service name as journaled (``planner-<name>`` for planners)."""
-    if service.startswith(keys.PLANNER_SERVICE_PREFIX):
-        return PlannerWiring
-    found = {"gain": GainWiring, "gateway": GatewayWiring, "bridge": BridgeWiring}.get(service)
-    if found is None:
-        raise ConfigError(f"no wiring for a service named {service!r}")
-    return found
 
 
 @dataclass
