@@ -1,8 +1,9 @@
 """The ``nwr`` command: the parser and the dispatch, nothing else.
 
-``nwr run SERVICE`` runs one service (its ``main.py``); every other command
-is registered by its tool module (``register(subparsers)``, whose parsers
-``set_defaults(handler=fn(args) -> int)``).
+``nwr run SERVICE`` runs one service (its ``main.py``), and imports only
+that service's code; every other command is registered by its tool module
+(``register(subparsers)``, whose parsers ``set_defaults(handler=fn(args) ->
+int)``).
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def _service_module(name: str) -> Any:
     return import_module(f"nwr.services.{name}.main")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(service: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``service``, only ``nwr run SERVICE`` (a service's process loads its own code)."""
     parser = argparse.ArgumentParser(
         prog="nwr",
         description="Tactile withdrawal reflexes for a skin-covered robot arm: Zenoh services, launcher and tools.",
@@ -63,13 +65,24 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run one service as its own process until Ctrl-C or SIGTERM.")
     run_sub = run.add_subparsers(dest="service", required=True, metavar="SERVICE")
     for name, doc in SERVICES.items():
+        if service is not None and name != service:
+            continue
         p = run_sub.add_parser(name, help=doc, description=doc)
         _service_module(name).add_arguments(p)
         p.set_defaults(handler=lambda args: _service_module(args.service).run(profile_for(args), args))
 
-    for name in COMMAND_MODULES:
+    for name in COMMAND_MODULES if service is None else ():
         import_module(name).register(sub)
     return parser
+
+
+def _service_run(argv: list[str]) -> str | None:
+    """The service of ``nwr [options] run SERVICE ...``, else None (every other command builds the whole parser)."""
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--profile", "-p")
+    pre.add_argument("--log-level")
+    _, rest = pre.parse_known_args(argv)
+    return rest[1] if len(rest) > 1 and rest[0] == "run" and rest[1] in SERVICES else None
 
 
 def log_label(args: argparse.Namespace) -> str:
@@ -81,7 +94,8 @@ def log_label(args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(_service_run(argv))
     args = parser.parse_args(argv)
     setup_logging(args.log_level, log_label(args))
     try:

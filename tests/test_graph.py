@@ -351,3 +351,21 @@ def test_a_journal_entry_of_an_input_no_wiring_declares_is_refused_by_name() -> 
     wiring = wiring_for("gain")(Profile(), journal=Untracked(ManualClock()), out=lambda k, msg: None, diag=no_diag)
     with pytest.raises(ValueError, match="no input 'tock'.*pressure"):
         wiring.replay(m.JournalEntry("tock"), None)
+
+
+@pytest.mark.parametrize("service", sorted(SERVICES))
+def test_a_service_process_loads_its_own_code_and_no_tool(service: str) -> None:
+    # In a fresh interpreter: this one has imported every tool for other tests.
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom nwr.services import cli\n"
+            f"try:\n    cli.main(['--profile', 'default', 'run', {service!r}, '--help'])\n"
+            "except SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('nwr.services.')))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    loaded = proc.stdout.strip().splitlines()[-1]
+    assert "nwr.services.tools" not in loaded, loaded
+    others = {s for s in SERVICES if s != service}
+    assert not [s for s in others if f"'nwr.services.{s}." in loaded], loaded
