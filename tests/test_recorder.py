@@ -19,15 +19,13 @@ from nwr.common.recordings import (
     GapCounter,
     McapRecorder,
     RecordingError,
-    SessionRecorder,
-    SplitPolicy,
     parse_labels,
-    part_path,
     read_recording,
     session_metadata,
 )
 from nwr.services import cli
 from nwr.services.recorder import commands, salvage
+from nwr.services.recorder.disk import SessionRecorder, SplitPolicy, part_path
 
 ROBOT = "ur10e"
 MS = 1_000_000

@@ -24,7 +24,9 @@ from mcap.records import Channel, Message
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.recordings import (
+from nwr.common.recordings import read_recording
+from nwr.services.recorder import salvage
+from nwr.services.recorder.disk import (
     DISK_CODES,
     NOT_WRITING,
     RECORDING_RESUMED,
@@ -35,9 +37,7 @@ from nwr.common.recordings import (
     SplitPolicy,
     explain_os_error,
     part_path,
-    read_recording,
 )
-from nwr.services.recorder import salvage
 from nwr.services.tools import status
 
 ROBOT = "ur10e"

@@ -30,7 +30,7 @@ from nwr.common import messages as m
 from nwr.common.config import ZenohSection
 from nwr.common.errors import DecodeError
 from nwr.common.node import zenoh_config
-from nwr.common.recordings import NOT_WRITING, RECORDING_RESUMED, WRITE_FAILED
+from nwr.services.recorder.disk import NOT_WRITING, RECORDING_RESUMED, WRITE_FAILED
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -11,7 +11,7 @@ touches the arm, about 650 during a reflex, several thousand at 1 kHz skin).
 The recorder never exits on its disk: a directory that cannot be created or
 written, a disk that fills, a file system that turns read-only are reported on
 ``diag/recorder`` and retried every ``RETRY_S`` while the messages are counted
-(:class:`~nwr.common.recordings.SessionRecorder`); the rest of the pipeline and
+(:class:`~nwr.services.recorder.disk.SessionRecorder`); the rest of the pipeline and
 the arm's task do not depend on it.
 """
 
@@ -31,15 +31,8 @@ from nwr.common import keys
 from nwr.common.config import Profile, encode_profile, loosened_safety
 from nwr.common.errors import DecodeError
 from nwr.common.node import Node
-from nwr.common.recordings import (
-    PartFiles,
-    RecordingError,
-    SessionRecorder,
-    SplitPolicy,
-    fits_mcap,
-    parse_labels,
-    session_metadata,
-)
+from nwr.common.recordings import RecordingError, fits_mcap, parse_labels, session_metadata
+from nwr.services.recorder.disk import PartFiles, SessionRecorder, SplitPolicy
 
 log = logging.getLogger(__name__)
 

@@ -58,10 +58,11 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import BridgeSection, Profile, load_profile
 from nwr.common.errors import ConfigError, NwrError
-from nwr.common.recordings import SessionRecorder, read_recording, session_metadata
+from nwr.common.recordings import read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
+from nwr.services.recorder.disk import SessionRecorder
 from nwr.services.tools import bench_bare, bench_ros1
 from nwr.services.tools.bench_core import (
     lower_bound,

@@ -43,7 +43,7 @@ from nwr.services.pipeline.graph import NOT_WAITED_FOR, SERVICES, START_ORDER, p
 log = logging.getLogger(__name__)
 
 RECORDER_DIAG = keys.diag("recorder")
-# The recorder's codes about its disk (nwr.common.recordings.DISK_CODES; not imported from there, which would
+# The recorder's codes about its disk (nwr.services.recorder.disk.DISK_CODES; not imported from there, which would
 # load mcap into every health check, and test_recorder_disk holds the two equal).
 RECORDER_DISK_CODES = ("write_failed", "not_writing", "recording_resumed")
 
