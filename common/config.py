@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import msgspec
 
 from nwr.common.errors import ConfigError
+from nwr.common.section import Section
+from nwr.common.task import TaskSection, check_task
 
 if TYPE_CHECKING:
     from nwr.common.robot import RobotDescription
@@ -58,8 +60,7 @@ Name = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_-]{0,31}$")]
 Steepness = Annotated[float, msgspec.Meta(ge=0.1, le=50)]
 
 
-class _Section(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
-    pass
+_Section = Section
 
 
 class RobotSection(_Section):
@@ -189,22 +190,6 @@ class GainSection(_Section):
     pl3_gain: Fraction = 0.35
     # Per-pad overrides, by pad name.
     overrides: dict[str, PadGainOverride] = {}
-
-
-class TaskSection(_Section):
-    # Period of the figure-eight, s. The task's fastest point (0.19 m/s on the
-    # UR10e by default) must stay within bridge.limits.speed_m_s.
-    period_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 12.0
-    # Joint amplitudes of the figure-eight around the home pose, rad, one per
-    # joint: the base swings at the task frequency, shoulder and elbow at twice
-    # it, which draws an eight with the tool. Within the joint limits.
-    amplitude_rad: list[Annotated[float, msgspec.Meta(ge=-math.pi, le=math.pi)]] = msgspec.field(
-        default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
-    # Twice-frequency joints (1) versus task-frequency joints (0), one per joint.
-    double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = msgspec.field(
-        default_factory=lambda: [0, 1, 1, 0, 0, 0])
-    # Time to ease in and out of the task when it resumes or pauses, s.
-    ramp_s: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
 
 
 # The body regions a pad may belong to (as common.robot.REGIONS).
@@ -659,7 +644,6 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
     :func:`load_profile` calls it with the description the profile names.
     """
     from nwr.common.robot import RobotModel
-    from nwr.common.task import FigureEight, peak_point_speed
 
     planner, task, bridge = profile.planner, profile.planner.task, profile.bridge
     n = len(desc.joints)
@@ -734,24 +718,7 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
                               f"({bound:.3g} {unit}: max_point_speed {top} m/s"
                               + (f" times the moving links' {moving:.3g} kg)" if unit == "kg m/s" else ")"))
 
-    figure = FigureEight(task, desc.home)
-    lo, hi = figure.range()
-    for i, joint in enumerate(desc.joints):
-        if lo[i] < q_lo[i] or hi[i] > q_hi[i]:
-            raise ConfigError(f"planner.task.amplitude_rad[{i}] = {task.amplitude_rad[i]} swings {joint} over "
-                              f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around home, beyond its limits "
-                              f"[{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it")
-    peak = peak_point_speed(figure, task.period_s, model)
-    for bound, name, why in (
-        (top, f"robot {desc.name!r}'s max_point_speed", "the arm cannot"),
-        (bridge.limits.speed_m_s, "bridge.limits.speed_m_s", "the bridge would slow it every cycle"),
-    ):
-        if peak > bound:
-            raise ConfigError(
-                f"planner.task.period_s = {task.period_s} s with amplitude_rad = {task.amplitude_rad} moves the task's "
-                f"fastest point at {peak:.3g} m/s, above {name} = {bound} m/s ({why}): lengthen period_s or shrink "
-                "amplitude_rad"
-            )
+    check_task(task, desc, model, q_lo, q_hi, bridge.limits.speed_m_s)
 
 
 # ------------------------------------------------------------------------------ safety beside a person

@@ -10,14 +10,36 @@ the saved pose without a velocity jump.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Annotated
 
+import msgspec
 import numpy as np
 
-from nwr.common.config import TaskSection
+from nwr.common.errors import ConfigError
+from nwr.common.section import Section
 
 if TYPE_CHECKING:
-    from nwr.common.robot import RobotModel
+    from nwr.common.robot import RobotDescription, RobotModel
+
+
+class TaskSection(Section):
+    """``[planner.task]``: the figure-eight's period, amplitudes and ease-in."""
+
+    # Period of the figure-eight, s. The task's fastest point (0.19 m/s on the
+    # UR10e by default) must stay within bridge.limits.speed_m_s.
+    period_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 12.0
+    # Joint amplitudes of the figure-eight around the home pose, rad, one per
+    # joint: the base swings at the task frequency, shoulder and elbow at twice
+    # it, which draws an eight with the tool. Within the joint limits.
+    amplitude_rad: list[Annotated[float, msgspec.Meta(ge=-math.pi, le=math.pi)]] = msgspec.field(
+        default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
+    # Twice-frequency joints (1) versus task-frequency joints (0), one per joint.
+    double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = msgspec.field(
+        default_factory=lambda: [0, 1, 1, 0, 0, 0])
+    # Time to ease in and out of the task when it resumes or pauses, s.
+    ramp_s: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
 
 
 class FigureEight:
@@ -48,6 +70,31 @@ def peak_point_speed(task: FigureEight, period_s: float, model: RobotModel, samp
     over one period, m/s: the profile's load checks it, the bridge paces a handover's stream with it."""
     return max(float(np.linalg.norm(model.speed_jacobians(task.position(s)) @ task.velocity(s), axis=1).max())
                for s in np.linspace(0.0, period_s, samples, endpoint=False))
+
+
+def check_task(task: TaskSection, desc: RobotDescription, model: RobotModel, q_lo: Sequence[float],
+               q_hi: Sequence[float], speed_limit_m_s: float) -> None:
+    """The task on robot ``desc`` stays within the joint ranges ``q_lo``..``q_hi`` the bridge enforces, and its
+    fastest point within the robot's max_point_speed and ``speed_limit_m_s`` (bridge.limits.speed_m_s); else a
+    ConfigError naming the field (the profile's load checks it)."""
+    figure = FigureEight(task, desc.home)
+    lo, hi = figure.range()
+    for i, joint in enumerate(desc.joints):
+        if lo[i] < q_lo[i] or hi[i] > q_hi[i]:
+            raise ConfigError(f"planner.task.amplitude_rad[{i}] = {task.amplitude_rad[i]} swings {joint} over "
+                              f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around home, beyond its limits "
+                              f"[{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it")
+    peak = peak_point_speed(figure, task.period_s, model)
+    for bound, name, why in (
+        (desc.max_point_speed, f"robot {desc.name!r}'s max_point_speed", "the arm cannot"),
+        (speed_limit_m_s, "bridge.limits.speed_m_s", "the bridge would slow it every cycle"),
+    ):
+        if peak > bound:
+            raise ConfigError(
+                f"planner.task.period_s = {task.period_s} s with amplitude_rad = {task.amplitude_rad} moves the task's "
+                f"fastest point at {peak:.3g} m/s, above {name} = {bound} m/s ({why}): lengthen period_s or shrink "
+                "amplitude_rad"
+            )
 
 
 class TaskClock:

@@ -369,3 +369,15 @@ def test_a_service_process_loads_its_own_code_and_no_tool(service: str) -> None:
     assert "nwr.services.tools" not in loaded, loaded
     others = {s for s in SERVICES if s != service}
     assert not [s for s in others if f"'nwr.services.{s}." in loaded], loaded
+
+
+def test_no_import_cycles() -> None:
+    import graphlib
+
+    modules = dict(_modules())
+    graph = {module: {t for t in _imports(path, module) if t in modules and t != module}
+             for module, path in modules.items()}
+    try:
+        list(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError as exc:
+        pytest.fail(f"an import cycle (lazy imports inside functions included): {' -> '.join(exc.args[1])}")

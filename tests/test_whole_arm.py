@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection, TaskSection
+from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotModel, load_description
-from nwr.common.task import FigureEight
+from nwr.common.task import FigureEight, TaskSection
 from nwr.services.planner import strategies
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies import whole_arm

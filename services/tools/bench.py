@@ -64,6 +64,7 @@ from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_a
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
 from nwr.services.recorder.disk import SessionRecorder
 from nwr.services.tools import bench_bare, bench_ros1
+from nwr.services.tools.bench_bare import proc_cost
 from nwr.services.tools.bench_core import (
     lower_bound,
     match_traces,
@@ -75,7 +76,6 @@ from nwr.services.tools.bench_core import (
 
 log = logging.getLogger(__name__)
 
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 # Ports used by one run: five core services and the router; runs rotate over
 # three such blocks so that a port in TIME_WAIT is never reused at once.
 PORTS_PER_RUN = 6
@@ -123,19 +123,6 @@ def configurations(quick: bool, onsets: int) -> list[Config]:
 
 
 # ------------------------------------------------------------------------------ /proc
-
-
-def proc_cost(pid: int) -> tuple[float, float]:
-    """CPU time (s, user + system) and peak RSS (MB, VmHWM) of a live process."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    cpu = (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14, 15 of stat(5))
-    hwm = 0.0
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                hwm = int(line.split()[1]) / 1024
-    return cpu, hwm
 
 
 def parse_loops(text: str) -> dict[str, dict[str, float]]:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -70,6 +71,20 @@ def command(p: m.SkinPain, now_ns: int) -> m.PositionCommand:
 def declare(session: zenoh.Session, role_key: str, relative: str) -> zenoh.Publisher:
     """A publisher on the chain's own key with the QoS the pipeline gives ``relative`` (priority, express, block)."""
     return session.declare_publisher(KEY.format(role_key), **qos(keys.topic_for(relative)))
+
+
+def proc_cost(pid: int) -> tuple[float, float]:
+    """CPU time (s, user + system) and peak RSS (MB, VmHWM) of a live process."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (fields 14, 15 of stat(5))
+    hwm = 0.0
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                hwm = int(line.split()[1]) / 1024
+    return cpu, hwm
+
 
 
 # ------------------------------------------------------------------------------ one role
@@ -189,7 +204,6 @@ class BareRun:
 def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
             router_listen: str | None = None) -> BareRun:
     """Start the four roles (and a router for ``router_listen``), run ``duration_s``, collect the bridge's figures."""
-    from nwr.services.tools.bench import proc_cost
 
     work.mkdir(parents=True, exist_ok=True)
     for stale in work.glob("*.json"):
