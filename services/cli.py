@@ -39,8 +39,8 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.tools.compare",
     "nwr.services.tools.rosbag_import",
     "nwr.services.tools.verify",
-    "nwr.services.tools.study",
-    "nwr.services.tools.bench",
+    "nwr.services.tools.study.main",
+    "nwr.services.tools.bench.main",
     "nwr.services.tools.certs",
 ]
 

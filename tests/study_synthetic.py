@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from nwr.common.questionnaire import Questionnaire
-from nwr.services.tools.study import orders
-from nwr.services.tools.study_store import ConditionForm, FinalForm, Rating, recording_name
+from nwr.services.tools.study.main import orders
+from nwr.services.tools.study.store import ConditionForm, FinalForm, Rating, recording_name
 
 CONDITIONS = ("uniform", "location", "cartesian")
 

@@ -19,7 +19,9 @@ from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
 from nwr.services.gateway.core import Gateway, SimSkin
-from nwr.services.tools import bench, bench_core, bench_ros1
+from nwr.services.tools.bench import core as bench_core
+from nwr.services.tools.bench import main as bench
+from nwr.services.tools.bench import ros1 as bench_ros1
 
 DESC = load_description()
 MS = 1_000_000
@@ -237,7 +239,7 @@ def test_quick_bench_measures_every_configuration(tmp_path):
 @pytest.mark.parametrize("rate_hz", [25.0, 1000.0])
 def test_the_bare_chain_delivers_every_sample_through_three_hops(tmp_path, rate_hz):
     from nwr.common.config import ZenohSection
-    from nwr.services.tools import bench_bare
+    from nwr.services.tools.bench import bare as bench_bare
 
     run = bench_bare.measure(ZenohSection(base_port=18140 + int(rate_hz) % 7), rate_hz, 2.0, tmp_path)
     assert run.sent == round(2.0 * rate_hz) and run.received == run.sent
@@ -245,14 +247,14 @@ def test_the_bare_chain_delivers_every_sample_through_three_hops(tmp_path, rate_
 
 
 def test_the_in_process_chain_is_the_floor():
-    from nwr.services.tools import bench_bare
+    from nwr.services.tools.bench import bare as bench_bare
 
     floor = bench_bare.percentiles(bench_bare.in_process(200))
     assert 0.0 < floor["p50"] <= floor["p99"] < 5.0  # encode, decode and build three messages
 
 
 def test_the_strategies_bench_times_every_reflex_cycle_against_the_cartesian_one(monkeypatch):
-    from nwr.services.tools import bench_strategies
+    from nwr.services.tools.bench import strategies as bench_strategies
 
     monkeypatch.setattr(bench_strategies, "POSES_S", (0.0,))
     monkeypatch.setattr(bench_strategies, "GAINS", (1.0,))

@@ -1,4 +1,4 @@
-"""The bench's ROS 1 chain (nwr.services.tools.bench_ros1): whether it can run, its messages' sizes, and a real run
+"""The bench's ROS 1 chain (nwr.services.tools.bench.ros1): whether it can run, its messages' sizes, and a real run
 on a rosmaster of its own (the system's Python with rospy), every sample through the three hops."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import msgspec
 import pytest
 from ros_support import free_port, require
 
-from nwr.services.tools import bench_bare, bench_ros1
+from nwr.services.tools.bench import bare as bench_bare
+from nwr.services.tools.bench import ros1 as bench_ros1
 
 
 def test_without_rosmaster_on_the_path_the_chain_says_why_in_one_line(tmp_path: Path) -> None:

@@ -23,7 +23,7 @@ from nwr.common import messages as m
 from nwr.common.config import load_profile
 from nwr.common.robot import DEFAULT_DESCRIPTION, RobotModel, load_description
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits, row_norms
-from nwr.services.tools import bench_tracking as bench
+from nwr.services.tools.bench import tracking as bench
 
 UR10E = RobotModel(load_description())
 A_MAX = np.array(UR10E.desc.a_max) * 0.9

@@ -9,7 +9,7 @@ import pytest
 
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import read_recording
-from nwr.services.tools.study import ORDERS, block_path, conditions_of, order_of
+from nwr.services.tools.study.main import ORDERS, block_path, conditions_of, order_of
 
 
 def test_orders_are_a_latin_square():

@@ -13,8 +13,8 @@ from study_synthetic import condition_forms, final_forms, ratings_of
 from nwr.common.errors import ConfigError, StudyError
 from nwr.common.questionnaire import QUESTIONNAIRE_PATH, load_questionnaire, parse_questionnaire
 from nwr.services.cli import main
-from nwr.services.tools import study_analysis as sa
-from nwr.services.tools.study_store import ConditionForm, FinalForm, Store, decode_form
+from nwr.services.tools.study import analysis as sa
+from nwr.services.tools.study.store import ConditionForm, FinalForm, Store, decode_form
 
 Q, Q_TEXT = load_questionnaire()
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from study_synthetic import CONDITIONS, condition_forms, final_forms
 
-from nwr.services.tools import study_analysis as sa
-from nwr.services.tools.study import orders
-from nwr.services.tools.study_store import ConditionForm, FinalForm, Store
-from nwr.services.tools.study_web import serve
+from nwr.services.tools.study import analysis as sa
+from nwr.services.tools.study.main import orders
+from nwr.services.tools.study.store import ConditionForm, FinalForm, Store
+from nwr.services.tools.study.web import serve
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

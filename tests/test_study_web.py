@@ -15,8 +15,8 @@ with warnings.catch_warnings():
     from starlette.testclient import TestClient
 
 from nwr.common.errors import StudyError
-from nwr.services.tools.study_store import Store
-from nwr.services.tools.study_web import create_app, serve
+from nwr.services.tools.study.store import Store
+from nwr.services.tools.study.web import create_app, serve
 
 ORDER = ("location", "cartesian", "uniform")  # the paper's order 2
 

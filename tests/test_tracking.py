@@ -19,7 +19,7 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight
 from nwr.services.bridge.core import BridgeCore
 from nwr.services.bridge.envelope import brake, make_envelope, stop_extent
-from nwr.services.tools import bench_tracking as bench
+from nwr.services.tools.bench import tracking as bench
 
 DESC = load_description()
 MODEL = RobotModel(DESC)

@@ -5,7 +5,7 @@ exactly as ``nwr up`` connects them (the embedded mesh of peers on loopback,
 or clients of a local ``nwr router``), with the simulated skin and bridge
 and the recorder running. A generated touch script touches every region in
 turn, with sub-threshold touches between the reflex-causing ones. From the
-recording (:mod:`nwr.services.tools.bench_core`): reflex onset, sample latency and
+recording (:mod:`nwr.services.tools.bench.core`): reflex onset, sample latency and
 per-hop latencies; the lower bound (the same cores chained in this process
 on the same skin samples); cost (CPU time and peak RSS per service, from
 /proc, and messages lost per key from sequence gaps); the 500 Hz loops'
@@ -13,14 +13,14 @@ timing (from the Rate summaries the services log at exit). Each
 configuration runs ``--reps`` times, interleaved, and the table reports the
 median of each statistic over the repetitions.
 
-The baseline (:mod:`nwr.services.tools.bench_bare`): right after each run,
+The baseline (:mod:`nwr.services.tools.bench.bare`): right after each run,
 the same three hops as a bare chain of zenoh-python processes with the
 pipeline's Zenoh configuration, messages and rate, and no other work; every
 onset figure is also given as a ratio to it, measured in the same
 repetition (on a shared machine the ratios hold better than the absolute
 figures), with the same chain as function calls in one process as the floor.
 Where Debian's ROS 1 is installed (rospy, rosmaster), the same chain as
-rospy nodes (:mod:`nwr.services.tools.bench_ros1`) runs after each run of
+rospy nodes (:mod:`nwr.services.tools.bench.ros1`) runs after each run of
 the embedded mesh too: a lab's older stack in the same table.
 
 ``--cpus`` pins the bench and every process it starts to a set of CPUs:
@@ -63,9 +63,10 @@ from nwr.common.robot import load_description
 from nwr.services.pipeline.graph import ROUTER, Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_router
 from nwr.services.recorder.disk import SessionRecorder
-from nwr.services.tools import bench_bare, bench_ros1
-from nwr.services.tools.bench_bare import proc_cost
-from nwr.services.tools.bench_core import (
+from nwr.services.tools.bench import bare as bench_bare
+from nwr.services.tools.bench import ros1 as bench_ros1
+from nwr.services.tools.bench.bare import proc_cost
+from nwr.services.tools.bench.core import (
     lower_bound,
     match_traces,
     median_over,
@@ -779,7 +780,7 @@ def _in_process(args: argparse.Namespace, name: str,
 
 def run_tracking(args: argparse.Namespace) -> int:
     """``nwr bench --tracking``: the tracker's figures (:mod:`.bench_tracking`), one row per session and version."""
-    from nwr.services.tools import bench_tracking
+    from nwr.services.tools.bench import tracking as bench_tracking
 
     return _in_process(args, "tracking", lambda profile, show: bench_tracking.run(
         profile, against=args.against, jitter_ms=args.jitter_ms, print_row=show))
@@ -787,7 +788,7 @@ def run_tracking(args: argparse.Namespace) -> int:
 
 def run_strategies(args: argparse.Namespace) -> int:
     """``nwr bench --strategies``: each strategy's cost per planner cycle (:mod:`.bench_strategies`)."""
-    from nwr.services.tools import bench_strategies
+    from nwr.services.tools.bench import strategies as bench_strategies
 
     return _in_process(args, "strategies", lambda profile, show: bench_strategies.run(profile, print_row=show))
 

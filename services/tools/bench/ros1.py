@@ -1,13 +1,13 @@
 """An optional baseline for the bench: the bare chain's three hops in ROS 1 (rospy).
 
-The same shape as :mod:`nwr.services.tools.bench_bare`: four processes
+The same shape as :mod:`nwr.services.tools.bench.bare`: four processes
 (gateway -> gain -> planner -> bridge), each stage taking what it receives
 and publishing the next message from its subscriber callback; the gateway
 publishes at the skin's rate, the bridge stamps each command's arrival. The
 chain's latency is the skin sample's stamp (at the gateway) to that arrival.
 :func:`measure` starts a ``rosmaster --core`` of its own on 127.0.0.1
 (``ROS_MASTER_URI``, ``ROS_IP`` and ``ROS_HOSTNAME`` on loopback, so no node
-addresses another host) and returns a :class:`~nwr.services.tools.bench_bare.BareRun`.
+addresses another host) and returns a :class:`~nwr.services.tools.bench.bare.BareRun`.
 
 rospy lives in the system's Python (``/usr/bin/python3``, Debian's
 ``python3-rospy``), not in the project's environment, and the system's
@@ -17,7 +17,7 @@ library, rospy and std_msgs. What differs from the bare chain, on purpose:
 
 - Sizes, not encodings. Each message is a ``std_msgs/UInt8MultiArray`` whose
   data is as long as the pipeline's message encoded with msgspec (the bare
-  chain's :func:`~nwr.services.tools.bench_bare.sample`, ``pain`` and
+  chain's :func:`~nwr.services.tools.bench.bare.sample`, ``pain`` and
   ``command`` at the run's last sequence number: within a few bytes of
   every other one). The parent (the project's Python) encodes one of each
   into ``<work>/<message>.bin``; a role writes the sequence number and
@@ -26,7 +26,7 @@ library, rospy and std_msgs. What differs from the bare chain, on purpose:
   bytes (an empty layout and the array's length) to the bare chain's payload.
 - Trivial compute. A stage unpacks the header and packs the next one: well
   under a microsecond, where the bare chain's msgspec decode, build and
-  encode take a few (:func:`~nwr.services.tools.bench_bare.in_process`).
+  encode take a few (:func:`~nwr.services.tools.bench.bare.in_process`).
   The difference favours ROS slightly.
 - Stamps are ``time.monotonic_ns`` in every process (one clock per machine
   on Linux), as in the bare chain.
@@ -50,7 +50,7 @@ arrivals ``[seq, stamp_ns, arrival_ns]`` and the gateway's figures (sent,
 publishing wall time). The CPU % is the four roles and the rosmaster over
 the gateway's publishing time, % of one core, as the bare chain's.
 
-``python -m nwr.services.tools.bench_ros1 --rate 25 --duration 5`` runs it
+``python -m nwr.services.tools.bench.ros1 --rate 25 --duration 5`` runs it
 once and prints the figures. A role is
 ``/usr/bin/python3 bench_ros1.py ROLE --rate R --duration D --work DIR --master-pid PID``.
 """
@@ -73,7 +73,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from nwr.services.tools.bench_bare import BareRun
+    from nwr.services.tools.bench.bare import BareRun
 
 SYSTEM_PYTHON = "/usr/bin/python3"  # the interpreter with rospy (Debian's python3-rospy)
 ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source last
@@ -266,7 +266,7 @@ def templates(n: int) -> dict[str, bytes]:
     """The bare chain's three messages at sequence number ``n - 1``, encoded as the pipeline encodes them."""
     import msgspec
 
-    from nwr.services.tools.bench_bare import command, pain, sample
+    from nwr.services.tools.bench.bare import command, pain, sample
 
     encode = msgspec.msgpack.Encoder().encode
     now = time.monotonic_ns()
@@ -287,7 +287,7 @@ def measure(rate_hz: float, duration_s: float, work: Path, port: int) -> BareRun
     Raises RuntimeError when ROS 1 is missing (:func:`available`), the port is taken, or a role fails.
     Everything it starts is stopped before it returns.
     """
-    from nwr.services.tools.bench_bare import BareRun
+    from nwr.services.tools.bench.bare import BareRun
 
     why = available()
     if why is not None:
@@ -402,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         r = role_parser.parse_args(argv)
         return run_role(r.role, rate_hz=r.rate, duration_s=r.duration, work=r.work, master_pid=r.master_pid)
 
-    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench_ros1",
+    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench.ros1",
                                      description="The bench's ROS 1 chain, once: latency p50/p99, lost, CPU.")
     parser.add_argument("--rate", type=float, default=25.0, help="samples per second (default 25)")
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of publishing (default 5)")
@@ -413,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     if why is not None:
         print(f"ros1 chain: {why}", file=sys.stderr)
         return 2
-    from nwr.services.tools.bench_bare import percentiles
+    from nwr.services.tools.bench.bare import percentiles
 
     port = args.port or free_port()
     with tempfile.TemporaryDirectory(prefix="nwr-bench-ros1-") as tmp:

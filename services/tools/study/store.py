@@ -25,7 +25,7 @@ is refused on opening.
 
 The store also holds each session's plan (``nwr study``: a participant's
 order and conditions, block by block, and when each block was recorded), so
-the browser forms (``nwr.services.tools.study_web``) know a block's condition
+the browser forms (``nwr.services.tools.study.web``) know a block's condition
 and order without anyone typing them.
 
 Evolution: a change to the tables bumps :data:`SCHEMA_VERSION`; an older

@@ -1,6 +1,6 @@
 """The study's questionnaires as a local web page (``nwr study --forms``, ``nwr study forms``).
 
-A Starlette app over one answer store (:mod:`nwr.services.tools.study_store`):
+A Starlette app over one answer store (:mod:`nwr.services.tools.study.store`):
 the index shows the running session's participant and the form that is due;
 ``/p/<participant>/block/<n>`` is the per-condition form of a recorded block
 (Godspeed semantic differentials and the custom Likert items), and
@@ -36,7 +36,7 @@ from starlette.templating import Jinja2Templates
 
 from nwr.common.errors import StudyError
 from nwr.common.questionnaire import QUESTIONNAIRE_PATH, Questionnaire
-from nwr.services.tools.study_store import NO_PREFERENCE, Block, ConditionForm, FinalForm, Store
+from nwr.services.tools.study.store import NO_PREFERENCE, Block, ConditionForm, FinalForm, Store
 
 log = logging.getLogger(__name__)
 

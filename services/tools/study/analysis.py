@@ -33,7 +33,7 @@ from scipy import stats
 
 from nwr.common.errors import NwrError
 from nwr.common.questionnaire import Questionnaire, Scale
-from nwr.services.tools.study_store import NO_PREFERENCE, FinalAnswer, Rating, Store
+from nwr.services.tools.study.store import NO_PREFERENCE, FinalAnswer, Rating, Store
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The pure pieces of ``nwr bench``: statistics, trace matching, the lower-bound chain, the touch script.
 
-Nothing here starts a process or opens a network session; :mod:`nwr.services.tools.bench`
+Nothing here starts a process or opens a network session; :mod:`nwr.services.tools.bench.main`
 does that and hands the recordings to these functions.
 
 Trace matching, per recording (all stamps on the machine's monotonic clock):

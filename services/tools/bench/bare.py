@@ -16,7 +16,7 @@ is the same chain as function calls (the lower bound of any chain).
 
 Every process reads the same clock (``time.monotonic_ns``, one per machine
 on Linux), so stamps from different processes compare directly. A role is
-``python -m nwr.services.tools.bench_bare ROLE --profile P ...``; the
+``python -m nwr.services.tools.bench.bare ROLE --profile P ...``; the
 bridge writes its figures as JSON when the gateway's end message arrives.
 """
 
@@ -209,7 +209,7 @@ def measure(cfg: ZenohSection, rate_hz: float, duration_s: float, work: Path,
     for stale in work.glob("*.json"):
         stale.unlink()
     procs: dict[str, subprocess.Popen[bytes]] = {}
-    base = [sys.executable, "-m", "nwr.services.tools.bench_bare"]
+    base = [sys.executable, "-m", "nwr.services.tools.bench.bare"]
     if cfg.secure:
         raise ValueError("the bare chain runs without TLS: measure with an insecure profile")
     zargs = ["--base-port", str(cfg.base_port), "--host", cfg.host, "--mode", cfg.mode]
@@ -272,7 +272,7 @@ def percentiles(values: list[float]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench_bare",
+    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench.bare",
                                      description="One role of the bench's bare chain (started by nwr bench).")
     parser.add_argument("role", choices=ROLES)
     parser.add_argument("--base-port", type=int, required=True)

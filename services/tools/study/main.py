@@ -46,10 +46,10 @@ from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
 from nwr.services.planner import strategies
-from nwr.services.tools.study_store import STORE_NAME, Store, recording_name
+from nwr.services.tools.study.store import STORE_NAME, Store, recording_name
 
 if TYPE_CHECKING:
-    from nwr.services.tools.study_web import FormServer
+    from nwr.services.tools.study.web import FormServer
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         store.plan(args.participant, args.order, order, replace=args.overwrite)
         if args.forms_port is not None:
-            from nwr.services.tools.study_web import serve
+            from nwr.services.tools.study.web import serve
 
             forms = serve(store.path, args.forms_host, args.forms_port)
             print(f"questionnaires for participant {args.participant}: {forms.url}", flush=True)
@@ -241,7 +241,7 @@ def _store_path(args: argparse.Namespace) -> Path:
 
 
 def _submit(args: argparse.Namespace) -> int:
-    from nwr.services.tools.study_store import Store, decode_form
+    from nwr.services.tools.study.store import Store, decode_form
 
     with Store(_store_path(args), args.questionnaire) as store:
         for path in args.forms:
@@ -253,7 +253,7 @@ def _submit(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from nwr.services.tools.study_store import Store
+    from nwr.services.tools.study.store import Store
 
     with Store(_store_path(args), create=False) as store:
         n = store.export_csv(args.csv)
@@ -263,7 +263,7 @@ def _export(args: argparse.Namespace) -> int:
 
 def _forms(args: argparse.Namespace) -> int:
     from nwr.common.errors import StudyError
-    from nwr.services.tools.study_web import serve
+    from nwr.services.tools.study.web import serve
 
     path = _store_path(args)
     if not path.exists():
@@ -281,7 +281,7 @@ def _forms(args: argparse.Namespace) -> int:
 
 def _analyze(args: argparse.Namespace) -> int:
     from nwr.common.robot import load_description
-    from nwr.services.tools import study_analysis
+    from nwr.services.tools.study import analysis as study_analysis
 
     store = _store_path(args)
     out = Path(args.out) if args.out else store.parent / "study-analysis"
@@ -367,5 +367,5 @@ def study_analysis_doc() -> str:
     """The analysis module's docstring, for ``--help`` (without importing scipy and matplotlib at start-up)."""
     import ast
 
-    source = Path(__file__).with_name("study_analysis.py").read_text(encoding="utf-8")
+    source = Path(__file__).with_name("analysis.py").read_text(encoding="utf-8")
     return (ast.get_docstring(ast.parse(source)) or "").split("\n\n", 1)[1]
