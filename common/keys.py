@@ -39,6 +39,8 @@ never dropped: a re-simulation of the session needs every touch.
 from __future__ import annotations
 
 import fnmatch
+import re
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -171,6 +173,47 @@ def journal(service: str) -> str:
 
 def alive(service: str) -> str:
     return f"alive/{service}"
+
+
+# ------------------------------------------------------------------------------ who owns the robot's keys
+
+_CHUNK = re.compile(r"[^A-Za-z0-9_.-]")
+NO_INSTANCE = "-"  # a process started alone (nwr run), not by a launcher
+
+
+def key_chunk(text: str) -> str:
+    """``text`` as one chunk of a key (letters, digits, '_', '.', '-'; anything else '_'; empty: '-')."""
+    return _CHUNK.sub("_", text) or NO_INSTANCE
+
+
+def owner(service: str, instance: str, host: str, pid: int, since_s: int) -> str:
+    """The liveliness token a pipeline's service holds while it drives the robot's keys:
+    ``owner/<service>/<instance>/<host>/<pid>/<since>`` (``since``: Unix time, s)."""
+    return f"owner/{key_chunk(service)}/{key_chunk(instance)}/{key_chunk(host)}/{int(pid)}/{int(since_s)}"
+
+
+@dataclass(frozen=True)
+class Owner:
+    """A live service of some pipeline instance, from its owner token."""
+
+    service: str
+    instance: str  # NO_INSTANCE: started alone
+    host: str
+    pid: int
+    since_s: int
+
+    def describe(self) -> str:
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(self.since_s))
+        run = "started alone" if self.instance == NO_INSTANCE else f"pipeline {self.instance}"
+        return f"{self.service} ({run}, host {self.host}, pid {self.pid}, since {since})"
+
+
+def parse_owner(relative: str) -> Owner | None:
+    """The owner a token's relative key names; None for anything else."""
+    parts = relative.split("/")
+    if len(parts) != 6 or parts[0] != "owner" or not (parts[4].isdigit() and parts[5].isdigit()):
+        return None
+    return Owner(parts[1], parts[2], parts[3], int(parts[4]), int(parts[5]))
 
 
 def matches(relative: str, pattern: str) -> bool:

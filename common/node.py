@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -56,6 +58,18 @@ def relabel_logging(service: str) -> None:
     """Label this process's log lines with ``service`` (a planner's name is known once its profile is)."""
     for handler in logging.getLogger().handlers:
         handler.setFormatter(logging.Formatter(LOG_FORMAT.format(service=service), datefmt="%H:%M:%S"))
+
+
+# A pipeline's instance: the launcher (nwr up, demo, replay, study, bench) sets it for every process it starts,
+# so that a service it restarts finds its own pipeline's tokens, not another's.
+INSTANCE_ENV = "NWR_INSTANCE"
+# How long a starting service asks who else drives its robot, s (the answers come as soon as the peers reply).
+OWNER_QUERY_S = 1.0
+
+
+def pipeline_instance() -> str:
+    """This process's pipeline instance (``NWR_INSTANCE``), or keys.NO_INSTANCE for a process started alone."""
+    return keys.key_chunk(os.environ.get(INSTANCE_ENV, ""))
 
 
 def endpoints(cfg: ZenohSection) -> list[str]:
@@ -206,7 +220,11 @@ class Node:
         listen_slot: str | None = None,
         token: bool = True,
         door: Door | None = None,
+        exclusive: bool = False,
     ) -> None:
+        """``exclusive``: this process is one of the pipeline's services on ``robot``; it refuses to start (a
+        ConfigError naming the other) while a process of another pipeline instance is that robot's ``service``
+        (:meth:`claim`)."""
         self.service = service
         self.door = door  # the semantic checks of every message subscribed to (None: decoding only)
         self.refused = 0
@@ -225,6 +243,13 @@ class Node:
             log.info("%s: port %d of the %s slot is taken: listening on a free port", service,
                      zcfg.base_port + SLOTS[listen_slot], listen_slot)
             self.session = zenoh.open(zenoh_config(zcfg, None))
+        self._owner_token: Any = None
+        if exclusive:
+            try:
+                self.claim()
+            except ConfigError:
+                self.session.close()
+                raise
         self._publishers: list[Any] = []
         self._subscribers: list[Any] = []
         self._diag_seq = 0
@@ -242,6 +267,30 @@ class Node:
         self._journal: tuple[Recording, threading.Lock, Batcher, Callable[[Any], None]] | None = None
         self._journal_thread: threading.Thread | None = None
         self._journal_stop = threading.Event()
+
+    def owners(self, service: str = "*", timeout_s: float = OWNER_QUERY_S) -> list[keys.Owner]:
+        """The live services of every pipeline on this robot (``service``: one name, or ``*`` for all)."""
+        found = []
+        for reply in self.session.liveliness().get(keys.key(self.robot, f"owner/{service}/**"), timeout=timeout_s):
+            if reply.ok is not None:
+                owner = keys.parse_owner(keys.relative_key(self.robot, str(reply.ok.key_expr)))
+                if owner is not None:
+                    found.append(owner)
+        return sorted(found, key=lambda o: (o.service, o.since_s))
+
+    def claim(self) -> None:
+        """Drive this robot's ``service`` for this pipeline instance (its owner token), or refuse: a ConfigError
+        naming the live one of another pipeline (a process started alone refuses beside any)."""
+        instance = pipeline_instance()
+        others = [o for o in self.owners(self.service) if instance == keys.NO_INSTANCE or o.instance != instance]
+        if others:
+            raise ConfigError(
+                f"robot {self.robot!r} is already driven: its {others[0].describe()} is alive on "
+                f"{keys.prefix(self.robot)}/. Two pipelines on one robot's keys would mix their commands: stop "
+                "that pipeline, or run this one under another robot name (NWR_ROBOT=NAME or [robot] name; on one "
+                "machine, another [zenoh] base_port too)")
+        self._owner_token = self.session.liveliness().declare_token(keys.key(
+            self.robot, keys.owner(self.service, instance, socket.gethostname(), os.getpid(), int(time.time()))))
 
     def declare_token(self) -> None:
         """Announce this service (``alive/<service>``); a Node declares it at once unless ``token=False``."""

@@ -149,3 +149,17 @@ def test_rate_wait_sleeps_through_cycles_until_woken():
     stop = threading.Event()
     stop.set()
     assert not rate.wait(stop)
+
+
+def test_an_owner_token_names_its_service_pipeline_host_pid_and_start() -> None:
+    from nwr.common import keys
+
+    token = keys.owner("planner-cart", "lab pc/1", "host.local", 42, 1_795_000_000)
+    assert token == "owner/planner-cart/lab_pc_1/host.local/42/1795000000"
+    owner = keys.parse_owner(token)
+    assert owner == keys.Owner("planner-cart", "lab_pc_1", "host.local", 42, 1_795_000_000)
+    assert "pipeline lab_pc_1, host host.local, pid 42" in owner.describe()
+    assert keys.parse_owner(keys.owner("bridge", "", "h", 1, 2)).instance == keys.NO_INSTANCE
+    assert "started alone" in keys.Owner("bridge", keys.NO_INSTANCE, "h", 1, 2).describe()
+    for bad in ("alive/bridge", "owner/bridge/x/h/pid/2", "owner/bridge/x/h/1"):
+        assert keys.parse_owner(bad) is None

@@ -96,7 +96,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     lock = threading.Lock()  # the handlers, the control loop and the journal's batches
     try:
         with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="bridge", token=False,
-                  door=Door.of(profile)) as node:
+                  door=Door.of(profile), exclusive=True) as node:
             node.install_signal_handlers()
             bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
 

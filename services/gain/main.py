@@ -24,7 +24,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         profile.gain.model = args.model
     lock = threading.Lock()  # the journal's batches are taken under it
     with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain", token=False,
-              door=Door.of(profile)) as node:
+              door=Door.of(profile), exclusive=True) as node:
         node.install_signal_handlers()
         wiring = node.wire(GainWiring, profile, lock)
         # On Zenoh's network thread (direct): the handler never waits, and this

@@ -72,7 +72,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     script = load_script(script_name) if script_name else None
     lock = threading.Lock()  # the state handler, the loop and the journal's batches
     with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway",
-              door=Door.of(profile)) as node:
+              door=Door.of(profile), exclusive=True) as node:
         node.install_signal_handlers()
         wiring = node.wire(GatewayWiring, profile, lock, script=script, follow_target_s=args.follow_target)
 

@@ -190,7 +190,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     pmap = pad_map(cfg.pads, [p.name for p in desc.pads], scale_hpa=cfg.scale_hpa, offset_hpa=cfg.offset_hpa)
     master_uri = rosgraph.get_master_uri()
     lock = threading.Lock()
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile)) as node:
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile),
+              exclusive=True) as node:
         node.install_signal_handlers()
         wiring = node.wire(GatewayWiring, profile, lock, script=None)
 

@@ -68,14 +68,35 @@ def wait_for_router(unit: Unit, proc: subprocess.Popen[bytes]) -> None:
     wait_listening(endpoint, proc)
 
 
+# This launcher's pipeline instance, which every process it starts carries (NWR_INSTANCE): a service it
+# restarts finds its own pipeline's owner tokens, and refuses another's (nwr.common.node.Node.claim).
+INSTANCE = os.environ.get("NWR_INSTANCE") or f"{socket.gethostname()}.{os.getpid()}.{int(time.time())}"
+
+
 def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None, *,
           pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:
     """Start one unit; its output goes to ``log_path`` if given, else to this process's; ``pass_fds``: inherited."""
     cmd = [sys.executable, "-m", "nwr.services.cli", "--profile", profile, "--log-level", log_level, *unit.command()]
+    env = {**os.environ, "NWR_INSTANCE": INSTANCE}
     if log_path is None:
-        return subprocess.Popen(cmd, pass_fds=pass_fds)
+        return subprocess.Popen(cmd, pass_fds=pass_fds, env=env)
     with log_path.open("wb") as out:
-        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, pass_fds=pass_fds)
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, pass_fds=pass_fds, env=env)
+
+
+def check_robot_free(profile: Profile) -> None:
+    """Before a launch: a NwrError naming every live service of another pipeline on the profile's robot."""
+    if profile.zenoh.secure:
+        return  # the launcher has no certificate of its own: each service checks for itself (Node.claim)
+    from nwr.common.node import Node
+
+    with Node("launcher", profile.robot.name, profile.zenoh, token=False) as node:
+        others = node.owners()
+    if others:
+        raise NwrError(
+            f"robot {profile.robot.name!r} is already driven by another pipeline: "
+            f"{'; '.join(o.describe() for o in others)}. Stop it, or run this one under another robot name "
+            "(NWR_ROBOT=NAME or [robot] name; on one machine, another [zenoh] base_port too)")
 
 
 def stop_all(procs: Mapping[str, subprocess.Popen[bytes]], timeout_s: float = 10.0) -> dict[str, int]:
@@ -149,6 +170,7 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
     gone, and the launcher says loudly that the recording has a hole); with ``restart=False`` every unit is
     stopped instead, and 1 returned.
     """
+    check_robot_free(profile)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     by_label = {unit.label: unit for unit in units(layout)}
     started: dict[str, float] = {}

@@ -85,7 +85,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     # token of the active one.
     relabel_logging(keys.planner_service(cfg.name))  # several planners run at once: each line says which
     with Node(keys.planner_service(cfg.name), profile.robot.name, profile.zenoh, listen_slot="planner",
-              token=False, door=Door.of(profile)) as node:
+              token=False, door=Door.of(profile), exclusive=True) as node:
         node.install_signal_handlers()
         wiring = node.wire(PlannerWiring, profile, lock)
         planner = wiring.planner
