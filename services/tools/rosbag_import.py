@@ -17,9 +17,9 @@ unreadable: bit flips, a cut), no skin topic, a skin topic whose type has no
 ``values_field``, a joint topic that is not JointState. A message's own
 problems (wrong length, non-finite or out-of-range values, a joint state
 missing a joint, or with a position or velocity that is not finite or beyond
-the robot description's limits) are counted and reported at the end, naming
-the topic, the joint and the first such value; a bad value makes its pad
-invalid in that sample, such a joint state is skipped.
+the robot description's limits) are counted and reported at the end (for
+joint states: by topic, with the joint and the value of the first); a bad
+value makes its pad invalid in that sample, such a joint state is skipped.
 
 The recording replays like any other (``nwr replay --fast --reflex NAME``; a
 real skin's recording has no touch ground truth: open loop only) and compares
