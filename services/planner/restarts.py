@@ -12,13 +12,13 @@ received), never on the message's own stamp, which a forged stream sets.
   (time hysteresis), counted as a flicker.
 - A token bucket per pad and one over every pad limit the (re)starts; a
   contact ``escalate_at_once`` stronger than the current reflex passes the
-  pad's own bucket without spending its tokens (at most 1 / escalate_at_once
-  times in a row: the gain is at most 1). A start from the task is never refused (it stops the
-  task) but spends tokens like any other.
+  pad's own bucket without spending its tokens (the gain is at most 1, and
+  the overall bucket still applies). A start from the task is never refused
+  (it stops the task) but spends tokens like any other.
 - A new contact refused by a bucket stays pending until it restarts the
   reflex or its touch ends: the next pain message that shows it tries again.
 
-Pure: numbers in, booleans and diagnostics (level, code, message) out.
+Pure: numbers in, booleans and diagnostics (level, code, message) out; each diagnostic is also logged.
 """
 
 from __future__ import annotations
@@ -128,9 +128,11 @@ class Restarts:
                  f"{cfg.interval_s:g} s)")
         if self._note("reflex_rate_limited", pad, now_ns,
                       f"a {'new' if new else 'stronger'} contact on pad {self.pads[pad]} (G = {gain:.3f}, the "
-                      f"reflex's {current:.3f}) did not restart the reflex: {limit}; the next pain message that "
-                      f"still shows it restarts it once allowed ({int(self.refused[pad])} refused since the last "
-                      "report). A pad pressed this often is a fault or a forged skin stream"):
+                      f"reflex's {current:.3f}) waits to restart the reflex: {limit}; the first pain message that "
+                      "still shows it once allowed restarts it, one planner.restarts.escalate_at_once "
+                      f"({cfg.escalate_at_once:g}) stronger than the reflex at once ({int(self.refused[pad])} "
+                      "waited since the last report): a long escalating press, a faulty pad or a forged skin "
+                      "stream"):
             self.refused[pad] = 0
         return False
 
