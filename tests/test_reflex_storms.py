@@ -174,13 +174,23 @@ def test_a_new_contact_kept_waiting_by_the_overall_limit_restarts_once_allowed()
     row = [0.0] * N_PADS
     row[FOREARM], row[WRIST] = 0.5, 0.6
     assert d.pain(d.t + 40_000_000, row) is not None  # a new pad: the last token
-    row[DESC.pad("elbow_outer").id] = 0.7
+    row[DESC.pad("elbow_outer").id] = 0.62  # the strongest, but not by update_margin: only new
     assert d.pain(d.t + 40_000_000, row) is None  # a third pad at once: refused, pending
     notes = d.notes("reflex_rate_limited")
     assert len(notes) == 1 and "elbow_outer" in notes[0] and "overall" in notes[0]
     refused_at = d.t
     started = d.p.reflex_count
     while d.p.reflex_count == started:
-        d.pain(d.t + 40_000_000, row)  # the same contact, no stronger: it restarts once a token is back
+        d.pain(d.t + 40_000_000, row)  # the same contact, not stronger: still new, it restarts once allowed
     assert d.p.reflex is not None and d.p.reflex.contact.name == "elbow_outer"
     assert d.t - refused_at <= 500_000_000  # within interval_s
+
+
+def test_a_start_from_the_task_is_never_refused_even_with_no_token_left() -> None:
+    d = Driver()
+    d.p.restarts.overall.tokens = 0.0
+    d.p.restarts.buckets[WRIST].tokens = 0.0
+    t0 = d.t + 40_000_000
+    assert d.p.mode == "TASK"
+    assert d.press(WRIST, [0.3, 0.0], 40_000_000, start_ns=t0) == 1
+    assert d.first_commands[0][0] == t0 and d.p.started == 1
