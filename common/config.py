@@ -234,6 +234,35 @@ class WholeArmSection(_Section):
     regularization: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 1e-4
 
 
+class RestartSection(_Section):
+    # Reflex storms: when a new or stronger contact may (re)start a reflex
+    # (docs/reflexes.md, "Restarts"). A start from the task is never delayed
+    # or refused: any contact with a gain stops the task at its first sample.
+    # A pad's touch ends only once its gain has been 0 for gap_s: a pad that
+    # flickers between pressed and not pressed faster than that is one touch
+    # (not a new contact at each press). 0: every press is a new contact.
+    gap_s: Annotated[float, msgspec.Meta(ge=0, le=0.5)] = 0.1
+    # A contact this much stronger than the current reflex's gain restarts it
+    # at once, whatever the pad's own rate limit says (the overall one still
+    # applies): the reflex's gain never lags the touch by more than this.
+    escalate_at_once: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.25
+    # Rate limit per pad (a token bucket): the reflexes one pad may start or
+    # restart at once, then one per pad_interval_s. The demo's firm press
+    # escalates in 6 samples of 40 ms.
+    pad_burst: Annotated[int, msgspec.Meta(ge=1, le=20)] = 6
+    pad_interval_s: Annotated[float, msgspec.Meta(gt=0, le=5)] = 0.5
+    # Rate limit over every pad: restarts at once, then one per interval_s.
+    # A restart refused by either waits for the next pain message that still
+    # shows it (a new contact stays new until it restarts or its touch ends).
+    burst: Annotated[int, msgspec.Meta(ge=2, le=100)] = 12
+    interval_s: Annotated[float, msgspec.Meta(gt=0, le=5)] = 0.25
+    # A pad pressed again flicker_presses times within flicker_window_s, each
+    # time after a gap shorter than gap_s, is reported faulty on
+    # diag/planner-<name> (pad_flicker: once, then at most every 10 s).
+    flicker_presses: Annotated[int, msgspec.Meta(ge=2, le=1000)] = 5
+    flicker_window_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
+
+
 class PlannerSection(_Section):
     # Instance name: the planner publishes reflex/<name>/status and signs its
     # commands with it; the bridge follows the planner named active_planner.
@@ -317,6 +346,7 @@ class PlannerSection(_Section):
     # CAP_SYS_NICE or an rtprio limit; without it, a warning and no change.
     realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
     whole_arm: WholeArmSection = msgspec.field(default_factory=WholeArmSection)
+    restarts: RestartSection = msgspec.field(default_factory=RestartSection)
     task: TaskSection = msgspec.field(default_factory=TaskSection)
 
 
@@ -750,6 +780,13 @@ GUARDS: dict[str, Guard] = {
     "gain.thresholds_hpa": Guard("above", "hPa"),
     "gain.overrides.<pad>.thresholds_hpa": Guard("above", "hPa"),
     "planner.update_margin": Guard("above"),
+    # Reflex storms: how often a touch, or a forged skin stream, may restart a reflex.
+    "planner.restarts.gap_s": Guard("below", "s"),
+    "planner.restarts.escalate_at_once": Guard("above"),
+    "planner.restarts.pad_burst": Guard("above"),
+    "planner.restarts.pad_interval_s": Guard("below", "s"),
+    "planner.restarts.burst": Guard("above"),
+    "planner.restarts.interval_s": Guard("below", "s"),
     # How far and how fast a reflex moves the arm.
     "gain.pl3_gain": Guard("above"),
     "planner.q_max_deg": Guard("above", "deg"),

@@ -3,6 +3,8 @@ against two reflex services, and compares; and the bags it refuses."""
 
 from __future__ import annotations
 
+import logging
+import random
 import subprocess
 from pathlib import Path
 
@@ -120,7 +122,69 @@ def test_a_missing_bag_and_an_existing_output(bag: Path, tmp_path: Path, caplog:
     not_a_bag = tmp_path / "text.bag"
     not_a_bag.write_text("hello")
     assert cli.main(["import", str(not_a_bag), str(tmp_path / "y.mcap")]) == 2
-    assert "is no readable ROS 1 bag" in caplog.text
+    assert "is no ROS 1 bag: it does not begin with '#ROSBAG V2.0'" in caplog.text
+
+
+def _one_line_error(caplog: pytest.LogCaptureFixture) -> str:
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0].exc_info is None, caplog.text
+    message = errors[0].getMessage()
+    assert "\n" not in message and "Traceback" not in message
+    return message
+
+
+@pytest.mark.parametrize("head", [b"", b"#ROSBAG V2.0\n"])
+def test_a_garbage_file_is_one_line_and_a_non_zero_exit(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                                       head: bytes) -> None:
+    garbage = tmp_path / "garbage.bag"
+    garbage.write_bytes(head + random.Random(5).randbytes(20_000))
+    out = tmp_path / "x.mcap"
+    assert cli.main(["import", str(garbage), str(out)]) == 2
+    message = _one_line_error(caplog)
+    assert str(garbage) in message and ("is no ROS 1 bag" in message or "no readable ROS 1 bag" in message)
+    assert not out.exists() and not (tmp_path / "x.mcap.part").exists()
+
+
+def test_a_bag_with_bit_flips_imports_or_ends_in_one_line(bag: Path, tmp_path: Path,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    good = bag.read_bytes()
+    codes = []
+    for seed in range(12):
+        rng = random.Random(seed)
+        data = bytearray(good)
+        for _ in range(20):
+            i = rng.randrange(len(data))
+            data[i] ^= 1 << rng.randrange(8)
+        flipped = tmp_path / f"flipped-{seed}.bag"
+        flipped.write_bytes(bytes(data))
+        out = tmp_path / f"flipped-{seed}.mcap"
+        caplog.clear()
+        code = cli.main(["import", str(flipped), str(out)])  # never an exception
+        codes.append(code)
+        if code == 2:
+            assert "damaged" in _one_line_error(caplog) and not out.exists()
+    assert 2 in codes
+
+
+def test_joint_values_beyond_the_limits_or_not_finite_are_refused_by_name(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    require("rosbag", "rospy", "genpy", "sensor_msgs.msg")
+    bad = tmp_path / "bad-joints.bag"
+    proc = subprocess.run([SYSTEM_PYTHON, str(SCRIPTS / "write_bag.py"), str(bad), TOPIC, AIRSKIN_TYPE,
+                           AIRSKIN_DEFINITION, "11", str(PRESSED), "1.0", ",".join(DESC.joints), "1e300"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "bad-joints.mcap"
+    assert cli.main(["import", str(bad), str(out)]) == 0
+    report = capsys.readouterr().out
+    assert ("1 joint states skipped (/joint_states: positions beyond the joint limits), the first at "
+            "1700000000.500 s: elbow_joint = 1e+300 rad, its limits [-3.14159, 3.14159] rad") in report
+    assert "(/joint_states: non-finite positions), the first at 1700000000.510 s: wrist_1_joint = nan" in report
+    assert ("(/joint_states: velocities beyond the joint speed limits), the first at 1700000000.520 s: "
+            "shoulder_lift_joint = 1e+300 rad/s") in report
+    states = [r.message for r in read_recording(out)[0] if r.key == keys.ROBOT_STATE]
+    assert len(states) == 97
+    assert all(abs(q) < 4.0 for s in states for q in s.q) and all(abs(v) < 4.0 for s in states for v in s.dq)
 
 
 def test_a_bag_whose_messages_have_fewer_values_than_the_mapping(tmp_path: Path,

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import shutil
 from pathlib import Path
 
 import msgspec
@@ -14,6 +18,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Divergence, Playback, Recording
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
+from nwr.common.robot import DEFAULT_DESCRIPTION
 from nwr.services import cli
 from nwr.services.tools.replay import simulate
 from nwr.services.tools.verify import NO_JOURNAL, verify
@@ -150,3 +155,74 @@ def test_playback_refuses_what_the_live_run_did_not_do():
     short.now_ns()
     with pytest.raises(Divergence, match="1 times, the live run 2"):
         short.finish_entry()
+
+
+def with_description(records: list[Recorded], description: str) -> list[Recorded]:
+    """The records with every journal's configuration naming ``description`` as its robot description."""
+    out = []
+    for r in records:
+        if r.key.startswith("journal/") and r.message.seq == 0 and r.message.config:
+            config = json.loads(r.message.config)
+            config["profile"]["robot"]["description"] = description
+            r = Recorded(r.key, r.log_time_ns, msgspec.structs.replace(r.message, config=json.dumps(config)))
+        out.append(r)
+    return out
+
+
+def copy_robot(folder: Path, urdf: str | None = None) -> Path:
+    """The packaged UR10e's description copied into ``folder`` (its URDF entry replaced by ``urdf``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("ur10e.urdf", "skin.toml"):
+        shutil.copy(DEFAULT_DESCRIPTION.parent / name, folder / name)
+    text = DEFAULT_DESCRIPTION.read_text()
+    if urdf is not None:
+        text = re.sub(r'(?m)^urdf = ".*"$', f"urdf = {json.dumps(urdf)}", text)
+    (folder / "robot.toml").write_text(text)
+    return folder / "robot.toml"
+
+
+@pytest.mark.parametrize("where", ["/dev/zero", "outside", "urdf /dev/zero", "link to /dev/zero", "fifo"])
+def test_a_journal_naming_a_file_outside_the_recording_or_no_regular_file_is_refused(session, tmp_path, where,
+                                                                                     capsys):
+    records, _ = read_recording(session)
+    here = tmp_path / "session"
+    here.mkdir()
+    if where == "/dev/zero":
+        description = "/dev/zero"
+    elif where == "outside":
+        description = str(copy_robot(tmp_path / "elsewhere"))
+    elif where == "urdf /dev/zero":
+        description = str(copy_robot(here / "robot", urdf="/dev/zero"))
+    elif where == "link to /dev/zero":
+        (here / "robot.toml").symlink_to("/dev/zero")
+        description = str(here / "robot.toml")
+    else:
+        os.mkfifo(here / "robot.toml")  # opening it would wait for a writer for ever
+        description = str(here / "robot.toml")
+    path = rewrite(with_description(records, description), here / "refused.mcap")
+    results = verify(path)
+    assert [r.verdict for r in results] == ["unverifiable"] * 4
+    detail = results[0].detail
+    assert "names a file the re-run may not read" in detail and "refused" in detail
+    assert ("outside the recording's directory" in detail) == (where in ("/dev/zero", "outside", "urdf /dev/zero",
+                                                                        "link to /dev/zero"))
+    assert cli.main(["verify", str(path)]) == 1
+    assert "cannot be verified" in capsys.readouterr().out
+
+
+def test_a_description_beside_the_recording_or_packaged_is_read(session, tmp_path):
+    records, _ = read_recording(session)
+    here = tmp_path / "session"
+    beside = rewrite(with_description(records, str(copy_robot(here / "robot"))), here / "beside.mcap")
+    assert set(by_service(beside).values()) == {"identical"}
+    packaged = rewrite(with_description(records, str(DEFAULT_DESCRIPTION)), tmp_path / "packaged.mcap")
+    assert set(by_service(packaged).values()) == {"identical"}
+
+
+def test_a_description_larger_than_verify_reads_is_refused(session, tmp_path, monkeypatch):
+    records, _ = read_recording(session)
+    here = tmp_path / "session"
+    robot = copy_robot(here / "robot")
+    monkeypatch.setattr("nwr.services.tools.verify.MAX_FILE_BYTES", 1000)
+    results = verify(rewrite(with_description(records, str(robot)), here / "big.mcap"))
+    assert results[0].verdict == "unverifiable" and "more than nwr verify reads (1000)" in results[0].detail

@@ -8,10 +8,13 @@
   mode a jerk-limited trajectory (ruckig) to its joint target, ending when
   the target is reached; in velocity mode its joint velocity stream, for
   the strategy's ``duration_s`` (``reflex_duration_s`` unless it has its own).
-  A *new* contact (a pad that had no gain in the previous pain message) or a
+  A *new* contact (a pad whose touch begins: no gain for ``restarts.gap_s``) or a
   *stronger* one (gain above the current reflex's by ``update_margin``)
   updates the reflex: new target or direction from the current motion state
   (the trajectory blends, nothing jumps), duration restarted, new number.
+  Restarts are rate-limited per pad and overall (:mod:`.restarts`: no
+  reflex storm from a flickering pad or a forged stream); a start from the
+  task is never delayed.
 - HOLDING (``sustained_contact = "hold"``, the default): once the reflex's
   motion is over the arm brakes to rest and stays away while the touch
   lasts. The return begins when the touched pad has not felt a touch (pain
@@ -73,7 +76,7 @@ from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.task import FigureEight, TaskClock, nearest_time
-from nwr.services.planner import claims, retreat, strategies
+from nwr.services.planner import claims, restarts, retreat, strategies
 from nwr.services.planner.strategies import ReflexStrategy
 
 log = logging.getLogger(__name__)
@@ -200,6 +203,8 @@ class Planner:
         self.shadowed = 0  # reflexes planned in shadow, while another planner was active
         self.last_gain = np.zeros(len(desc.pads))
         self.last_level = [1] * len(desc.pads)
+        # What counts as a new or stronger contact, and how often one may restart a reflex (reflex storms).
+        self.restarts = restarts.Restarts(cfg.restarts, [pad.name for pad in desc.pads])
         self.holds = cfg.sustained_contact == "hold"
         self.felt_ns = np.full(len(desc.pads), np.iinfo(np.int64).min // 2, dtype=np.int64)  # each pad's last touch
         self.hold_since_ns = 0
@@ -372,8 +377,9 @@ class Planner:
         self.notes.append(("warning", code, message))
 
     def drain_notes(self) -> list[tuple[str, str, str]]:
-        notes, self.notes = self.notes + self.strategy.notes, []
+        notes, self.notes = self.notes + self.restarts.notes + self.strategy.notes, []
         self.strategy.notes = []
+        self.restarts.notes = []
         return notes
 
     def _peer_task_time(self, now_ns: int) -> float:
@@ -499,6 +505,7 @@ class Planner:
             raise ValueError(f"pain message {pain.seq} has {gains.size} pads, the skin has {self.last_gain.size}")
         previous = self.last_gain
         self.last_gain = np.where(np.isfinite(gains), gains, 0.0)
+        new = self.restarts.observe(previous, self.last_gain, now_ns)
         self.trace = pain.trace
         target = self.target_pad
         if 0 <= target < len(pain.level) and pain.level[target] >= 2 and self.last_level[target] < 2:
@@ -509,11 +516,11 @@ class Planner:
             self.felt_ns[np.asarray(pain.level) >= FELT_LEVEL] = now_ns
         contact = pain.strongest
         if not self.active:
-            self._on_pain_inactive(contact, previous, pain.trace, now_ns)
+            self._on_pain_inactive(contact, new, pain.trace, now_ns)
             return None
         if not self.initialized:
             return None
-        if contact is None or not contact.gain > 0 or not self._reacts_to(contact, previous):
+        if contact is None or not contact.gain > 0 or not self._reacts_to(contact, new, now_ns):
             if self.holds and self.mode == "RETURNING" and not self.partial:
                 ahead = self._felt_ahead(now_ns)
                 if ahead:
@@ -532,14 +539,20 @@ class Planner:
         self._advanced_early = True
         return self._advance_reflex(now_ns)
 
-    def _reacts_to(self, contact: m.Contact, previous: np.ndarray) -> bool:
-        """Whether a contact with a gain starts a reflex: always from the task; else a new pad or a stronger one."""
+    def _reacts_to(self, contact: m.Contact, new: np.ndarray, now_ns: int) -> bool:
+        """Whether a contact with a gain starts a reflex: always from the task (at its first sample); else a new
+        touch (``new``, or one a rate limit kept waiting) or a stronger one, within the restarts' rate limits."""
+        pad = contact.pad
         if self.mode == "TASK":
+            self.restarts.admit(pad, contact.gain, 0.0, now_ns, new=True, force=True)
             return True
         current = self.reflex.contact.gain if self.reflex is not None else 0.0
-        return bool(previous[contact.pad] <= 0.0 or contact.gain > current + self.cfg.update_margin)
+        fresh = bool(new[pad] or self.restarts.pending[pad])
+        if not (fresh or contact.gain > current + self.cfg.update_margin):
+            return False
+        return self.restarts.admit(pad, contact.gain, current, now_ns, new=fresh)
 
-    def _on_pain_inactive(self, contact: m.Contact | None, previous: np.ndarray, trace: m.Trace, now_ns: int) -> None:
+    def _on_pain_inactive(self, contact: m.Contact | None, new: np.ndarray, trace: m.Trace, now_ns: int) -> None:
         """Shadow mode: what this planner would do on the same touch, from the arm's pose now."""
         if not self.initialized:
             return
@@ -549,7 +562,10 @@ class Planner:
                 self.changed = True
             return
         current = self.shadow.contact.gain if self.shadow is not None else 0.0
-        if not (previous[contact.pad] <= 0.0 or contact.gain > current + self.cfg.update_margin):
+        fresh = bool(new[contact.pad] or self.restarts.pending[contact.pad])
+        if not (fresh or contact.gain > current + self.cfg.update_margin):
+            return
+        if not self.restarts.admit(contact.pad, contact.gain, current, now_ns, new=fresh, force=self.shadow is None):
             return
         self.reflex_count += 1
         self.shadowed += 1

@@ -12,11 +12,14 @@ the epoch) as stamp and log time. The session metadata says where it came from
 (``label.imported_from``, the topics, the mapping).
 
 Unusable input ends the import with a non-zero exit and one line: no such bag,
-no skin topic, a skin topic whose type has no ``values_field``, a joint topic
-that is not JointState. A message's own problems (wrong length, non-finite or
-out-of-range values, a joint state missing a joint) are counted and reported
-at the end; a bad value makes its pad invalid in that sample, a joint state
-that misses joints is skipped.
+a file that is no ROS 1 bag or a damaged one (its index, headers or chunks
+unreadable: bit flips, a cut), no skin topic, a skin topic whose type has no
+``values_field``, a joint topic that is not JointState. A message's own
+problems (wrong length, non-finite or out-of-range values, a joint state
+missing a joint, or with a position or velocity that is not finite or beyond
+the robot description's limits) are counted and reported at the end (for
+joint states: by topic, with the joint and the value of the first); a bad
+value makes its pad invalid in that sample, such a joint state is skipped.
 
 The recording replays like any other (``nwr replay --fast --reflex NAME``; a
 real skin's recording has no touch ground truth: open loop only) and compares
@@ -30,7 +33,9 @@ import argparse
 import datetime as dt
 import json
 import logging
+import math
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,12 +48,13 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, profile_for
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import McapRecorder, new_file, session_metadata
-from nwr.common.robot import load_description
+from nwr.common.robot import RobotDescription, load_description
 from nwr.common.skinmap import PadMap, map_values, pad_map
 
 log = logging.getLogger(__name__)
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
+BAG_MAGIC = b"#ROSBAG V2.0\n"
 
 
 def rosbags_type(name: str) -> str:
@@ -68,6 +74,7 @@ class ImportReport:
     states: int = 0
     skin_problems: Counter[str] = field(default_factory=Counter)  # messages with each kind of problem
     state_problems: Counter[str] = field(default_factory=Counter)
+    state_examples: dict[str, str] = field(default_factory=dict)  # the first message of each kind of problem
     notes: list[str] = field(default_factory=list)  # the mapping's gaps, a missing joint topic
     first_ns: int = 0
     last_ns: int = 0
@@ -79,7 +86,8 @@ class ImportReport:
         for kind, count in sorted(self.skin_problems.items()):
             lines.append(f"  {count} skin messages with a problem ({kind}): their bad pads are invalid")
         for kind, count in sorted(self.state_problems.items()):
-            lines.append(f"  {count} joint states skipped ({kind})")
+            example = self.state_examples.get(kind)
+            lines.append(f"  {count} joint states skipped ({kind})" + (f", the first {example}" if example else ""))
         return "\n".join(lines)
 
 
@@ -103,6 +111,29 @@ def _field_names(typestore: Any, msgtype: str) -> list[str]:
     return [name for name, _ in typestore.fielddefs[msgtype][1]]
 
 
+def _damaged(bag: Path, exc: BaseException) -> ConfigError:
+    """A one-line error for a bag the reader cannot read (rosbags raises assorted errors for damaged bytes)."""
+    what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return ConfigError(f"{bag} is no readable ROS 1 bag, or a damaged one ({type(exc).__name__}: {what[:200]}); "
+                       "check the file, or re-record it")
+
+
+def _records(reader: Any, bag: Path, connections: list[Any]) -> Iterator[tuple[Any, int, bytes]]:
+    """The reader's messages on ``connections``; a damaged record ends the import with one line (ConfigError)."""
+    try:
+        records = iter(reader.messages(connections=connections))
+    except Exception as exc:  # noqa: BLE001  the reader's errors on damaged bytes are of many types
+        raise _damaged(bag, exc) from exc
+    while True:
+        try:
+            item = next(records)
+        except StopIteration:
+            return
+        except Exception as exc:  # noqa: BLE001
+            raise _damaged(bag, exc) from exc
+        yield item
+
+
 def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topic: str, pmap: PadMap,
                message_type: str, definition: str, values_field: str) -> ImportReport:
     """Convert ``bag`` into the recording ``out``; ConfigError (one line) for input that cannot be used."""
@@ -114,14 +145,23 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
     if not bag.is_file():
         raise ConfigError(f"{bag}: no such bag file")
     desc = load_description(profile.robot.description or None)
-    joints = list(desc.joints)
     typestore = get_typestore(Stores.ROS1_NOETIC)
     report = ImportReport(notes=pmap.describe())
+    try:
+        with bag.open("rb") as head:
+            magic = head.read(len(BAG_MAGIC))
+    except OSError as exc:
+        raise ConfigError(f"{bag} cannot be read: {exc.strerror or exc}") from exc
+    if magic != BAG_MAGIC:
+        raise ConfigError(f"{bag} is no ROS 1 bag: it does not begin with {BAG_MAGIC.decode().strip()!r} (a ROS 2 "
+                          "bag, a compressed copy, another file?)")
     try:
         reader = Reader(bag)
         reader.open()
     except (ReaderError, OSError) as exc:
         raise ConfigError(f"{bag} is no readable ROS 1 bag: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001  garbage bytes: the reader fails in assorted ways
+        raise _damaged(bag, exc) from exc
     try:
         by_topic: dict[str, list[Any]] = {}
         for connection in reader.connections:
@@ -158,7 +198,7 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
         with new_file(out, "the recording") as stream:
             recorder = McapRecorder(stream, robot, compression=profile.recorder.compression,
                                     chunk_size=profile.recorder.chunk_size)
-            first_ns = min((t for _, t, _ in reader.messages(connections=skin_connections)), default=0)
+            first_ns = min((t for _, t, _ in _records(reader, bag, skin_connections)), default=0)
             recorder.metadata("session", session_metadata(
                 robot=robot, session=out.stem, profile_json=msgspec.json.encode(profile).decode(), strategy="",
                 planner="", start_time_iso=dt.datetime.fromtimestamp(first_ns / 1e9, dt.UTC).isoformat(),
@@ -168,7 +208,7 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
                         "pad_mapping": json.dumps(pmap.table())},
             ))
             report.first_ns = first_ns
-            for connection, stamp, raw in reader.messages(connections=wanted):
+            for connection, stamp, raw in _records(reader, bag, wanted):
                 try:
                     msg = typestore.deserialize_ros1(raw, connection.msgtype)
                 except Exception as exc:  # a corrupt record: counted, never fatal
@@ -184,9 +224,12 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
                     report.skin += 1
                     report.last_ns = max(report.last_ns, stamp)
                 else:
-                    state, problem = robot_state(msg, joints, report.states, stamp)
+                    state, problem, example = robot_state(msg, desc, report.states, stamp)
                     if state is None:
-                        report.state_problems[problem] += 1
+                        kind = f"{connection.topic}: {problem}"
+                        report.state_problems[kind] += 1
+                        report.state_examples.setdefault(kind, f"at {stamp / 1e9:.3f} s: {example}" if example
+                                                         else f"at {stamp / 1e9:.3f} s")
                         continue
                     recorder.write(keys.key(robot, keys.ROBOT_STATE), state, stamp)
                     report.states += 1
@@ -196,24 +239,45 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
     return report
 
 
-def robot_state(msg: Any, joints: list[str], seq: int, stamp_ns: int) -> tuple[m.RobotState | None, str]:
-    """A JointState -> RobotState in ``joints`` order (by name), or None and why not."""
+def robot_state(msg: Any, desc: RobotDescription, seq: int, stamp_ns: int
+                ) -> tuple[m.RobotState | None, str, str]:
+    """A JointState -> RobotState in the robot's joint order (by name), or None, the kind of problem and the
+    first offending joint and value.
+
+    Positions must be finite and within the robot description's joint limits, velocities finite and within its
+    speed limits: anything else is a corrupt message, or another robot's.
+    """
+    joints = list(desc.joints)
     names = list(msg.name)
-    position = np.asarray(msg.position, dtype=float)
-    velocity = np.asarray(msg.velocity, dtype=float)
     index = {name: i for i, name in enumerate(names)}
     missing = [j for j in joints if j not in index]
     if missing:
-        return None, f"missing joints {missing}"
-    if len(position) != len(names) or (len(velocity) and len(velocity) != len(names)):
-        return None, "positions or velocities not one per name"
+        return None, f"missing joints {missing}", ""
+    try:
+        position = np.asarray(msg.position, dtype=float)
+        velocity = np.asarray(msg.velocity, dtype=float)
+    except (TypeError, ValueError):
+        return None, "positions or velocities that are no numbers", ""
+    if position.ndim != 1 or velocity.ndim != 1 or len(position) != len(names) or \
+            (len(velocity) and len(velocity) != len(names)):
+        return None, "positions or velocities not one per name", ""
     order = [index[j] for j in joints]
     q = position[order]
     dq = velocity[order] if len(velocity) else np.zeros(len(joints))
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
-        return None, "non-finite positions or velocities"
+    for i, joint in enumerate(joints):
+        if not math.isfinite(q[i]):
+            return None, "non-finite positions", f"{joint} = {q[i]}"
+        if not desc.q_min[i] <= q[i] <= desc.q_max[i]:
+            return None, "positions beyond the joint limits", \
+                f"{joint} = {q[i]:g} rad, its limits [{desc.q_min[i]:g}, {desc.q_max[i]:g}] rad"
+    for i, joint in enumerate(joints):
+        if not math.isfinite(dq[i]):
+            return None, "non-finite velocities", f"{joint} = {dq[i]}"
+        if abs(dq[i]) > desc.v_max[i]:
+            return None, "velocities beyond the joint speed limits", \
+                f"{joint} = {dq[i]:g} rad/s, its limit {desc.v_max[i]:g} rad/s"
     return m.RobotState(seq=seq, stamp_ns=stamp_ns, q=q.tolist(), dq=dq.tolist(), status="ok", owner="rosbag",
-                        backend="rosbag", skin_age_s=-1.0), ""
+                        backend="rosbag", skin_age_s=-1.0), "", ""
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -235,7 +299,8 @@ def _run(args: argparse.Namespace) -> int:
                         definition=ros1.definition, values_field=args.field or ros1.values_field)
     print(report.format(out))
     if report.skin_problems or report.state_problems:
-        log.warning("some messages had problems (above); the recording marks the bad pads invalid")
+        log.warning("some messages had problems (above); the recording marks the bad pads invalid and leaves out "
+                    "the joint states skipped")
     return 0 if report.skin else 1
 
 

@@ -16,14 +16,24 @@ re-run needs (the journal's first batch, a batch in the middle, an input
 message), and the report says which. Outputs the re-run makes that the
 recording lacks were lost on the way to the recorder (telemetry may drop);
 they are counted, not failed.
+
+A journal's configuration is data from the recording, not the user's word:
+the only files a re-run reads (the robot description its profile names, and
+the URDF and skin file that description names) must be regular files of at
+most :data:`MAX_FILE_BYTES` under the recording's own directory or the
+project's packaged robot descriptions; anything else (a device such as
+``/dev/zero``, a FIFO, a file elsewhere, a link out of those folders) makes
+the run *cannot be verified*, naming the file, and nothing of it is read.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import stat
+import tomllib
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,11 +45,59 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
 from nwr.common.recordings import Recorded, read_recording
+from nwr.common.robot import DEFAULT_DESCRIPTION
 from nwr.services.pipeline.graph import wiring_for
 from nwr.services.wiring import no_diag
 
 NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded by an older nwr, by another tool, "
               "or without the services' journals, so its services cannot be re-run")
+
+
+# The project's packaged robot descriptions (robots/<name>/robot.toml, its URDF and skin file).
+PACKAGED_ROBOTS = DEFAULT_DESCRIPTION.parent.parent
+# The largest file a re-run reads (the packaged UR10e's URDF is 8 kB).
+MAX_FILE_BYTES = 4 * 1024 * 1024
+
+
+def _allowed_file(name: str, field: str, roots: Sequence[Path]) -> Path:
+    """``name`` resolved (links followed), if it is a regular file of at most MAX_FILE_BYTES under ``roots``;
+    else a one-line ConfigError naming ``field`` and the file. Nothing is opened."""
+    path = Path(name).resolve()
+    if not any(path.is_relative_to(root) for root in roots):
+        where = " or ".join(str(root) for root in roots)
+        raise ConfigError(f"{field} = {name!r} ({path}) is outside the recording's directory and the project's "
+                          f"packaged robot descriptions ({where}): refused, nwr verify reads no file elsewhere; "
+                          "copy the robot description beside the recording and point the profile there")
+    try:
+        info = path.stat()
+    except OSError as exc:
+        raise ConfigError(f"{field} = {name!r} ({path}) cannot be read: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise ConfigError(f"{field} = {name!r} ({path}) is no regular file (a device, a FIFO or a directory): "
+                          "refused")
+    if info.st_size > MAX_FILE_BYTES:
+        raise ConfigError(f"{field} = {name!r} ({path}) has {info.st_size} bytes, more than nwr verify reads "
+                          f"({MAX_FILE_BYTES}): refused")
+    return path
+
+
+def check_files(profile: Profile, roots: Sequence[Path]) -> None:
+    """The files a re-run of ``profile`` reads (its robot description, and the URDF and skin file that one
+    names), each checked by :func:`_allowed_file`; the description read within MAX_FILE_BYTES."""
+    name = profile.robot.description
+    if not name:
+        return  # the packaged UR10e
+    robot = _allowed_file(name, "robot.description", roots)
+    try:
+        with robot.open("rb") as stream:
+            data = stream.read(MAX_FILE_BYTES + 1)
+        doc = tomllib.loads(data[:MAX_FILE_BYTES].decode("utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"robot.description = {name!r} ({robot}) cannot be read as TOML: {exc}") from None
+    for key in ("urdf", "skin"):
+        value = doc.get(key)
+        if isinstance(value, str):
+            _allowed_file(str(robot.parent / value), f"{robot}'s {key}", roots)
 
 
 @dataclass
@@ -112,8 +170,10 @@ def _from_service(key: str, message: Any, wiring: Any) -> bool:
 
 
 def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[str, list[Any]], *,
-               number: int, runs: int, until_ns: int | None) -> RunResult:
-    """Re-run one service run; ``outputs``: the recording's messages per key, ``until_ns``: the next run's start."""
+               number: int, runs: int, until_ns: int | None, roots: Sequence[Path] = (PACKAGED_ROBOTS,)
+               ) -> RunResult:
+    """Re-run one service run; ``outputs``: the recording's messages per key, ``until_ns``: the next run's start,
+    ``roots``: the folders whose files the re-run may read (:func:`check_files`)."""
     result = RunResult(run.service, number, runs, "unverifiable")
     batches = run.batches
     if batches[0].seq != 0 or not batches[0].config:
@@ -131,6 +191,11 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
         factory = wiring_for(run.service)
     except (ValueError, KeyError, TypeError, msgspec.ValidationError, ConfigError) as exc:
         result.detail = f"the journal's configuration cannot be read: {exc}"
+        return result
+    try:
+        check_files(profile, roots)
+    except ConfigError as exc:
+        result.detail = f"the journal's configuration names a file the re-run may not read: {exc}"
         return result
     entries = [e for b in batches for e in b.entries]
     result.entries = len(entries)
@@ -210,6 +275,7 @@ def verify(path: str | Path) -> list[RunResult]:
             continue
         index[(r.key, r.message.seq, r.message.stamp_ns)] = r.message
         outputs[r.key].append(r.message)
+    roots = (Path(path).resolve().parent, PACKAGED_ROBOTS)
     results = []
     by_service: dict[str, list[_Run]] = defaultdict(list)
     for run in runs:
@@ -217,7 +283,8 @@ def verify(path: str | Path) -> list[RunResult]:
     for service_runs in by_service.values():
         for i, run in enumerate(service_runs):
             until = service_runs[i + 1].run_ns if i + 1 < len(service_runs) else None
-            results.append(verify_run(run, index, outputs, number=i + 1, runs=len(service_runs), until_ns=until))
+            results.append(verify_run(run, index, outputs, number=i + 1, runs=len(service_runs), until_ns=until,
+                                      roots=roots))
     return results
 
 
@@ -247,6 +314,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Re-run every service of a recording (gateway, gain, planners, bridge) from its journal over "
                     "its own recorded inputs, and report per service run whether its outputs equal the recorded "
                     "ones message for message, and where they first part. Exit status 0 when every run is "
-                    "identical, 1 otherwise.")
+                    "identical, 1 otherwise. The only files a re-run reads (the robot description a journaled "
+                    "profile names, its URDF and skin file) must be regular files of at most 4 MiB in the "
+                    "recording's directory or among the packaged robot descriptions; anything else makes that run "
+                    "'cannot be verified'.")
     p.add_argument("file", help="MCAP recording of a live session (nwr demo, nwr up) or of a lockstep run")
     p.set_defaults(handler=_run)
