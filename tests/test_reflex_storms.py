@@ -194,3 +194,25 @@ def test_a_start_from_the_task_is_never_refused_even_with_no_token_left() -> Non
     assert d.p.mode == "TASK"
     assert d.press(WRIST, [0.3, 0.0], 40_000_000, start_ns=t0) == 1
     assert d.first_commands[0][0] == t0 and d.p.started == 1
+
+
+def test_the_wiring_reports_a_flickering_pad_when_the_pain_message_shows_it_not_with_a_later_state() -> None:
+    from nwr.common.clock import ManualClock
+    from nwr.common.config import Profile
+    from nwr.common.journal import Untracked
+    from nwr.services.planner.wiring import PlannerWiring
+
+    clock = ManualClock()
+    reported: list[str] = []
+    wiring = PlannerWiring(Profile(), journal=Untracked(clock), out=lambda key, msg: None,
+                           diag=lambda level, code, message, every_s=1.0: reported.append(code))
+    for i in range(400):  # 200 Hz on and off on one pad, 2 s; no robot state meanwhile
+        clock.t_ns = 1_000_000_000 + i * 5_000_000
+        gains = [0.0] * N_PADS
+        gains[FOREARM] = 0.6 if i % 2 == 0 else 0.0
+        pad = DESC.pads[FOREARM]
+        strongest = m.Contact(pad=FOREARM, name=pad.name, region=pad.region, change_hpa=10.0, level=4, gain=0.6) \
+            if i % 2 == 0 else None
+        wiring.on_pain(m.SkinPain(seq=i, stamp_ns=clock.t_ns, trace=m.Trace(i, clock.t_ns), model="continuous",
+                                  level=[level_of(g) for g in gains], gain=gains, strongest=strongest), clock.t_ns)
+    assert "pad_flicker" in reported, reported

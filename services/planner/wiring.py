@@ -107,6 +107,7 @@ class PlannerWiring(Wiring):
         self.out(self.decision_key, planner.decision(pain, received_ns, decided, command))
         if planner.changed:
             self._status(self.journal.now_ns())
+        self._notes()  # what the contact caused (a flickering pad, a restart held back) is reported at once
         return command
 
     # Not on Zenoh's network thread: this planner's own status, put under the lock, comes back through it.
