@@ -6,6 +6,7 @@ import json
 import os
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -226,3 +227,53 @@ def test_a_description_larger_than_verify_reads_is_refused(session, tmp_path, mo
     monkeypatch.setattr("nwr.services.tools.verify.MAX_FILE_BYTES", 1000)
     results = verify(rewrite(with_description(records, str(robot)), here / "big.mcap"))
     assert results[0].verdict == "unverifiable" and "more than nwr verify reads (1000)" in results[0].detail
+
+
+def copy_without(source: Path, target: Path, drop: Callable[[str, int], bool]) -> Path:
+    """The file's records copied as they are (its metadata too, the recorder's gap counts included), less the
+    messages ``drop(topic, index of the message on its topic)`` names: a file altered after it was written."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with source.open("rb") as f, target.open("wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out)
+        writer.start(profile="", library="test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        seen: dict[str, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.id not in channels:
+                if schema is not None and schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas.get(channel.schema_id, 0), channel.metadata)
+            index = seen[channel.topic] = seen.get(channel.topic, -1) + 1
+            if not drop(channel.topic, index):
+                writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                                   message.sequence)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    return target
+
+
+def test_an_output_nobody_reads_removed_from_the_file_makes_its_run_differ(session, tmp_path):
+    decisions = "nwr/ur10e/reflex/cartesian/decision"
+    altered = copy_without(session, tmp_path / "altered.mcap", lambda topic, i: topic == decisions and i == 100)
+    results = {r.service: r for r in verify(altered)}
+    planner = results["planner-cartesian"]
+    assert planner.verdict == "differs", planner.format()
+    assert "reflex/cartesian/decision seq" in planner.detail and "removed from the file" in planner.detail
+    assert {r.verdict for s, r in results.items() if s != "planner-cartesian"} == {"identical"}
+    # The same message lost on the way to the recorder (the recorder saw the gap and counted it) is no alteration.
+    records, _ = read_recording(session)
+    index = [i for i, r in enumerate(records) if r.key == "reflex/cartesian/decision"][100]
+    lost = rewrite(records[:index] + records[index + 1:], tmp_path / "lost.mcap")
+    planner = next(r for r in verify(lost) if r.service == "planner-cartesian")
+    assert planner.verdict == "identical" and planner.lost == 1, planner.format()
+    # The last one removed: no gap reveals it, so it is counted, not failed.
+    last = sum(1 for r in records if r.key == "reflex/cartesian/decision") - 1
+    tail = copy_without(session, tmp_path / "tail.mcap", lambda topic, i: topic == decisions and i == last)
+    planner = next(r for r in verify(tail) if r.service == "planner-cartesian")
+    assert planner.verdict == "identical" and planner.lost == 1, planner.format()

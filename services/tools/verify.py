@@ -14,8 +14,14 @@ A run is *identical* when every output it recorded is re-made exactly; it
 the recording; it *cannot be verified* when the recording lacks what the
 re-run needs (the journal's first batch, a batch in the middle, an input
 message), and the report says which. Outputs the re-run makes that the
-recording lacks were lost on the way to the recorder (telemetry may drop);
-they are counted, not failed.
+recording lacks were lost on the way to the recorder (telemetry may drop)
+only where the recorder saw them missing: it counts every gap in each key's
+sequence numbers and writes the counts into the file's metadata. Missing
+outputs between the first and the last the recording holds on a key, beyond
+the gaps the recorder counted there, were removed from the file afterwards:
+the run *differs*, naming the key and the first missing sequence number.
+Missing outputs before the first or after the last recorded one (which no
+gap reveals), and any in a file without gap counts, are counted, not failed.
 
 A journal's configuration is data from the recording, not the user's word:
 the only files a re-run reads (the robot description its profile names, and
@@ -40,11 +46,12 @@ from typing import Any
 
 import msgspec
 
+from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
-from nwr.common.recordings import Recorded, read_recording
+from nwr.common.recordings import Recorded, read_recording, recording_robot
 from nwr.common.robot import DEFAULT_DESCRIPTION
 from nwr.services.pipeline.graph import wiring_for
 from nwr.services.wiring import no_diag
@@ -170,8 +177,8 @@ def _from_service(key: str, message: Any, wiring: Any) -> bool:
 
 
 def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[str, list[Any]], *,
-               number: int, runs: int, until_ns: int | None, roots: Sequence[Path] = (PACKAGED_ROBOTS,)
-               ) -> RunResult:
+               number: int, runs: int, until_ns: int | None, roots: Sequence[Path] = (PACKAGED_ROBOTS,),
+               reported_gaps: dict[str, int] | None = None) -> RunResult:
     """Re-run one service run; ``outputs``: the recording's messages per key, ``until_ns``: the next run's start,
     ``roots``: the folders whose files the re-run may read (:func:`check_files`)."""
     result = RunResult(run.service, number, runs, "unverifiable")
@@ -254,7 +261,16 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
             if first_diff is None or where[0] < first_diff[0]:
                 first_diff = where
         result.outputs[key] = count
-        result.lost += sum(1 for seq in mine if seq not in seen)
+        missing = sorted(seq for seq in mine if seq not in seen)
+        result.lost += len(missing)
+        inside = [seq for seq in missing if seen and min(seen) < seq < max(seen)]
+        if reported_gaps is not None and len(inside) > reported_gaps.get(key, 0):
+            where = (mine[inside[0]].stamp_ns,
+                     f"{key} seq {inside[0]}: re-made but not in the recording, one of {len(inside)} missing between "
+                     f"the recorded outputs where the recorder counted {reported_gaps.get(key, 0)} lost: removed "
+                     "from the file after it was written")
+            if first_diff is None or where[0] < first_diff[0]:
+                first_diff = where
     if first_diff is not None:
         result.verdict, result.detail = "differs", f"first at {first_diff[1]}"
     else:
@@ -262,9 +278,24 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
     return result
 
 
+def recorded_gaps(metadata: dict[str, dict[str, str]]) -> dict[str, int] | None:
+    """The sequence gaps the recorder counted per relative key (its ``recording`` metadata); None without them
+    (a recovered file, one cut off by a crash, another tool's)."""
+    try:
+        gaps = json.loads(metadata["recording"]["gaps"])
+        robot = recording_robot(metadata)
+        out = {}
+        for full, n in gaps.items():
+            if full.startswith(keys.prefix(robot) + "/"):
+                out[keys.relative_key(robot, full)] = int(n)
+        return out
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+
+
 def verify(path: str | Path) -> list[RunResult]:
     """Every service run of a recording, re-run and compared; ConfigError when there is nothing to verify."""
-    records, _metadata = read_recording(path)
+    records, metadata = read_recording(path)
     runs = _runs(records)
     if not runs:
         raise ConfigError(f"{path}: {NO_JOURNAL}")
@@ -276,6 +307,7 @@ def verify(path: str | Path) -> list[RunResult]:
         index[(r.key, r.message.seq, r.message.stamp_ns)] = r.message
         outputs[r.key].append(r.message)
     roots = (Path(path).resolve().parent, PACKAGED_ROBOTS)
+    gaps = recorded_gaps(metadata)
     results = []
     by_service: dict[str, list[_Run]] = defaultdict(list)
     for run in runs:
@@ -284,7 +316,7 @@ def verify(path: str | Path) -> list[RunResult]:
         for i, run in enumerate(service_runs):
             until = service_runs[i + 1].run_ns if i + 1 < len(service_runs) else None
             results.append(verify_run(run, index, outputs, number=i + 1, runs=len(service_runs), until_ns=until,
-                                      roots=roots))
+                                      roots=roots, reported_gaps=gaps))
     return results
 
 
