@@ -153,8 +153,10 @@ class Ros1SkinSection(_Section):
 class GatewaySection(_Section):
     # Skin sample rate, Hz (AIRSKIN delivers about 25 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
-    # "sim": the simulated skin; "ros1": a real skin's pressures on a ROS 1 topic ([gateway.ros1]).
-    source: Literal["sim", "ros1"] = "sim"
+    # The skin source, a module of services/gateway/sources/ (checked where the
+    # gateway starts): "sim", the simulated skin; "ros1", a real skin's
+    # pressures on a ROS 1 topic ([gateway.ros1]).
+    source: Name = "sim"
     # A change above this marks the pad as touched and freezes its baseline.
     # Below every pad's PL 2 threshold: a press the gain feels must freeze it.
     contact_hpa: Positive = 1.0

@@ -26,7 +26,7 @@ from nwr.common import messages as m
 from nwr.common.config import TouchScript, load_profile, load_script
 from nwr.common.door import SEQ_LIMIT, Door
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.gateway.sources import SimulatedSkin
+from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 
 DESC = load_description()

@@ -48,7 +48,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, Touch, TouchScript
 from nwr.common.recordings import McapRecorder, read_recording, schema_for
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.gateway.sources import SimulatedSkin
+from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.view import core as c
 from nwr.services.view.export import export_foxglove

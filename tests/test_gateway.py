@@ -264,3 +264,13 @@ def test_a_late_loop_takes_the_periods_it_missed_each_of_its_own_time_and_replay
     for entry in entries[1:]:
         rerun.replay(entry, None)
     assert again == late
+
+
+def test_the_live_skin_sources_are_the_modules_of_their_package_and_a_wrong_name_says_which_there_are() -> None:
+    from nwr.common.errors import ConfigError
+    from nwr.services.gateway import sources
+
+    assert sources.names() == ["ros1", "sim"]
+    assert sources.live("sim").NAME == "sim" and callable(sources.live("ros1").run)
+    with pytest.raises(ConfigError, match="gateway.source = 'ros2' is no skin source; there are: ros1, sim"):
+        sources.live("ros2")

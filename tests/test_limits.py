@@ -20,7 +20,7 @@ from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight
 from nwr.services.bridge.wiring import BridgeWiring
-from nwr.services.gateway.sources import SimulatedSkin
+from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.tools import analysis
 from nwr.services.wiring import no_diag

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from nwr.common.config import load_profile, load_script
-from nwr.services.gateway.sources import SimulatedSkin
+from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.planner import strategies
 

@@ -28,8 +28,8 @@ from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, map_values, pad_map
 from nwr.services import cli
-from nwr.services.gateway import ros1
-from nwr.services.gateway.ros1 import Ros1Skin
+from nwr.services.gateway.sources import ros1
+from nwr.services.gateway.sources.ros1 import Ros1Skin
 from nwr.services.gateway.wiring import GatewayWiring
 
 PADS = [p.name for p in load_description().pads]
@@ -253,7 +253,7 @@ def test_without_rospy_the_ros1_source_says_what_to_install(monkeypatch: pytest.
 def test_a_message_type_that_cannot_be_had_is_one_line(message_type: str, definition: str, match: str) -> None:
     # In a child process: genpy comes from the system's packages, which this process must not take on.
     code = ("import sys\nfrom nwr.common.config import Ros1SkinSection\nfrom nwr.common.errors import ConfigError\n"
-            "from nwr.services.gateway.ros1 import message_class\n"
+            "from nwr.services.gateway.sources.ros1 import message_class\n"
             f"try:\n    message_class(Ros1SkinSection(message_type={message_type!r}, definition={definition!r}))\n"
             "except ConfigError as exc:\n    print(exc)\n    sys.exit(3)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

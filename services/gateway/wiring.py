@@ -14,7 +14,7 @@ runs and ``nwr verify`` run this code.
 - each tick: the follower's touch, the touches that start (forward
   kinematics only when one needs the pose), the sample (of the period's
   deadline: a late loop takes the periods it missed one by one);
-- a real skin (``gateway.source = "ros1"``, :mod:`.ros1`) has no ticks: each
+- a real skin (``gateway.source = "ros1"``, :mod:`.sources.ros1`) has no ticks: each
   of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`).
 """
 

@@ -18,7 +18,7 @@ simulated time:
   transition.
 
 Where the skin samples come from: a skin source of the gateway
-(:mod:`nwr.services.gateway.sources`): recorded, re-simulated, or the
+(:mod:`nwr.services.gateway.stepped`): recorded, re-simulated, or the
 gateway's own wiring on a touch script.
 
 Nothing here reads a clock, so a run is deterministic: the same skin samples
@@ -44,7 +44,7 @@ from nwr.common.config import Profile
 from nwr.common.journal import JOURNAL_PERIOD_S, Batcher, Journal, Recording, Untracked, service_config
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gain.wiring import GainWiring
-from nwr.services.gateway.sources import Emit, Pose, RecordedSkin, SkinSource
+from nwr.services.gateway.stepped import Emit, Pose, RecordedSkin, SkinSource
 from nwr.services.gateway.wiring import GatewayWiring
 from nwr.services.planner.wiring import PlannerWiring, planner_profile
 from nwr.services.wiring import Diag, Input, Wiring, no_diag

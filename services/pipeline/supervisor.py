@@ -170,9 +170,13 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
     gone, and the launcher says loudly that the recording has a hole); with ``restart=False`` every unit is
     stopped instead, and 1 returned.
     """
+    by_label = {unit.label: unit for unit in units(layout)}
+    if "gateway" in by_label:
+        from nwr.services.gateway import sources
+
+        sources.live(profile.gateway.source)  # a source that is not there fails here, before anything starts
     check_robot_free(profile)
     procs: dict[str, subprocess.Popen[bytes]] = {}
-    by_label = {unit.label: unit for unit in units(layout)}
     started: dict[str, float] = {}
     restarts = Restarts()
     stop = False

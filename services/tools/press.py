@@ -45,7 +45,7 @@ class Press:
 def held_press(profile: Profile, strategy: str, pad: str, *, closed_loop: bool, press_s: float = 3.0,
                peak_hpa: float = 15.0, model: RobotModel | None = None) -> Press:
     """One press of ``press_s`` at ``peak_hpa`` on ``pad``, in lockstep; its per-touch figures."""
-    from nwr.services.gateway.sources import SimulatedSkin
+    from nwr.services.gateway.stepped import SimulatedSkin
     from nwr.services.pipeline.lockstep import Lockstep
 
     gateway = msgspec.structs.replace(

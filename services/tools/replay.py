@@ -54,7 +54,7 @@ from nwr.services.pipeline.supervisor import failed, spawn, stop_all
 from nwr.services.planner import strategies
 
 if TYPE_CHECKING:
-    from nwr.services.gateway.sources import ResimulatedSkin, SkinSource
+    from nwr.services.gateway.stepped import ResimulatedSkin, SkinSource
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ def play(node: Node, robot_records: list[Recorded], speed: float, loop: bool, st
 
 def resimulated(profile: Profile, records: list[Recorded], chosen: list[Recorded]) -> ResimulatedSkin:
     """The chosen skin samples with the recording's touches re-simulated (ConfigError without ground truth)."""
-    from nwr.services.gateway.sources import ResimulatedSkin
+    from nwr.services.gateway.stepped import ResimulatedSkin
 
     touches = [r.message for r in records if r.key == keys.SKIN_TOUCH]
     skin = [r.message for r in chosen if r.key == keys.SKIN_PRESSURE]
@@ -121,7 +121,7 @@ def record_lockstep(profile: Profile, skin: list[m.SkinPressure] | SkinSource, s
     timeline, with the recorded ``touches`` that go with them; a source
     writes what it makes.
     """
-    from nwr.services.gateway.sources import SkinSource
+    from nwr.services.gateway.stepped import SkinSource
     from nwr.services.pipeline.lockstep import Lockstep
 
     lockstep = Lockstep(profile, strategy=strategy)
@@ -196,7 +196,7 @@ def task_start_ns(records: list[Recorded], chosen: list[Recorded]) -> int | None
 def simulate(profile: Profile, script_name: str, strategy: str, output: Path) -> tuple[Path, float, float]:
     """A simulated session in lockstep: the simulated skin on a touch script, the cores and the simulated arm
     (``nwr demo --fast``), open or closed loop as ``gateway.sim.closed_loop`` says."""
-    from nwr.services.gateway.sources import SimulatedSkin
+    from nwr.services.gateway.stepped import SimulatedSkin
 
     desc = load_description(profile.robot.description or None)
     source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))

@@ -32,7 +32,7 @@ from nwr.common.config import Profile
 from nwr.common.recordings import Recorded
 from nwr.common.robot import Pad
 from nwr.services.gateway.core import Gateway
-from nwr.services.gateway.sources import Emit, Pose, RecordedSkin
+from nwr.services.gateway.stepped import Emit, Pose, RecordedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 
 STAT_NAMES = ("n", "p50", "p90", "p99", "max")
@@ -186,7 +186,7 @@ def source_skipped(stamps_ns: Sequence[int], rate_hz: float) -> int:
 
     The simulated skin is paced on absolute deadlines (:class:`~nwr.common.pacing.Rate`): a late loop
     takes the periods it missed one after the other, up to ``CATCH_UP_S`` of them
-    (:mod:`nwr.services.gateway.main`), and skips those beyond, with no gap in the sequence numbers
+    (:mod:`nwr.services.gateway.sources.sim`), and skips those beyond, with no gap in the sequence numbers
     (the samples were never taken, not lost on the way). The periods between the first and the last
     stamp, less the samples between them, are those skipped (to within one).
     """

@@ -56,7 +56,7 @@ from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.common.task import FigureEight
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.wiring import BridgeWiring, task_peak_speed
-from nwr.services.gateway.sources import SimulatedSkin, SkinSource
+from nwr.services.gateway.stepped import SimulatedSkin, SkinSource
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.wiring import no_diag
 

@@ -45,6 +45,8 @@ from nwr.services.gateway.wiring import SERVICE, GatewayWiring
 
 log = logging.getLogger(__name__)
 
+NAME = "ros1"
+
 # Where Debian's and ROS's own Python packages live; appended (never prepended) to sys.path when rospy is not
 # importable as is, so that this environment's own packages (numpy, ...) win.
 ROS_PYTHON_DIRS = ("/usr/lib/python3/dist-packages", "/opt/ros/noetic/lib/python3/dist-packages")
