@@ -410,9 +410,11 @@ class ReducedLimits(CartesianLimits):
 
 
 class BridgeSection(_Section):
-    # "sim": simulated arm. "ur_rtde": a real UR (or URSim) through ur_rtde;
-    # it also needs --robot-ip and --i-am-next-to-the-robot on the command line.
-    backend: Literal["sim", "ur_rtde"] = "sim"
+    # The arm, a module of services/bridge/backends/ (checked where the bridge
+    # or a launch starts): "sim", the simulated arm; "ur_rtde", a real UR (or
+    # URSim) through ur_rtde, which also needs --robot-ip and
+    # --i-am-next-to-the-robot on the command line.
+    backend: Name = "sim"
     # Simulation and control rate, Hz (the UR e-Series controller runs at 500 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 500.0
     # Robot state publication rate, Hz (plus one out of schedule per reflex

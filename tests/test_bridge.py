@@ -675,3 +675,20 @@ def test_every_fault_of_the_controller_and_its_end_is_reported_however_soon_afte
                                              "robot_recovered", "script_not_running", "robot_recovered"]
     assert {every_s for _, every_s in changes} == {0.0}
     assert all(every_s == 1.0 for code, every_s in reports if (code, every_s) not in changes)
+
+
+def test_the_backends_are_the_modules_of_their_package_and_a_real_arm_needs_its_address_and_a_person() -> None:
+    from nwr.common.errors import ConfigError
+    from nwr.services.bridge import backends
+    from nwr.services.bridge.main import check_arm_flags
+
+    assert backends.names() == ["sim", "ur_rtde"]
+    assert not backends.plugin("sim").REAL_ARM and backends.plugin("ur_rtde").REAL_ARM
+    with pytest.raises(ConfigError, match="bridge.backend = 'franka' is no backend; there are: sim, ur_rtde"):
+        backends.plugin("franka")
+    check_arm_flags("sim", "", False)
+    check_arm_flags("ur_rtde", "192.0.2.10", True)
+    with pytest.raises(ConfigError, match="--robot-ip"):
+        check_arm_flags("ur_rtde", "", True)
+    with pytest.raises(ConfigError, match="for a real arm's backend"):
+        check_arm_flags("sim", "192.0.2.10", False)

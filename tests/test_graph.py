@@ -117,7 +117,7 @@ def test_an_unnamed_planner_is_waited_for_under_the_profiles_name() -> None:
          None),
         (["--backend", "ur_rtde", "--i-am-next-to-the-robot"], None, "--robot-ip"),
         (["--backend", "ur_rtde", "--robot-ip", "192.0.2.10"], None, "--i-am-next-to-the-robot"),
-        (["--robot-ip", "192.0.2.10", "--i-am-next-to-the-robot"], None, "for the ur_rtde backend"),
+        (["--robot-ip", "192.0.2.10", "--i-am-next-to-the-robot"], None, "for a real arm.s backend"),
     ],
 )
 def test_up_and_demo_hand_the_arms_flags_to_the_bridge_or_refuse_before_anything_starts(

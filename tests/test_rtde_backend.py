@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from nwr.common.config import Profile
+from nwr.services.bridge.backends.ur_rtde import RobotConnectionError, URRtdeBackend
 from nwr.services.bridge.core import Setpoint
-from nwr.services.bridge.ur_rtde import RobotConnectionError, URRtdeBackend
 from nwr.services.bridge.wiring import envelope_for
 
 DT = 0.002
@@ -317,7 +317,7 @@ import sys, threading, time
 sys.path.insert(0, {tests!r})
 from test_rtde_backend import FakeControl, FakeReceive, FakeRobot
 from nwr.common.config import Profile
-from nwr.services.bridge.ur_rtde import URRtdeBackend
+from nwr.services.bridge.backends.ur_rtde import URRtdeBackend
 from nwr.services.bridge.wiring import envelope_for
 
 class Hung(FakeControl):
@@ -339,7 +339,7 @@ def test_a_call_into_ur_rtde_that_never_returns_ends_the_process_for_a_fresh_sta
     guard exits the bridge (EXIT_STALLED) so that its supervisor starts a fresh one."""
     from pathlib import Path
 
-    from nwr.services.bridge.ur_rtde import EXIT_STALLED
+    from nwr.services.bridge.backends.ur_rtde import EXIT_STALLED
 
     run = subprocess.run([sys.executable, "-c", HUNG.format(tests=str(Path(__file__).parent))],
                          capture_output=True, text=True, timeout=60)

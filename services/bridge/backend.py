@@ -1,6 +1,6 @@
 """The robot behind one small interface, and the simulated arm.
 
-Every backend (``sim`` here, ``ur_rtde`` in :mod:`nwr.services.bridge.ur_rtde`)
+Every backend (``sim`` here, ``ur_rtde`` in :mod:`nwr.services.bridge.backends.ur_rtde`)
 does the same four things, lerobot-style:
 
 - ``connect()`` / ``disconnect()``: take and release the robot (disconnect

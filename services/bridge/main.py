@@ -22,7 +22,8 @@ from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
-from nwr.services.bridge.backend import Backend, SimBackend
+from nwr.services.bridge import backends
+from nwr.services.bridge.backend import Backend
 from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.wiring import SERVICE, BridgeWiring, envelope_for
 from nwr.services.wiring import subscribe
@@ -45,37 +46,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_arm_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """The backend, the robot's address and the confirmation (the bridge's, and `nwr up` / `nwr demo` pass them on)."""
-    parser.add_argument("--backend", choices=["sim", "ur_rtde"], help="the bridge's backend (overrides bridge.backend)")
-    parser.add_argument("--robot-ip", default="", help="IP address of the UR controller (ur_rtde backend only)")
+    parser.add_argument("--backend", choices=backends.names(),
+                        help="the bridge's backend, a module of services/bridge/backends/ (overrides bridge.backend)")
+    parser.add_argument("--robot-ip", default="", help="IP address of the arm's controller (a real arm's backend only)")
     parser.add_argument(CONFIRM_FLAG, dest="confirmed", action="store_true",
                         help="confirm that a person watches the real arm with the emergency stop at hand "
-                             "(required by the ur_rtde backend)")
+                             "(required by a real arm's backend, such as ur_rtde)")
 
 
 def check_arm_flags(backend: str, robot_ip: str, confirmed: bool) -> None:
     """A real arm needs its controller's address and a person's confirmation; the simulated one neither."""
-    if backend == "sim":
+    if not backends.plugin(backend).REAL_ARM:
         if robot_ip or confirmed:
-            raise ConfigError(f"--robot-ip and {CONFIRM_FLAG} are for the ur_rtde backend "
+            raise ConfigError(f"--robot-ip and {CONFIRM_FLAG} are for a real arm's backend, such as ur_rtde "
                               "(add --backend ur_rtde or set bridge.backend)")
         return
     if not robot_ip:
-        raise ConfigError("the ur_rtde backend moves a real arm: give the controller's address with --robot-ip")
+        raise ConfigError(f"the {backend} backend moves a real arm: give the controller's address with --robot-ip")
     if not confirmed:
-        raise ConfigError(f"the ur_rtde backend moves a real arm at {robot_ip}: add {CONFIRM_FLAG} once a person "
+        raise ConfigError(f"the {backend} backend moves a real arm at {robot_ip}: add {CONFIRM_FLAG} once a person "
                           "watches it with the emergency stop at hand (docs/bridge.md)")
 
 
 def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
-    dt = 1.0 / cfg.rate_hz
     check_arm_flags(cfg.backend, getattr(args, "robot_ip", ""), getattr(args, "confirmed", False))
-    if cfg.backend == "sim":
-        return SimBackend(env, dt, q0)
-    from nwr.services.bridge.ur_rtde import URRtdeBackend
-
-    return URRtdeBackend(env, dt, args.robot_ip, lookahead_s=cfg.servo_lookahead_s, gain=cfg.servo_gain,
-                         reconnect_min_s=cfg.reconnect_min_s, reconnect_max_s=cfg.reconnect_max_s,
-                         watchdog_hz=cfg.watchdog_hz)
+    backend: Backend = backends.plugin(cfg.backend).make(cfg, env, q0, args)
+    return backend
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:

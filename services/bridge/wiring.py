@@ -31,6 +31,7 @@ from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight, peak_point_speed
+from nwr.services.bridge import backends
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.core import BridgeCore, at_rest
@@ -105,7 +106,7 @@ class BridgeWiring(Wiring):
     def rebuild(cls, profile: Profile, params: dict[str, Any], *, journal: Journal, out: Out,
                 diag: Diag) -> BridgeWiring:
         backend = params.get("backend", "sim")
-        if backend != "sim":
+        if backends.plugin(backend).REAL_ARM:
             raise ConfigError(f"the bridge drove the {backend} backend: the arm's measurements are not journaled, "
                               "so only a bridge on the simulated arm can be re-run")
         return cls(profile, journal=journal, out=out, diag=diag)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from nwr.common.config import Profile, load_script, profile_for
 from nwr.common.errors import ConfigError
+from nwr.services.bridge import backends
 from nwr.services.bridge.main import CONFIRM_FLAG, add_arm_arguments, check_arm_flags
 from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
@@ -77,7 +78,7 @@ def bridge_arguments(args: argparse.Namespace, profile: Profile) -> list[str]:
     backend = args.backend or profile.bridge.backend
     check_arm_flags(backend, args.robot_ip, args.confirmed)
     flags = ["--backend", args.backend] if args.backend else []
-    return [*flags, "--robot-ip", args.robot_ip, CONFIRM_FLAG] if backend == "ur_rtde" else flags
+    return [*flags, "--robot-ip", args.robot_ip, CONFIRM_FLAG] if backends.plugin(backend).REAL_ARM else flags
 
 
 def run_up(args: argparse.Namespace) -> int:
@@ -106,9 +107,10 @@ def run_demo_fast(args: argparse.Namespace) -> int:
     """``nwr demo --fast``: the demo session in lockstep, recorded, then its per-touch table."""
     from nwr.services.tools.replay import simulate
 
+    real_arm = bool(args.backend) and backends.plugin(args.backend).REAL_ARM
     unsupported = [flag for flag, value in (("--planners", args.planners), ("--follow-target", args.follow_target),
                                             ("--view", args.view), ("--no-record", args.no_record),
-                                            ("--robot-ip", args.robot_ip), ("--backend", args.backend == "ur_rtde"))
+                                            ("--robot-ip", args.robot_ip), ("--backend", real_arm))
                    if value]
     if unsupported:
         raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")

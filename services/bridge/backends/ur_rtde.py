@@ -38,6 +38,7 @@ pass a ``factory`` returning test doubles of the two interfaces.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import sys
@@ -48,12 +49,23 @@ from typing import Any
 
 import numpy as np
 
+from nwr.common.config import BridgeSection
 from nwr.common.errors import NwrError
 from nwr.services.bridge.backend import Backend, Observation
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.envelope import Envelope
 
 log = logging.getLogger(__name__)
+
+NAME = "ur_rtde"
+REAL_ARM = True
+
+
+def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
+    """The UR at ``--robot-ip`` (its ``[bridge]`` servo and reconnection settings); it starts where it is."""
+    return URRtdeBackend(env, 1.0 / cfg.rate_hz, args.robot_ip, lookahead_s=cfg.servo_lookahead_s,
+                         gain=cfg.servo_gain, reconnect_min_s=cfg.reconnect_min_s,
+                         reconnect_max_s=cfg.reconnect_max_s, watchdog_hz=cfg.watchdog_hz)
 
 # Ports the two interfaces use on the controller (see docs/bridge.md).
 RTDE_PORT = 30004  # RTDE: joint state out, registers in
