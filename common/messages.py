@@ -50,6 +50,7 @@ RobotStatus = Literal[
     "emergency_stop",  # the robot's emergency stop is pressed (ur_rtde backend)
     "script_not_running",  # the ur_rtde control script is not running on the controller
     "disconnected",  # no connection to the robot controller: reconnecting with backoff
+    "state_implausible",  # the robot's reported state is not believed (following error, jump, frozen): stopped
 ]
 
 

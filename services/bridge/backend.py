@@ -93,6 +93,9 @@ class Backend(ABC):
     """One robot: simulated or real."""
 
     name: str = "?"
+    # The following lag of the arm behind position setpoints (a first-order time constant), s: the bridge's
+    # model of where the arm should be (checks.StateCheck). The simulated arm is where its setpoint put it.
+    lag_s: float = 0.0
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env

@@ -25,7 +25,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
-from nwr.services.bridge.checks import CheckContext, Event, Reach, check_command, command_name
+from nwr.services.bridge.checks import CheckContext, Event, Reach, StateBounds, StateCheck, check_command, command_name
 from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.tracking import REJOIN_FLOOR_M_S, Tracker
 
@@ -41,6 +41,10 @@ PREVIOUS_OWNER_GRACE_NS = 200_000_000
 # faster than the outgoing one moved the arm, and only within the range the arm
 # covered in the session, for at least this long and until the arm has joined it.
 HANDOVER_S = 1.0
+# A state_implausible fault clears once the reports have shown the arm at rest (every joint slower than
+# CLEAR_SPEED_RAD_S, rad/s), where the bridge stopped it, for this long, s.
+CLEAR_S = 1.0
+CLEAR_SPEED_RAD_S = 0.01
 
 SetpointMode = Literal["position", "velocity", "hold"]
 # Statuses during which the bridge brings the arm to rest and holds it.
@@ -86,7 +90,14 @@ class BridgeCore:
         reduced: Limits | None = None,
         task_range: tuple[np.ndarray, np.ndarray] | None = None,
         task_peak_m_s: float = 0.0,
+        physical: tuple[np.ndarray, np.ndarray] | None = None,
+        state_bounds: StateBounds | None = None,
+        lag_s: float = 0.0,
     ) -> None:
+        """``physical``: the robot description's joint speed and acceleration limits (the reports are checked
+        against them; default: the envelope's); ``state_bounds``: how far a report may stray
+        (:class:`~nwr.services.bridge.checks.StateCheck`); ``lag_s``: the backend's following lag (its servo's
+        time constant; 0 for the simulated arm)."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
             raise ConfigError(f"initial pose has {q0.size} joints, the robot has {env.n}")
@@ -120,6 +131,17 @@ class BridgeCore:
         self.last_pain_ns: int | None = None
         self.fault: m.RobotStatus | None = None
         self.fault_detail = ""
+        # The reported joint state is a claim (StateCheck): a report not believed is the bridge's own fault,
+        # state_implausible (its reason here), which holds the arm until the reports show it at rest where the
+        # bridge stopped it (within ``hold_margin``) for CLEAR_S.
+        v_phys, a_phys = physical if physical is not None else (env.v_max, env.a_max)
+        self.claims = StateCheck(env.joints, v_phys, a_phys, q0, now_ns, bounds=state_bounds, period_s=period_s,
+                                 tau_s=lag_s)
+        self.lag_s = lag_s
+        self.implausible = ""
+        self.hold_q = q0.copy()
+        self.hold_margin = np.zeros(env.n)
+        self.plausible_since: int | None = None
         # Output state.
         self.status: m.RobotStatus = "idle"
         self.detail = "waiting for the first command"
@@ -191,11 +213,13 @@ class BridgeCore:
                 return self._reject("handover_refused",
                                     f"{command_name(cmd)} rejected: the first motion after the switch to "
                                     f"{cmd.owner!r} moves {outside}: a pose the arm was never at, off the task's path")
-        if self.fault is not None:
-            # The controller stopped the arm; nothing moves until the fault is cleared.
+        if self.fault is not None or self.implausible:
+            # The controller stopped the arm (or the bridge did, not believing its reports); nothing moves until
+            # the fault is cleared.
+            fault = self.fault or "state_implausible"
             self.events.append(Event(
                 "warning", "command_ignored",
-                f"{command_name(cmd)} not sent: the robot is in {self.fault} ({self.fault_detail})",
+                f"{command_name(cmd)} not sent: the robot is in {fault} ({self.fault_detail or self.implausible})",
             ))
             return Verdict(False, False)
         onset = cmd.phase == "REFLEX" and cmd.reflex_seq != self.reflex_seq
@@ -385,6 +409,7 @@ class BridgeCore:
         if fault == self.fault:
             return
         self.tracker.restart(q)
+        self.claims.reset(q, now_ns)
         self.last_command_ns = 0
         if fault is None:
             self.events.append(Event("info", "robot_recovered",
@@ -397,10 +422,66 @@ class BridgeCore:
         self.fault_detail = detail
         self._evaluate(now_ns)
 
-    def observe(self, q: np.ndarray) -> None:
-        """The measured pose; in velocity mode the integrated command follows it."""
-        if self.fault is None:
-            self.tracker.observe(q)
+    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int) -> bool:
+        """The reported joint state: checked (:class:`StateCheck`) before anything adopts it.
+
+        A report believed is passed to the tracker (in velocity mode the integrated command follows it); one not
+        believed stops the arm (``state_implausible``: the backend's own controlled stop) and holds it until the
+        reports show it at rest where the bridge stopped it for CLEAR_S. True: that fault has just cleared and
+        the bridge starts over from ``q`` (the backend must resync).
+        """
+        if self.fault is not None:
+            return False
+        if self.implausible:
+            return self._maybe_clear(np.asarray(q, dtype=float), np.asarray(dq, dtype=float), now_ns)
+        why = self.claims.observe(q, dq, now_ns)
+        if why is not None:
+            self._not_believed(why, now_ns)
+            return False
+        self.tracker.observe(q)
+        return False
+
+    def _not_believed(self, why: str, now_ns: int) -> None:
+        claims = self.claims
+        self.implausible = why
+        self.plausible_since = None
+        # Where the arm should come to rest: the backend's controlled stop from the commanded speed (at the
+        # slowest joint's a_max, as ur_rtde's servoStop / speedStop), on top of the following error allowed.
+        v = claims.speed
+        a_stop = float(np.min(self.env.a_max))
+        b = claims.bounds
+        self.hold_q = claims.expected.copy()
+        self.hold_margin = b.error_rad + (b.lag_s + self.lag_s) * v + v * v / (2.0 * a_stop)
+        self.events.append(Event("error", "state_implausible",
+                                 f"the robot's reported state is not believed: {why}: stopping the arm (the "
+                                 "controller's own stop) and holding it until the reports show it at rest where "
+                                 "it was stopped", every_s=0.0))
+        self._evaluate(now_ns)
+
+    def _maybe_clear(self, q: np.ndarray, dq: np.ndarray, now_ns: int) -> bool:
+        """While ``state_implausible``: clear it once the reports have shown the arm at rest near where it was
+        stopped for CLEAR_S."""
+        ok = (q.shape == self.hold_q.shape and dq.shape == self.hold_q.shape and bool(np.isfinite(q).all())
+              and bool(np.isfinite(dq).all()) and not (np.abs(dq) > CLEAR_SPEED_RAD_S).any()
+              and not (np.abs(q - self.hold_q) > self.hold_margin).any())
+        if not ok:
+            self.plausible_since = None
+            return False
+        if self.plausible_since is None:
+            self.plausible_since = now_ns
+        if now_ns - self.plausible_since < round(CLEAR_S * 1e9):
+            return False
+        self.events.append(Event("info", "state_plausible",
+                                 f"the robot's reported state is believed again (at rest, within "
+                                 f"{float(np.max(np.abs(q - self.hold_q))):.4f} rad of where it was stopped, for "
+                                 f"{CLEAR_S:g} s): waiting for commands", every_s=0.0))
+        self.implausible = ""
+        self.plausible_since = None
+        self.tracker.restart(q)
+        self.claims.reset(q, now_ns)
+        self.last_command_ns = 0
+        self._evaluate(now_ns)
+        return True
 
     def request_stop(self, now_ns: int, reason: str) -> None:
         """Stop for good (shutdown): a controlled stop, then hold."""
@@ -419,6 +500,8 @@ class BridgeCore:
         status: m.RobotStatus
         if self.fault is not None:
             status, detail = self.fault, self.fault_detail
+        elif self.implausible:
+            status, detail = "state_implausible", self.implausible
         elif self.shutdown:
             status, detail = "stopped", self.detail or "stopped"
         elif not self.planner_alive and self.planner_seen:
@@ -476,7 +559,8 @@ class BridgeCore:
         if h <= 0.0:
             return self._setpoint(0.0)
         tracker = self.tracker
-        if self.fault is not None:
+        q_before = tracker.q.copy()
+        if self.fault is not None or self.implausible:
             tracker.hold()
         elif tracker.stop is not None:
             tracker.stop_step(now_ns, h)
@@ -490,12 +574,15 @@ class BridgeCore:
             tracker.hold()
         if not self.joining:  # the first motion of a handover does not widen where it may go
             self.reach.add(tracker.q)
-        return self._setpoint(h)
+        setpoint = self._setpoint(h)
+        self.claims.command(setpoint.mode, q_before, setpoint.q, setpoint.dq, now_ns)
+        return setpoint
 
     def _setpoint(self, h: float) -> Setpoint:
         tracker = self.tracker
         at_rest = not (np.abs(tracker.dq) > REST_SPEED).any()
-        if self.fault is not None or (self.status != "ok" and (tracker.stop is None or tracker.stop.done) and at_rest):
+        stopped = tracker.stop is None or tracker.stop.done
+        if self.fault is not None or self.implausible or (self.status != "ok" and stopped and at_rest):
             mode: SetpointMode = "hold"
         elif tracker.mode == "velocity":
             mode = "velocity"

@@ -159,6 +159,10 @@ class URRtdeBackend(Backend):
         self.robot_ip = robot_ip
         self.lookahead_s = lookahead_s
         self.gain = gain
+        # servoJ's lag behind its target: a first-order lag whose time constant grows with the lookahead time and
+        # shrinks with the gain (the controller emulator's model; 0.1 s at the defaults). The bridge's check of
+        # the reported state allows bridge.following_lag_s per rad/s on top (docs/bridge.md).
+        self.lag_s = min(0.2, lookahead_s) * 300.0 / max(gain, 100.0)
         self.reconnect_min_s = reconnect_min_s
         self.reconnect_max_s = reconnect_max_s
         self.watchdog_hz = watchdog_hz

@@ -33,6 +33,7 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight, peak_point_speed
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
+from nwr.services.bridge.checks import StateBounds
 from nwr.services.bridge.core import BridgeCore, at_rest
 from nwr.services.bridge.envelope import Envelope, make_envelope
 from nwr.services.wiring import Diag, Out
@@ -62,6 +63,13 @@ def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimite
     """The speed of the task's fastest point (any the limits watch) over one period, m/s (as the profile's load
     checked it against bridge.limits.speed_m_s: :func:`nwr.common.task.peak_point_speed`)."""
     return peak_point_speed(task, period_s, limiter.model, samples)
+
+
+def state_bounds(profile: Profile) -> StateBounds:
+    """How far the robot's reported state may stray before it is not believed, from the profile."""
+    cfg = profile.bridge
+    return StateBounds(error_rad=cfg.following_error_rad, lag_s=cfg.following_lag_s, jump_rad=cfg.report_jump_rad,
+                       speed_jump_rad_s=cfg.report_speed_jump_rad_s, frozen_s=cfg.report_frozen_s)
 
 
 class BridgeWiring:
@@ -96,6 +104,8 @@ class BridgeWiring:
             reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
             task_range=task.range(),
             task_peak_m_s=task_peak_speed(task, profile.planner.task.period_s, limiter),
+            physical=(np.asarray(desc.v_max, dtype=float), np.asarray(desc.a_max, dtype=float)),
+            state_bounds=state_bounds(profile), lag_s=backend.lag_s,
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0
@@ -170,7 +180,8 @@ class BridgeWiring:
         if obs.fault != core.fault:
             core.on_fault(obs.fault, obs.detail, obs.q, now)
             backend.resync(obs.q)
-        core.observe(obs.q)
+        if core.observe(obs.q, obs.dq, now):
+            backend.resync(obs.q)  # the reports are believed again: the bridge starts over where the arm is
         self._cycle(now)
         if publish or self.ticks % self.state_every == 0 or core.publish_now:
             self._publish(now)
@@ -189,7 +200,7 @@ class BridgeWiring:
 
     def _cycle(self, now: int) -> None:
         setpoint = self.core.step(now)
-        if self.core.fault is None:
+        if self.core.fault is None:  # (state_implausible, the bridge's own fault, sends a hold: the backend's stop)
             self.backend.send_action(setpoint)
 
     def _publish(self, now: int) -> None:
