@@ -444,8 +444,9 @@ class BridgeSection(_Section):
     # ... and change its speed no more than its a_max allows, plus this, rad/s.
     report_speed_jump_rad_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.2
     # A report that does not change for this long while the commands move a
-    # joint is a frozen stream, s (20 control cycles).
-    report_frozen_s: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.04
+    # joint is a frozen stream, s (50 control cycles: 40 ms tripped on a
+    # loaded machine whose client received late, docs/bridge.md).
+    report_frozen_s: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.1
     # A command whose seq is at most the last accepted one is a duplicate or out
     # of order and is rejected, unless it is this far below it: a restarted planner.
     seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500

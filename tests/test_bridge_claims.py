@@ -115,7 +115,36 @@ def test_a_frozen_report_is_caught_within_the_frozen_time_while_the_commands_mov
         mode, q, dq = sine(k)
         sc.command(mode, q, q, dq, t)
     assert why is not None and "frozen" in why
-    assert (k - 100) * DT <= 0.04 + 2 * DT
+    assert (k - 100) * DT <= StateBounds().frozen_s + 2 * DT
+
+
+def test_reports_that_arrive_late_then_in_a_burst_are_no_jump():
+    """A client starved for 40 ms sees the same report again and again, then the newest: not a jump."""
+    sc = check()
+    q, t = np.zeros(2), 0
+    stale = None
+    for k in range(300):
+        t += 2 * MS
+        q = q + np.array([0.9, 0.0]) * DT  # 0.9 rad/s, v_max 1
+        dq = np.array([0.9, 0.0])  # moving from the first report on
+        late = 100 <= k < 120
+        if late and stale is None:
+            stale = (q.copy(), dq.copy())
+        report = stale if late and stale is not None else (q, dq)
+        if not late:
+            stale = None
+        assert sc.observe(*report, t) is None, k
+        sc.command("position", q, q, dq, t)
+
+
+def test_the_controllers_timestamps_time_the_reports():
+    sc = check()
+    assert sc.observe(np.zeros(2), np.zeros(2), 2 * MS, stamp_s=10.0) is None
+    # 0.02 rad in 2 ms of the bridge's clock, but 40 ms of the controller's: possible
+    assert sc.observe(np.array([0.02, 0.0]), np.zeros(2), 4 * MS, stamp_s=10.04) is None
+    # 0.05 rad in 2 ms of the controller's: not
+    why = sc.observe(np.array([0.07, 0.0]), np.zeros(2), 6 * MS, stamp_s=10.042)
+    assert why is not None and "joint a jumped 0.0500 rad in 2.0 ms" in why
 
 
 def test_a_report_unchanged_at_rest_is_no_fault():
@@ -240,7 +269,7 @@ def test_a_frozen_report_while_the_arm_is_commanded_to_move_stops_it_within_a_fe
         if c.status != "ok":
             break
     assert c.status == "state_implausible" and "frozen" in c.detail
-    assert k * DT <= 0.04 + 2 * DT
+    assert k * DT <= StateBounds().frozen_s + 2 * DT
 
 
 def test_a_fault_of_the_controller_resets_the_check():

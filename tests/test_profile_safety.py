@@ -112,7 +112,7 @@ LOOSENED: dict[str, Any] = {
     "bridge.following_lag_s": 0.1,
     "bridge.report_jump_rad": 0.02,
     "bridge.report_speed_jump_rad_s": 0.5,
-    "bridge.report_frozen_s": 0.1,
+    "bridge.report_frozen_s": 0.2,
 }
 
 

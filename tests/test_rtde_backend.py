@@ -111,6 +111,10 @@ class FakeReceive:
         self._check()
         return [0.0] * len(self.r.q)
 
+    def getTimestamp(self):
+        self._check()
+        return 0.0
+
     def isProtectiveStopped(self):
         return self.r.protective
 

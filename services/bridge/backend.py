@@ -41,6 +41,7 @@ class Observation:
     dq: np.ndarray
     fault: m.RobotStatus | None = None  # protective_stop, emergency_stop, script_not_running, disconnected
     detail: str = ""
+    stamp_s: float | None = None  # the controller's own time of the report, s (None: the bridge's clock times it)
 
 
 class Pacer(Protocol):

@@ -242,7 +242,7 @@ class StateBounds:
     lag_s: float = 0.05  # ... plus this times the commanded joint speed, rad per rad/s
     jump_rad: float = 0.01  # a report may move a joint the description's v_max times the time since the last, plus this
     speed_jump_rad_s: float = 0.2  # ... and change its speed a_max times that time, plus this
-    frozen_s: float = 0.04  # a report unchanged this long while the commands move is frozen
+    frozen_s: float = 0.1  # a report unchanged this long while the commands move is frozen
 
 
 class StateCheck:
@@ -281,7 +281,8 @@ class StateCheck:
         self.t_ns = now_ns  # the time of ``expected``
         self.last_q: np.ndarray | None = None
         self.last_dq: np.ndarray | None = None
-        self.last_ns = now_ns
+        self.last_ns = now_ns  # when the last distinct report was first seen
+        self.last_stamp: float | None = None  # and the controller's time of it
         self.frozen_ns: int | None = None  # since when the reports have not changed
         self.frozen_at = q.copy()  # the commanded pose when they stopped changing
 
@@ -308,8 +309,13 @@ class StateCheck:
         self.speed = np.abs(dq)
         self.mode = mode
 
-    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int) -> str | None:
-        """Why the report (``q``, ``dq``) at ``now_ns`` is not believed, or None."""
+    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int, stamp_s: float | None = None) -> str | None:
+        """Why the report (``q``, ``dq``) at ``now_ns`` is not believed, or None.
+
+        How far apart two reports are: the controller's own times (``stamp_s``) where it gives them, else the
+        time between their first sightings on the bridge's clock (a report seen again is not a new one: a
+        stream that arrives late, then in a burst, is not taken for a jump).
+        """
         b = self.bounds
         joints = self.joints
         q = np.asarray(q, dtype=float)
@@ -322,8 +328,13 @@ class StateCheck:
             return f"joint {joints[i]} reported a non-finite position or speed (q {q[i]}, dq {dq[i]})"
         self._advance(now_ns)
         why = None
-        if self.last_q is not None and self.last_dq is not None:
-            dt = max((now_ns - self.last_ns) / 1e9, self.period_s)
+        unchanged = (self.last_q is not None and self.last_dq is not None and np.array_equal(q, self.last_q)
+                     and np.array_equal(dq, self.last_dq))
+        if self.last_q is not None and self.last_dq is not None and not unchanged:
+            if stamp_s is not None and self.last_stamp is not None:
+                dt = max(stamp_s - self.last_stamp, self.period_s)
+            else:
+                dt = max((now_ns - self.last_ns) / 1e9, self.period_s)
             step = np.abs(q - self.last_q) - (self.v_max * dt + b.jump_rad)
             if (step > 0.0).any():
                 i = int(np.argmax(step))
@@ -336,18 +347,18 @@ class StateCheck:
                     why = (f"joint {joints[i]} speed jumped {abs(dq[i] - self.last_dq[i]):.3f} rad/s in "
                            f"{dt * 1e3:.1f} ms (physically at most {self.a_max[i] * dt + b.speed_jump_rad_s:.3f} "
                            "rad/s)")
-            if why is None and np.array_equal(q, self.last_q) and np.array_equal(dq, self.last_dq):
-                if self.frozen_ns is None:
-                    self.frozen_ns = self.last_ns
-                    self.frozen_at = self.commanded.copy()
-                moved = np.abs(self.commanded - self.frozen_at)
-                if (now_ns - self.frozen_ns) / 1e9 >= b.frozen_s and (moved > FROZEN_MOTION_RAD).any():
-                    i = int(np.argmax(moved))
-                    why = (f"the reported state has not changed for {(now_ns - self.frozen_ns) / 1e6:.0f} ms while "
-                           f"joint {joints[i]} was commanded {moved[i]:.4f} rad on (limit {b.frozen_s * 1e3:.0f} ms): "
-                           "a frozen stream")
-            else:
-                self.frozen_ns = None
+        if unchanged:
+            if self.frozen_ns is None:
+                self.frozen_ns = self.last_ns
+                self.frozen_at = self.commanded.copy()
+            moved = np.abs(self.commanded - self.frozen_at)
+            if (now_ns - self.frozen_ns) / 1e9 >= b.frozen_s and (moved > FROZEN_MOTION_RAD).any():
+                i = int(np.argmax(moved))
+                why = (f"the reported state has not changed for {(now_ns - self.frozen_ns) / 1e6:.0f} ms while "
+                       f"joint {joints[i]} was commanded {moved[i]:.4f} rad on (limit {b.frozen_s * 1e3:.0f} ms): "
+                       "a frozen stream")
+        else:
+            self.frozen_ns = None
         if why is None:
             error = np.abs(q - self.expected) - (b.error_rad + b.lag_s * self.speed)
             if (error > 0.0).any():
@@ -355,5 +366,6 @@ class StateCheck:
                 why = (f"joint {joints[i]} reported {q[i]:.4f} rad, {q[i] - self.expected[i]:+.4f} rad from where "
                        f"the bridge commanded it ({self.expected[i]:.4f} rad; limit "
                        f"{b.error_rad + b.lag_s * self.speed[i]:.4f} rad)")
-        self.last_q, self.last_dq, self.last_ns = q, dq, now_ns
+        if not unchanged:
+            self.last_q, self.last_dq, self.last_ns, self.last_stamp = q, dq, now_ns, stamp_s
         return why

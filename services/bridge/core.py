@@ -422,19 +422,20 @@ class BridgeCore:
         self.fault_detail = detail
         self._evaluate(now_ns)
 
-    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int) -> bool:
+    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int, stamp_s: float | None = None) -> bool:
         """The reported joint state: checked (:class:`StateCheck`) before anything adopts it.
 
         A report believed is passed to the tracker (in velocity mode the integrated command follows it); one not
         believed stops the arm (``state_implausible``: the backend's own controlled stop) and holds it until the
         reports show it at rest where the bridge stopped it for CLEAR_S. True: that fault has just cleared and
-        the bridge starts over from ``q`` (the backend must resync).
+        the bridge starts over from ``q`` (the backend must resync). ``stamp_s``: the controller's time of the
+        report, if it has one (how far apart two reports are, whenever they arrive).
         """
         if self.fault is not None:
             return False
         if self.implausible:
             return self._maybe_clear(np.asarray(q, dtype=float), np.asarray(dq, dtype=float), now_ns)
-        why = self.claims.observe(q, dq, now_ns)
+        why = self.claims.observe(q, dq, now_ns, stamp_s)
         if why is not None:
             self._not_believed(why, now_ns)
             return False

@@ -387,6 +387,7 @@ class URRtdeBackend(Backend):
                                    f"{self.robot_ip}: connection lost, reconnecting")
             q = self._read_q()
             dq = np.asarray(self.receive.getActualQd(), dtype=float)
+            stamp = float(self.receive.getTimestamp())  # the controller's clock: how far apart two reports are
             if q.shape != (self.env.n,) or not np.all(np.isfinite(q)):
                 self.lost(f"getActualQ returned {q.tolist()}")
                 return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
@@ -438,7 +439,7 @@ class URRtdeBackend(Backend):
             self.lost(str(exc))
             return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
         self.backoff_s = self.reconnect_min_s
-        return Observation(q, dq)
+        return Observation(q, dq, stamp_s=stamp)
 
     # -- commands ---------------------------------------------------------------------
     def _end_stream(self) -> None:

@@ -180,7 +180,7 @@ class BridgeWiring:
         if obs.fault != core.fault:
             core.on_fault(obs.fault, obs.detail, obs.q, now)
             backend.resync(obs.q)
-        if core.observe(obs.q, obs.dq, now):
+        if core.observe(obs.q, obs.dq, now, obs.stamp_s):
             backend.resync(obs.q)  # the reports are believed again: the bridge starts over where the arm is
         self._cycle(now)
         if publish or self.ticks % self.state_every == 0 or core.publish_now:
