@@ -447,6 +447,14 @@ class BridgeSection(_Section):
     # joint is a frozen stream, s (50 control cycles: 40 ms tripped on a
     # loaded machine whose client received late, docs/bridge.md).
     report_frozen_s: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.1
+    # A pad whose readings stay invalid (not finite, or outside what a pad can
+    # report: a skin read in Pa, say) this long is blind, s (5 samples at 25 Hz).
+    # A sample without any valid pad never counts as fresh skin data.
+    blind_pad_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.2
+    # While any pad is blind: "reduced", the arm moves within the reduced
+    # Cartesian limits (bridge.reduced, as `nwr safety reduced`); "stop",
+    # task and return are held as with stale skin (reflexes may finish).
+    blind_pads: Literal["reduced", "stop"] = "reduced"
     # A command whose seq is at most the last accepted one is a duplicate or out
     # of order and is rejected, unless it is this far below it: a restarted planner.
     seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500
@@ -833,6 +841,7 @@ GUARDS: dict[str, Guard] = {
     "bridge.report_jump_rad": Guard("above", "rad"),
     "bridge.report_speed_jump_rad_s": Guard("above", "rad/s"),
     "bridge.report_frozen_s": Guard("above", "s"),
+    "bridge.blind_pad_s": Guard("above", "s"),
     "bridge.watchdog_hz": Guard("below", "Hz"),
     **{f"bridge.{mode}.{field}": Guard("above", unit)
        for mode in ("limits", "reduced")

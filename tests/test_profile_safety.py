@@ -113,6 +113,7 @@ LOOSENED: dict[str, Any] = {
     "bridge.report_jump_rad": 0.02,
     "bridge.report_speed_jump_rad_s": 0.5,
     "bridge.report_frozen_s": 0.2,
+    "bridge.blind_pad_s": 0.5,
 }
 
 

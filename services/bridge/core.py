@@ -23,6 +23,7 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
+from nwr.common.door import ABSOLUTE_HPA, CHANGE_HPA
 from nwr.common.errors import ConfigError
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.checks import CheckContext, Event, Reach, StateBounds, StateCheck, check_command, command_name
@@ -46,7 +47,11 @@ HANDOVER_S = 1.0
 CLEAR_S = 1.0
 CLEAR_SPEED_RAD_S = 0.01
 
+# While a pad is blind, it is reported again at most this often, s (a change of the blind pads at once).
+BLIND_REPORT_S = 10.0
+
 SetpointMode = Literal["position", "velocity", "hold"]
+BlindPolicy = Literal["reduced", "stop"]
 # Statuses during which the bridge brings the arm to rest and holds it.
 # Reports of a limit the bridge held a command to (a warning, but info in a withdrawal: see _limit_level).
 LIMIT_CODES = frozenset({"command_clipped", "joint_limit", "cartesian_limit"})
@@ -93,11 +98,16 @@ class BridgeCore:
         physical: tuple[np.ndarray, np.ndarray] | None = None,
         state_bounds: StateBounds | None = None,
         lag_s: float = 0.0,
+        pad_names: tuple[str, ...] = (),
+        blind_pad_s: float = 0.2,
+        blind_pads: BlindPolicy = "reduced",
     ) -> None:
         """``physical``: the robot description's joint speed and acceleration limits (the reports are checked
         against them; default: the envelope's); ``state_bounds``: how far a report may stray
         (:class:`~nwr.services.bridge.checks.StateCheck`); ``lag_s``: the backend's following lag (its servo's
-        time constant; 0 for the simulated arm)."""
+        time constant; 0 for the simulated arm); ``pad_names``: for the reports; ``blind_pad_s``: a pad invalid
+        this long is blind; ``blind_pads``: what a blind pad does to the motion (``reduced``: the reduced
+        Cartesian limits while any pad is blind; ``stop``: the skin counts as stale, as with no skin data)."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
             raise ConfigError(f"initial pose has {q0.size} joints, the robot has {env.n}")
@@ -114,7 +124,15 @@ class BridgeCore:
         # The Cartesian limits of the normal and the reduced mode.
         self.normal_limits = limiter.limits if limiter is not None else None
         self.reduced_limits = reduced
-        self.safety_mode: m.SafetyMode = "normal"
+        self.safety_mode: m.SafetyMode = "normal"  # in force: the operator's, or reduced while a pad is blind
+        self.operator_mode: m.SafetyMode = "normal"  # as the operator (nwr safety) asked
+        # Skin validity: a pad whose readings are invalid (not finite, out of range) since ``invalid_since``
+        # for blind_pad_s is blind; a sample without any valid pad is no fresh skin data.
+        self.pad_names = pad_names if len(pad_names) == n_pads else tuple(str(i) for i in range(n_pads))
+        self.blind_pad_ns = round(blind_pad_s * 1e9)
+        self.blind_policy: BlindPolicy = blind_pads
+        self.invalid_since: list[int | None] = [None] * n_pads
+        self.blind: frozenset[int] = frozenset()
         self.contact_pad = -1  # the strongest contact of the newest pain message (-1: none)
         self.last_step_ns = now_ns
         # The command being followed: its phase, and the last one accepted.
@@ -266,7 +284,8 @@ class BridgeCore:
         return Verdict(False, False)
 
     def on_skin(self, pressure: m.SkinPressure, now_ns: int) -> None:
-        """A skin sample: fresh skin data (if it is this robot's skin)."""
+        """A skin sample: fresh skin data if it is this robot's skin and has a valid pad; it also tells which
+        pads are blind (invalid for ``blind_pad_s``)."""
         if len(pressure.change_hpa) != self.n_pads or len(pressure.contact) != self.n_pads:
             self.events.append(Event(
                 "warning", "skin_invalid",
@@ -274,8 +293,50 @@ class BridgeCore:
                 "it does not count as fresh skin data",
             ))
             return
+        valid = pad_validity(pressure, self.n_pads)
+        for i, ok in enumerate(valid):
+            if ok:
+                self.invalid_since[i] = None
+            elif self.invalid_since[i] is None:
+                self.invalid_since[i] = now_ns
+        self._update_blind(now_ns)
+        if not any(valid):
+            self.events.append(Event(
+                "error", "skin_blind",
+                f"skin sample {pressure.seq} has no valid pad (every reading not finite or outside "
+                f"[{ABSOLUTE_HPA[0]:g}, {ABSOLUTE_HPA[1]:g}] hPa: a skin in Pa, say): it does not count as fresh "
+                "skin data",
+            ))
+            self._evaluate(now_ns)
+            return
         self.last_skin_ns = now_ns
         self._evaluate(now_ns)
+
+    def _update_blind(self, now_ns: int) -> None:
+        """The pads invalid for blind_pad_s: reported when they change, and at most every BLIND_REPORT_S while
+        any is; the reduced limits (or the stop) while any is."""
+        blind = frozenset(i for i, since in enumerate(self.invalid_since)
+                          if since is not None and now_ns - since >= self.blind_pad_ns)
+        if blind == self.blind:
+            if blind:
+                self.events.append(Event("warning", "skin_blind_pad", self._blind_message(blind),
+                                         every_s=BLIND_REPORT_S))
+            return
+        recovered = self.blind - blind
+        self.blind = blind
+        if blind:
+            self.events.append(Event("warning", "skin_blind_pad", self._blind_message(blind), every_s=0.0))
+        if recovered:
+            self.events.append(Event("info", "skin_pad_recovered",
+                                     f"pad(s) {', '.join(self.pad_names[i] for i in sorted(recovered))} valid again"
+                                     + ("" if blind else ": every pad sees again"), every_s=0.0))
+        self._apply_safety_mode(now_ns, "blind pads" if blind else "")
+
+    def _blind_message(self, blind: frozenset[int]) -> str:
+        what = ("the reduced Cartesian limits while any pad is blind" if self.blind_policy == "reduced"
+                else "task and return held (bridge.blind_pads = \"stop\")")
+        return (f"{len(blind)} of {self.n_pads} pads blind (invalid for more than {self.blind_pad_ns / 1e6:.0f} ms): "
+                f"{', '.join(self.pad_names[i] for i in sorted(blind))}; {what}")
 
     def on_pain(self, pain: m.SkinPain, now_ns: int) -> None:
         """A pain message: the skin data the planners act on is fresh."""
@@ -299,12 +360,27 @@ class BridgeCore:
         return limiter.model.pad_normal(self.tracker.q, self.contact_pad)
 
     def set_safety_mode(self, mode: m.SafetyMode, now_ns: int, requested_by: str = "") -> bool:
-        """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch."""
+        """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch
+        (while a pad is blind and blind_pads is "reduced", the reduced set stays in force until it sees again)."""
         limiter = self.tracker.limiter
-        limits = self.reduced_limits if mode == "reduced" else self.normal_limits
-        if limiter is None or limits is None:
+        if limiter is None or self.normal_limits is None or self.reduced_limits is None:
             self.events.append(Event("warning", "safety_mode_rejected",
                                      f"safety mode {mode!r} refused: this bridge has no Cartesian limits"))
+            return False
+        self.operator_mode = mode
+        if mode == "normal" and self.blind and self.blind_policy == "reduced":
+            self.events.append(Event("warning", "safety_mode", "safety mode normal requested"
+                                     + (f" by {requested_by}" if requested_by else "") + ": the reduced limits stay "
+                                     f"while pad(s) {', '.join(self.pad_names[i] for i in sorted(self.blind))} are "
+                                     "blind", every_s=0.0))
+        return self._apply_safety_mode(now_ns, requested_by)
+
+    def _apply_safety_mode(self, now_ns: int, requested_by: str) -> bool:
+        limiter = self.tracker.limiter
+        blind_reduced = bool(self.blind) and self.blind_policy == "reduced"
+        mode: m.SafetyMode = "reduced" if self.operator_mode == "reduced" or blind_reduced else "normal"
+        limits = self.reduced_limits if mode == "reduced" else self.normal_limits
+        if limiter is None or limits is None:
             return False
         if mode == self.safety_mode:
             return False
@@ -516,9 +592,12 @@ class BridgeCore:
             detail = f"no command for more than {self.command_timeout_ns / 1e6:.0f} ms"
             if self.tracker.covered_ns:
                 detail += f" past the {self.tracker.covered_ns / 1e6:.0f} ms the last one planned ahead"
-        elif skin_stale and self.phase != "REFLEX":
+        elif (skin_stale or (self.blind and self.blind_policy == "stop")) and self.phase != "REFLEX":
             status = "stale_skin"
-            if self.last_skin_ns is None:
+            if not skin_stale:
+                pads = ", ".join(self.pad_names[i] for i in sorted(self.blind))
+                age = f"pad(s) {pads} blind (bridge.blind_pads = stop)"
+            elif self.last_skin_ns is None:
                 age = "no skin data yet"
             elif pain_stale and self.last_pain_ns is not None and now_ns - self.last_skin_ns <= self.skin_timeout_ns:
                 age = f"pain data {(now_ns - self.last_pain_ns) / 1e6:.0f} ms old (is the gain estimator running?)"
@@ -633,6 +712,15 @@ class BridgeCore:
     def drain_events(self) -> list[Event]:
         events, self.events = self.events, []
         return events
+
+
+def pad_validity(pressure: m.SkinPressure, n_pads: int) -> list[bool]:
+    """Per pad, whether its reading is valid: the gateway's own flag (a non-finite reading; all valid when the
+    sample has none), and within what a pad can report (absolute and change, hPa: a skin read in Pa is not)."""
+    lo, hi = ABSOLUTE_HPA
+    flags = pressure.valid if len(pressure.valid) == n_pads else [True] * n_pads
+    return [bool(ok) and lo <= a <= hi and abs(c) <= CHANGE_HPA
+            for ok, a, c in zip(flags, pressure.absolute_hpa, pressure.change_hpa, strict=False)]
 
 
 def at_rest(dq: np.ndarray) -> bool:

@@ -106,6 +106,7 @@ class BridgeWiring:
             task_peak_m_s=task_peak_speed(task, profile.planner.task.period_s, limiter),
             physical=(np.asarray(desc.v_max, dtype=float), np.asarray(desc.a_max, dtype=float)),
             state_bounds=state_bounds(profile), lag_s=backend.lag_s,
+            pad_names=tuple(pad.name for pad in desc.pads), blind_pad_s=cfg.blind_pad_s, blind_pads=cfg.blind_pads,
         )
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0
