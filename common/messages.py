@@ -248,6 +248,9 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     limited: int = 0
     # The phase of the command being followed (a withdrawal is REFLEX).
     phase: Mode = "TASK"
+    # True: q and dq are the last known ones, not a measurement of this moment
+    # (the controller is unreachable, or its report was not finite; dq is 0).
+    pose_stale: bool = False
 
 
 class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

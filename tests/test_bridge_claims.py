@@ -298,3 +298,75 @@ def test_status_is_a_robot_status():
 
     assert "state_implausible" in typing.get_args(m.RobotStatus)
 
+
+
+# --------------------------------------------------------------------------- never silent, never non-finite
+
+
+def _wiring(backend_factory):
+    from nwr.common.clock import ManualClock
+    from nwr.common.config import Profile
+    from nwr.common.journal import Untracked
+    from nwr.services.bridge.wiring import BridgeWiring, envelope_for
+
+    profile = Profile()
+    env, q0, _ = envelope_for(profile)
+    backend = backend_factory(env, 1.0 / profile.bridge.rate_hz, q0)
+    clock = ManualClock()
+    clock.t_ns = 10**9
+    states: list[m.RobotState] = []
+    reports: list[tuple[str, str]] = []
+    wiring = BridgeWiring(profile, journal=Untracked(clock), out=lambda k, msg: states.append(msg), backend=backend,
+                          diag=lambda level, code, message, every_s=1.0: reports.append((code, message)))
+    return wiring, backend, clock, states, reports
+
+
+def test_a_non_finite_report_is_a_fault_and_never_published():
+    from nwr.services.bridge.backend import Observation, SimBackend
+
+    class Hostile(SimBackend):
+        name = "hostile"
+        nan = False
+
+        def get_observation(self) -> Observation:
+            dq = self.dq.copy()
+            if self.nan:
+                dq[3] = math.nan
+            return Observation(self.q.copy(), dq)
+
+    wiring, backend, clock, states, reports = _wiring(Hostile)
+    for _ in range(20):
+        wiring.tick()
+        clock.t_ns += 2 * MS
+    backend.nan = True
+    for _ in range(20):
+        wiring.tick()
+        clock.t_ns += 2 * MS
+    assert wiring.core.status == "state_implausible" and "non-finite" in wiring.core.detail
+    assert any(code == "state_implausible" for code, _ in reports)
+    assert states and all(np.isfinite(s.q).all() and np.isfinite(s.dq).all() for s in states)
+    assert states[-1].pose_stale and states[-1].status == "state_implausible"
+    import msgspec
+
+    msgspec.msgpack.Decoder(m.RobotState).decode(msgspec.msgpack.encode(states[-1]))  # consumers can decode it
+
+
+def test_while_disconnected_the_state_goes_on_at_its_rate_with_the_last_pose_marked_stale():
+    from nwr.services.bridge.backend import Observation, SimBackend
+
+    class Unreachable(SimBackend):
+        name = "unreachable"
+        down = False
+
+        def get_observation(self) -> Observation:
+            if self.down:
+                return Observation(self.q.copy(), np.zeros_like(self.q), "disconnected", "reconnecting")
+            return Observation(self.q.copy(), self.dq.copy())
+
+    wiring, backend, clock, states, _ = _wiring(Unreachable)
+    backend.down = True
+    for _ in range(100):  # 0.2 s at 500 Hz: 10 states at 50 Hz
+        wiring.tick()
+        clock.t_ns += 2 * MS
+    down = [s for s in states if s.status == "disconnected"]
+    assert len(down) >= 9 and all(s.pose_stale for s in down)

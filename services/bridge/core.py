@@ -690,8 +690,9 @@ class BridgeCore:
         return event
 
     # -- output -----------------------------------------------------------------------
-    def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str) -> m.RobotState:
-        """The robot state to publish, with the measured joints ``q`` and ``dq``."""
+    def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str,
+              pose_stale: bool = False) -> m.RobotState:
+        """The robot state to publish, with the measured joints ``q`` and ``dq`` (``pose_stale``: the last known)."""
         self.publish_now = False
         tracker = self.tracker
         return m.RobotState(
@@ -702,7 +703,7 @@ class BridgeCore:
             stop_time_s=tracker.stop_time_s, skin_age_s=min(self.skin_age_s(now_ns), 1e9), detail=self.detail,
             pending_owner=self.pending.name if self.pending is not None else "", handover=self.handover,
             safety_mode=self.safety_mode, limited=tracker.limited,
-            phase="REFLEX" if tracker.withdrawal else self.phase,
+            phase="REFLEX" if tracker.withdrawal else self.phase, pose_stale=pose_stale,
         )
 
     def release(self) -> None:

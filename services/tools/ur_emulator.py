@@ -48,7 +48,9 @@ elsewhere), one answer line per command line:
   client sends (a velocity reflex's onset) rather than now.
 * ``freeze S [speedj]``: no RTDE data sent to any client for S seconds, the
   connections open (a controller whose data stream stalls).
-  Both record a fault (``offset`` / ``freeze``) with the true arm's fastest
+* ``nan J S``: joint J's reported position and speed not a number for S
+  seconds.
+  Each records a fault (``offset`` / ``freeze``) with the true arm's fastest
   joint speeds (``peak_qd``, from the fault to 1 s after it ended) and its
   joint positions meanwhile (``track``: [t, q0..q5] every other control
   period, 4 ms of the arm's motion: ``t`` is the controller's clock when it was
@@ -562,6 +564,8 @@ class Controller:
         self.offset_rad = 0.0
         self.offset_until = 0.0
         self.freeze_until = 0.0
+        self.nan_joint = 0
+        self.nan_until = 0.0
         self.armed: list[tuple[str, tuple[float, ...]]] = []
         self.faults: list[dict[str, Any]] = []
         # (receipt time, value) of every change of the command register, and motion commands received
@@ -708,6 +712,15 @@ class Controller:
             self.freeze_until = self.clock() + seconds
             self._hostile("freeze", seconds)
 
+    def nan(self, joint: int, seconds: float) -> None:
+        """Report joint ``joint``'s position and speed as NaN for ``seconds``."""
+        if not 0 <= joint < 6 or not 0.0 < seconds < 600.0:
+            raise ValueError(f"nan: joint 0-5 and 0-600 s (got {joint}, {seconds})")
+        with self.lock:
+            self.nan_joint = joint
+            self.nan_until = self.clock() + seconds
+            self._hostile("nan", seconds, joint=joint)
+
     def frozen(self) -> bool:
         return self.clock() < self.freeze_until
 
@@ -794,7 +807,7 @@ class Controller:
         simple: dict[str, Any] = {
             "timestamp": self.timestamp,
             "target_q": arm.target_q.tolist(), "target_qd": arm.target_qd.tolist(), "target_qdd": arm.qdd.tolist(),
-            "actual_q": self._reported_q(), "actual_qd": arm.qd.tolist(),
+            "actual_q": self._reported_q(), "actual_qd": self._reported_qd(),
             "actual_TCP_pose": arm.tcp_pose.tolist(), "target_TCP_pose": arm.tcp_pose.tolist(),
             "actual_TCP_speed": arm.tcp_speed.tolist(), "target_TCP_speed": arm.tcp_speed.tolist(),
             "robot_mode": self.robot_mode, "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
@@ -828,7 +841,15 @@ class Controller:
         q = self.arm.q.tolist()
         if self.clock() < self.offset_until:
             q[self.offset_joint] += self.offset_rad
+        if self.clock() < self.nan_until:
+            q[self.nan_joint] = math.nan
         return q
+
+    def _reported_qd(self) -> list[float]:
+        qd = self.arm.qd.tolist()
+        if self.clock() < self.nan_until:
+            qd[self.nan_joint] = math.nan
+        return qd
 
     # -- control -------------------------------------------------------------------------
     def tick(self, dt: float = DT) -> None:
@@ -1217,6 +1238,9 @@ class Emulator:
                 c.freeze(float(words[1]), at_speedj=len(words) == 3)
                 return f"freezing RTDE output for {float(words[1]):g} s" + (
                     " from the next speedJ" if len(words) == 3 else "")
+            if words[:1] == ["nan"] and len(words) == 3:
+                c.nan(int(words[1]), float(words[2]))
+                return f"joint {words[1]} reported NaN for {float(words[2]):g} s"
             if words[:1] == ["stall"] and len(words) == 2:
                 c.stall(float(words[1]))
                 return f"stalling RTDE input for {float(words[1]):g} s"
