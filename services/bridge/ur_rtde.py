@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import sys
 import threading
 import time
@@ -65,6 +66,10 @@ STALL_EXIT_S = 20.0
 EXIT_STALLED = 75  # EX_TEMPFAIL: try again, i.e. start a fresh bridge
 # At release, a reconnection attempt under way is waited for this long (what it connects is released too), s.
 RECONNECT_JOIN_S = 10.0
+# Before a reconnection, the controller's RTDE port must accept a connection within this long, s.
+PROBE_TIMEOUT_S = 1.0
+# ... and keep it open this long, s.
+PROBE_OPEN_S = 0.25
 
 
 class RobotConnectionError(NwrError):
@@ -88,6 +93,18 @@ def rtde_factory(robot_ip: str, frequency_hz: float) -> tuple[Any, Any]:
         receive.disconnect()  # now, not whenever the failed attempt's traceback is collected
         raise
     return control, receive
+
+
+def probe_rtde(robot_ip: str) -> None:
+    """Raise OSError unless the controller's RTDE port accepts a connection and keeps it open (a server that
+    closes it at once, as a controller that is starting or refusing, does not count)."""
+    with socket.create_connection((robot_ip, RTDE_PORT), timeout=PROBE_TIMEOUT_S) as probe:
+        probe.settimeout(PROBE_OPEN_S)
+        try:
+            if probe.recv(1) == b"":
+                raise ConnectionRefusedError(f"{robot_ip}:{RTDE_PORT} closed the connection at once")
+        except TimeoutError:
+            pass  # open and silent, as an RTDE server is until asked
 
 
 class RtdePacer:
@@ -334,7 +351,7 @@ class URRtdeBackend(Backend):
         # connection, RTDEReceiveInterface.reconnect() / RTDEControlInterface.reconnect()
         # following failed attempts corrupted the heap (ur_rtde 1.6.5: "malloc(): mismatching
         # next->prev_size", the bridge killed by SIGABRT; tests/test_ur_bridge_e2e.py).
-        old = (self.control, self.receive)
+        old = [self.control, self.receive]
         self.control = self.receive = None
         if not self.reconnect_in_thread:
             self._attempt(old)
@@ -343,15 +360,26 @@ class URRtdeBackend(Backend):
         self._connector = threading.Thread(target=self._attempt, args=(old,), name="rtde-reconnect", daemon=True)
         self._connector.start()
 
-    def _attempt(self, old: tuple[Any, Any]) -> None:
-        """One connection attempt (possibly in its own thread): the lost interfaces closed, fresh ones made."""
+    def _attempt(self, old: list[Any]) -> None:
+        """One connection attempt (possibly in its own thread): the lost interfaces closed, fresh ones made.
+
+        The lost interfaces are dropped here, in this thread: ur_rtde's destructors take a second, holding the
+        GIL, and whatever holds the last reference runs them (an error's traceback did, in the control loop).
+        """
         self._connected_pair = None
         self._connect_error = None
         try:
             self._discard(*old)
+            old.clear()
+            if self.factory is rtde_factory:
+                # ur_rtde's constructors hold the GIL while they retry a refused connection (a second and
+                # more: the loop stood still even with this attempt in its own thread): only once the
+                # controller accepts connections again are they called.
+                probe_rtde(self.robot_ip)
             self._connected_pair = self.factory(self.robot_ip, 1.0 / self.dt)
         except (RuntimeError, OSError) as exc:
-            self._connect_error = exc
+            old.clear()
+            self._connect_error = exc.with_traceback(None)
 
     def _finish_reconnect(self) -> None:
         """The attempt's outcome, in the control loop: the watchdog armed and the connection used, or backoff."""
