@@ -720,8 +720,9 @@ def pad_validity(pressure: m.SkinPressure, n_pads: int) -> list[bool]:
     sample has none), and within what a pad can report (absolute and change, hPa: a skin read in Pa is not)."""
     lo, hi = ABSOLUTE_HPA
     flags = pressure.valid if len(pressure.valid) == n_pads else [True] * n_pads
-    return [bool(ok) and lo <= a <= hi and abs(c) <= CHANGE_HPA
-            for ok, a, c in zip(flags, pressure.absolute_hpa, pressure.change_hpa, strict=False)]
+    valid = [bool(ok) and lo <= a <= hi and abs(c) <= CHANGE_HPA
+             for ok, a, c in zip(flags, pressure.absolute_hpa, pressure.change_hpa, strict=False)]
+    return valid + [False] * (n_pads - len(valid))  # a pad the sample does not cover is not valid
 
 
 def at_rest(dq: np.ndarray) -> bool:
