@@ -449,6 +449,31 @@ class BridgeSection(_Section):
     # A position target farther than this from the commanded pose is rejected,
     # rad: a planner that lost track of the arm must not swing it there.
     position_jump_rad: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.1
+    # The robot's reported joint state is a claim, checked every cycle
+    # (docs/bridge.md, "The reported state"); a report beyond these bounds
+    # stops the arm (state_implausible). Following error: a reported position
+    # this far from the bridge's model of the commanded motion (through the
+    # backend's lag), rad, ...
+    following_error_rad: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.05
+    # ... plus this times the joint's commanded speed, s (the lag model's error).
+    following_lag_s: Annotated[float, msgspec.Meta(ge=0, le=0.5)] = 0.05
+    # Between two reports a joint may move no farther than the robot
+    # description's v_max allows in the time between them, plus this, rad ...
+    report_jump_rad: Annotated[float, msgspec.Meta(gt=0, le=0.2)] = 0.01
+    # ... and change its speed no more than its a_max allows, plus this, rad/s.
+    report_speed_jump_rad_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.2
+    # A report that does not change for this long while the commands move a
+    # joint is a frozen stream, s (50 control cycles: 40 ms tripped on a
+    # loaded machine whose client received late, docs/bridge.md).
+    report_frozen_s: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.1
+    # A pad whose readings stay invalid (not finite, or outside what a pad can
+    # report: a skin read in Pa, say) this long is blind, s (5 samples at 25 Hz).
+    # A sample without any valid pad never counts as fresh skin data.
+    blind_pad_s: Annotated[float, msgspec.Meta(gt=0, le=5.0)] = 0.2
+    # While any pad is blind: "reduced", the arm moves within the reduced
+    # Cartesian limits (bridge.reduced, as `nwr safety reduced`); "stop",
+    # task and return are held as with stale skin (reflexes may finish).
+    blind_pads: Literal["reduced", "stop"] = "reduced"
     # A command whose seq is at most the last accepted one is a duplicate or out
     # of order and is rejected, unless it is this far below it: a restarted planner.
     seq_restart_gap: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 500
@@ -819,6 +844,12 @@ GUARDS: dict[str, Guard] = {
     "bridge.command_timeout_s": Guard("above", "s"),
     "bridge.skin_timeout_s": Guard("above", "s"),
     "bridge.position_jump_rad": Guard("above", "rad"),
+    "bridge.following_error_rad": Guard("above", "rad"),
+    "bridge.following_lag_s": Guard("above", "s"),
+    "bridge.report_jump_rad": Guard("above", "rad"),
+    "bridge.report_speed_jump_rad_s": Guard("above", "rad/s"),
+    "bridge.report_frozen_s": Guard("above", "s"),
+    "bridge.blind_pad_s": Guard("above", "s"),
     "bridge.watchdog_hz": Guard("below", "Hz"),
     **{f"bridge.{mode}.{field}": Guard("above", unit)
        for mode in ("limits", "reduced")

@@ -50,6 +50,7 @@ RobotStatus = Literal[
     "emergency_stop",  # the robot's emergency stop is pressed (ur_rtde backend)
     "script_not_running",  # the ur_rtde control script is not running on the controller
     "disconnected",  # no connection to the robot controller: reconnecting with backoff
+    "state_implausible",  # the robot's reported state is not believed (following error, jump, frozen): stopped
 ]
 
 
@@ -247,6 +248,9 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     limited: int = 0
     # The phase of the command being followed (a withdrawal is REFLEX).
     phase: Mode = "TASK"
+    # True: q and dq are the last known ones, not a measurement of this moment
+    # (the controller is unreachable, or its report was not finite; dq is 0).
+    pose_stale: bool = False
 
 
 class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

@@ -114,6 +114,12 @@ LOOSENED: dict[str, Any] = {
     "bridge.reduced.power_w": 30.0,
     "bridge.reduced.stopping_time_s": 0.2,
     "bridge.reduced.stopping_distance_m": 0.05,
+    "bridge.following_error_rad": 0.1,
+    "bridge.following_lag_s": 0.1,
+    "bridge.report_jump_rad": 0.02,
+    "bridge.report_speed_jump_rad_s": 0.5,
+    "bridge.report_frozen_s": 0.2,
+    "bridge.blind_pad_s": 0.5,
 }
 
 

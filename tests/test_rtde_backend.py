@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -110,6 +112,10 @@ class FakeReceive:
     def getActualQd(self):
         self._check()
         return [0.0] * len(self.r.q)
+
+    def getTimestamp(self):
+        self._check()
+        return 0.0
 
     def isProtectiveStopped(self):
         return self.r.protective
@@ -249,6 +255,44 @@ def test_disconnect_and_reconnect_with_backoff(setup):
     robot.connected, robot.refuse_connect = True, False
     clock.t = 100.0
     assert backend.get_observation().fault is None and backend.connected
+
+
+def test_a_slow_reconnection_runs_in_its_thread_and_the_loop_goes_on(setup):
+    """ur_rtde's constructors retry while the controller refuses: the loop reports disconnected meanwhile."""
+    import threading
+
+    backend, robot, clock, made, q0 = setup
+    release = threading.Event()
+    fast = backend.factory
+
+    def slow(ip, hz):
+        release.wait(10.0)
+        return fast(ip, hz)
+
+    backend.factory = slow
+    backend.reconnect_in_thread = True
+    release.set()
+    backend.connect()
+    release.clear()
+    robot.connected = False
+    started = time.monotonic()
+    for _ in range(50):  # 50 cycles while the attempt hangs: none of them waits for it
+        obs = backend.get_observation()
+        assert obs.fault == "disconnected" and np.array_equal(obs.q, q0)
+    assert time.monotonic() - started < 1.0 and backend.reconnects == 1
+    robot.connected = True
+    release.set()
+    backend._connector.join(5.0)
+    assert backend.get_observation().fault is None and backend.connected and backend.reconnects == 1
+
+
+def test_a_non_finite_report_is_passed_on_not_taken_for_a_lost_connection(setup):
+    backend, robot, _, _, q0 = setup
+    backend.connect()
+    robot.q = [math.nan] * 6
+    obs = backend.get_observation()
+    assert obs.fault is None and backend.connected and not np.isfinite(obs.q).any()
+    assert np.array_equal(backend.last_q, q0)  # the last finite report is kept
 
 
 def test_a_call_that_raises_marks_the_connection_lost(setup):

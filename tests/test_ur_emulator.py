@@ -251,6 +251,42 @@ def test_stall_trips_the_watchdog_and_motion_is_logged() -> None:
     assert [f["fault"] for f in controller.faults] == ["stall", "watchdog"]
 
 
+def test_offset_reports_a_joint_off_while_the_arm_moves_as_commanded() -> None:
+    now = [0.0]
+    controller = _running(now)
+    names = ["input_int_register_0", *(f"input_double_register_{i}" for i in range(7))]
+    controller.offset(2, 0.3, 1.0, at_speedj=True)
+    assert controller.read_outputs(["actual_q"])[0] == pytest.approx(controller.arm.q.tolist())  # armed, not yet active
+    controller.write_inputs(names, [u.CMD_SPEEDJ, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 8.0])  # the reflex's first speedJ
+    for _ in range(100):
+        controller.tick()
+        now[0] += u.DT
+    reported = controller.read_outputs(["actual_q"])[0]
+    assert reported[2] == pytest.approx(controller.arm.q[2] + 0.3)
+    assert reported[:2] == pytest.approx(controller.arm.q[:2].tolist())
+    (fault,) = [f for f in controller.faults if f["fault"] == "offset"]
+    assert fault["joint"] == 2 and fault["peak_qd"][2] == pytest.approx(0.5) and len(fault["track"]) > 40
+    now[0] = 1.01
+    assert controller.read_outputs(["actual_q"])[0][2] == pytest.approx(controller.arm.q[2])  # over
+    with pytest.raises(ValueError, match="joint 0-5"):
+        controller.offset(6, 0.1, 1.0)
+
+
+def test_freeze_stops_the_rtde_output_for_a_while() -> None:
+    now = [0.0]
+    controller = _running(now)
+    assert not controller.frozen()
+    controller.freeze(0.5)
+    assert controller.frozen() and controller.faults[-1]["fault"] == "freeze"
+    now[0] = 0.6
+    assert not controller.frozen()
+    e = u.Emulator.__new__(u.Emulator)  # the control port's parsing alone
+    e.controller = controller
+    assert e.control("freeze 1 speedj").startswith("freezing RTDE output for 1 s from the next speedJ")
+    assert e.control("offset 2 0.08 3").startswith("offset joint 2 by 0.08 rad for 3 s")
+    assert controller.armed == [("freeze", (1.0,))]
+
+
 def test_speed_is_acceleration_limited() -> None:
     arm = _controller().arm
     arm.speed([1.0, 0, 0, 0, 0, 0], 100.0)  # above the 8 rad/s^2 limit

@@ -41,6 +41,7 @@ class Observation:
     dq: np.ndarray
     fault: m.RobotStatus | None = None  # protective_stop, emergency_stop, script_not_running, disconnected
     detail: str = ""
+    stamp_s: float | None = None  # the controller's own time of the report, s (None: the bridge's clock times it)
 
 
 class Pacer(Protocol):
@@ -93,6 +94,9 @@ class Backend(ABC):
     """One robot: simulated or real."""
 
     name: str = "?"
+    # The following lag of the arm behind position setpoints (a first-order time constant), s: the bridge's
+    # model of where the arm should be (checks.StateCheck). The simulated arm is where its setpoint put it.
+    lag_s: float = 0.0
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env

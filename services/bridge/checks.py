@@ -29,6 +29,7 @@ approaching a joint limit too fast          clip      speed bounded by the braki
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -227,3 +228,144 @@ class Reach:
                 f"(the range it covered in this session{' and the task' if self.task is not None else ''}) by more "
                 f"than {self.margin} rad")
 
+
+
+# A report that stops changing is frozen once the commands have moved a joint this far since, rad.
+FROZEN_MOTION_RAD = 1e-3
+
+
+@dataclass(frozen=True)
+class StateBounds:
+    """How far the backend's reported joint state may stray before it is not believed (profile: bridge.*)."""
+
+    error_rad: float = 0.05  # following error beyond the lag model, rad
+    lag_s: float = 0.05  # ... plus this times the commanded joint speed, rad per rad/s
+    jump_rad: float = 0.01  # a report may move a joint the description's v_max times the time since the last, plus this
+    speed_jump_rad_s: float = 0.2  # ... and change its speed a_max times that time, plus this
+    frozen_s: float = 0.1  # a report unchanged this long while the commands move is frozen
+
+
+class StateCheck:
+    """The backend's reported joint state is a claim: checked every cycle against the commands and physics (pure).
+
+    The bridge keeps its own model of where the arm should be: the pose it
+    commanded (position setpoints), or the displacement it commanded
+    (velocity setpoints, integrated), followed with the backend's first-order
+    lag ``tau_s`` (ur_rtde's servoJ; 0 for the simulated arm). Each report
+    must be finite, within ``error_rad + lag_s * |commanded speed|`` of the
+    model (the following error), move each joint no farther than the robot
+    description's ``v_max`` allows since the last report (plus ``jump_rad``)
+    and change its speed no more than ``a_max`` allows (plus
+    ``speed_jump_rad_s``), and change at all within ``frozen_s`` while the
+    commands move. :meth:`observe` returns why a report is not believed,
+    naming the joint and the size, or None.
+    """
+
+    def __init__(self, joints: tuple[str, ...], v_max: np.ndarray, a_max: np.ndarray, q0: np.ndarray, now_ns: int,
+                 *, bounds: StateBounds | None = None, period_s: float = 0.002, tau_s: float = 0.0) -> None:
+        self.joints = joints
+        self.v_max = np.asarray(v_max, dtype=float)
+        self.a_max = np.asarray(a_max, dtype=float)
+        self.bounds = bounds if bounds is not None else StateBounds()
+        self.period_s = period_s
+        self.tau_s = tau_s
+        self.reset(q0, now_ns)
+
+    def reset(self, q: np.ndarray, now_ns: int) -> None:
+        """Start over at rest at ``q`` (the arm's pose after a fault, or at start)."""
+        q = np.asarray(q, dtype=float)
+        self.commanded = q.copy()  # the pose commanded (integrated in velocity mode)
+        self.expected = q.copy()  # where the arm should be: the commanded pose through the lag
+        self.speed = np.zeros_like(q)  # the commanded joint speed
+        self.mode = "hold"
+        self.t_ns = now_ns  # the time of ``expected``
+        self.last_q: np.ndarray | None = None
+        self.last_dq: np.ndarray | None = None
+        self.last_ns = now_ns  # when the last distinct report was first seen
+        self.last_stamp: float | None = None  # and the controller's time of it
+        self.frozen_ns: int | None = None  # since when the reports have not changed
+        self.frozen_at = q.copy()  # the commanded pose when they stopped changing
+
+    def _advance(self, now_ns: int) -> None:
+        h = (now_ns - self.t_ns) / 1e9
+        if h <= 0.0:
+            return
+        self.t_ns = now_ns
+        if self.mode != "velocity":
+            if self.tau_s > 0.0:
+                self.expected += (self.commanded - self.expected) * (1.0 - math.exp(-h / self.tau_s))
+            else:
+                self.expected[:] = self.commanded
+
+    def command(self, mode: str, q_before: np.ndarray, q: np.ndarray, dq: np.ndarray, now_ns: int) -> None:
+        """The setpoint the bridge sent at ``now_ns`` (``q_before``: the commanded pose before the cycle)."""
+        self._advance(now_ns)
+        if mode == "velocity":
+            step = q - q_before  # the displacement commanded: never the measured pose itself
+            self.commanded += step
+            self.expected += step
+        else:
+            self.commanded = np.array(q, dtype=float)
+        self.speed = np.abs(dq)
+        self.mode = mode
+
+    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int, stamp_s: float | None = None) -> str | None:
+        """Why the report (``q``, ``dq``) at ``now_ns`` is not believed, or None.
+
+        How far apart two reports are: the controller's own times (``stamp_s``) where it gives them, else the
+        time between their first sightings on the bridge's clock (a report seen again is not a new one: a
+        stream that arrives late, then in a burst, is not taken for a jump).
+        """
+        b = self.bounds
+        joints = self.joints
+        q = np.asarray(q, dtype=float)
+        dq = np.asarray(dq, dtype=float)
+        if q.shape != self.commanded.shape or dq.shape != self.commanded.shape:
+            return f"the backend reported {q.size} joint positions and {dq.size} speeds, the robot has " \
+                   f"{self.commanded.size} joints"
+        if not (np.isfinite(q).all() and np.isfinite(dq).all()):
+            i = int(np.argmin(np.isfinite(q) & np.isfinite(dq)))
+            return f"joint {joints[i]} reported a non-finite position or speed (q {q[i]}, dq {dq[i]})"
+        self._advance(now_ns)
+        why = None
+        unchanged = (self.last_q is not None and self.last_dq is not None and np.array_equal(q, self.last_q)
+                     and np.array_equal(dq, self.last_dq))
+        if self.last_q is not None and self.last_dq is not None and not unchanged:
+            if stamp_s is not None and self.last_stamp is not None:
+                dt = max(stamp_s - self.last_stamp, self.period_s)
+            else:
+                dt = max((now_ns - self.last_ns) / 1e9, self.period_s)
+            step = np.abs(q - self.last_q) - (self.v_max * dt + b.jump_rad)
+            if (step > 0.0).any():
+                i = int(np.argmax(step))
+                why = (f"joint {joints[i]} jumped {abs(q[i] - self.last_q[i]):.4f} rad in {dt * 1e3:.1f} ms "
+                       f"(physically at most {self.v_max[i] * dt + b.jump_rad:.4f} rad)")
+            else:
+                kick = np.abs(dq - self.last_dq) - (self.a_max * dt + b.speed_jump_rad_s)
+                if (kick > 0.0).any():
+                    i = int(np.argmax(kick))
+                    why = (f"joint {joints[i]} speed jumped {abs(dq[i] - self.last_dq[i]):.3f} rad/s in "
+                           f"{dt * 1e3:.1f} ms (physically at most {self.a_max[i] * dt + b.speed_jump_rad_s:.3f} "
+                           "rad/s)")
+        if unchanged:
+            if self.frozen_ns is None:
+                self.frozen_ns = self.last_ns
+                self.frozen_at = self.commanded.copy()
+            moved = np.abs(self.commanded - self.frozen_at)
+            if (now_ns - self.frozen_ns) / 1e9 >= b.frozen_s and (moved > FROZEN_MOTION_RAD).any():
+                i = int(np.argmax(moved))
+                why = (f"the reported state has not changed for {(now_ns - self.frozen_ns) / 1e6:.0f} ms while "
+                       f"joint {joints[i]} was commanded {moved[i]:.4f} rad on (limit {b.frozen_s * 1e3:.0f} ms): "
+                       "a frozen stream")
+        else:
+            self.frozen_ns = None
+        if why is None:
+            error = np.abs(q - self.expected) - (b.error_rad + b.lag_s * self.speed)
+            if (error > 0.0).any():
+                i = int(np.argmax(error))
+                why = (f"joint {joints[i]} reported {q[i]:.4f} rad, {q[i] - self.expected[i]:+.4f} rad from where "
+                       f"the bridge commanded it ({self.expected[i]:.4f} rad; limit "
+                       f"{b.error_rad + b.lag_s * self.speed[i]:.4f} rad)")
+        if not unchanged:
+            self.last_q, self.last_dq, self.last_ns, self.last_stamp = q, dq, now_ns, stamp_s
+        return why

@@ -23,9 +23,10 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
+from nwr.common.door import ABSOLUTE_HPA, CHANGE_HPA
 from nwr.common.errors import ConfigError
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
-from nwr.services.bridge.checks import CheckContext, Event, Reach, check_command, command_name
+from nwr.services.bridge.checks import CheckContext, Event, Reach, StateBounds, StateCheck, check_command, command_name
 from nwr.services.bridge.envelope import Envelope
 from nwr.services.bridge.tracking import REJOIN_FLOOR_M_S, Tracker
 
@@ -41,8 +42,16 @@ PREVIOUS_OWNER_GRACE_NS = 200_000_000
 # faster than the outgoing one moved the arm, and only within the range the arm
 # covered in the session, for at least this long and until the arm has joined it.
 HANDOVER_S = 1.0
+# A state_implausible fault clears once the reports have shown the arm at rest (every joint slower than
+# CLEAR_SPEED_RAD_S, rad/s), where the bridge stopped it, for this long, s.
+CLEAR_S = 1.0
+CLEAR_SPEED_RAD_S = 0.01
+
+# While a pad is blind, it is reported again at most this often, s (a change of the blind pads at once).
+BLIND_REPORT_S = 10.0
 
 SetpointMode = Literal["position", "velocity", "hold"]
+BlindPolicy = Literal["reduced", "stop"]
 # Statuses during which the bridge brings the arm to rest and holds it.
 # Reports of a limit the bridge held a command to (a warning, but info in a withdrawal: see _limit_level).
 LIMIT_CODES = frozenset({"command_clipped", "joint_limit", "cartesian_limit"})
@@ -86,7 +95,19 @@ class BridgeCore:
         reduced: Limits | None = None,
         task_range: tuple[np.ndarray, np.ndarray] | None = None,
         task_peak_m_s: float = 0.0,
+        physical: tuple[np.ndarray, np.ndarray] | None = None,
+        state_bounds: StateBounds | None = None,
+        lag_s: float = 0.0,
+        pad_names: tuple[str, ...] = (),
+        blind_pad_s: float = 0.2,
+        blind_pads: BlindPolicy = "reduced",
     ) -> None:
+        """``physical``: the robot description's joint speed and acceleration limits (the reports are checked
+        against them; default: the envelope's); ``state_bounds``: how far a report may stray
+        (:class:`~nwr.services.bridge.checks.StateCheck`); ``lag_s``: the backend's following lag (its servo's
+        time constant; 0 for the simulated arm); ``pad_names``: for the reports; ``blind_pad_s``: a pad invalid
+        this long is blind; ``blind_pads``: what a blind pad does to the motion (``reduced``: the reduced
+        Cartesian limits while any pad is blind; ``stop``: the skin counts as stale, as with no skin data)."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
             raise ConfigError(f"initial pose has {q0.size} joints, the robot has {env.n}")
@@ -103,7 +124,15 @@ class BridgeCore:
         # The Cartesian limits of the normal and the reduced mode.
         self.normal_limits = limiter.limits if limiter is not None else None
         self.reduced_limits = reduced
-        self.safety_mode: m.SafetyMode = "normal"
+        self.safety_mode: m.SafetyMode = "normal"  # in force: the operator's, or reduced while a pad is blind
+        self.operator_mode: m.SafetyMode = "normal"  # as the operator (nwr safety) asked
+        # Skin validity: a pad whose readings are invalid (not finite, out of range) since ``invalid_since``
+        # for blind_pad_s is blind; a sample without any valid pad is no fresh skin data.
+        self.pad_names = pad_names if len(pad_names) == n_pads else tuple(str(i) for i in range(n_pads))
+        self.blind_pad_ns = round(blind_pad_s * 1e9)
+        self.blind_policy: BlindPolicy = blind_pads
+        self.invalid_since: list[int | None] = [None] * n_pads
+        self.blind: frozenset[int] = frozenset()
         self.contact_pad = -1  # the strongest contact of the newest pain message (-1: none)
         self.last_step_ns = now_ns
         # The command being followed: its phase, and the last one accepted.
@@ -120,6 +149,17 @@ class BridgeCore:
         self.last_pain_ns: int | None = None
         self.fault: m.RobotStatus | None = None
         self.fault_detail = ""
+        # The reported joint state is a claim (StateCheck): a report not believed is the bridge's own fault,
+        # state_implausible (its reason here), which holds the arm until the reports show it at rest where the
+        # bridge stopped it (within ``hold_margin``) for CLEAR_S.
+        v_phys, a_phys = physical if physical is not None else (env.v_max, env.a_max)
+        self.claims = StateCheck(env.joints, v_phys, a_phys, q0, now_ns, bounds=state_bounds, period_s=period_s,
+                                 tau_s=lag_s)
+        self.lag_s = lag_s
+        self.implausible = ""
+        self.hold_q = q0.copy()
+        self.hold_margin = np.zeros(env.n)
+        self.plausible_since: int | None = None
         # Output state.
         self.status: m.RobotStatus = "idle"
         self.detail = "waiting for the first command"
@@ -191,11 +231,13 @@ class BridgeCore:
                 return self._reject("handover_refused",
                                     f"{command_name(cmd)} rejected: the first motion after the switch to "
                                     f"{cmd.owner!r} moves {outside}: a pose the arm was never at, off the task's path")
-        if self.fault is not None:
-            # The controller stopped the arm; nothing moves until the fault is cleared.
+        if self.fault is not None or self.implausible:
+            # The controller stopped the arm (or the bridge did, not believing its reports); nothing moves until
+            # the fault is cleared.
+            fault = self.fault or "state_implausible"
             self.events.append(Event(
                 "warning", "command_ignored",
-                f"{command_name(cmd)} not sent: the robot is in {self.fault} ({self.fault_detail})",
+                f"{command_name(cmd)} not sent: the robot is in {fault} ({self.fault_detail or self.implausible})",
             ))
             return Verdict(False, False)
         onset = cmd.phase == "REFLEX" and cmd.reflex_seq != self.reflex_seq
@@ -242,7 +284,8 @@ class BridgeCore:
         return Verdict(False, False)
 
     def on_skin(self, pressure: m.SkinPressure, now_ns: int) -> None:
-        """A skin sample: fresh skin data (if it is this robot's skin)."""
+        """A skin sample: fresh skin data if it is this robot's skin and has a valid pad; it also tells which
+        pads are blind (invalid for ``blind_pad_s``)."""
         if len(pressure.change_hpa) != self.n_pads or len(pressure.contact) != self.n_pads:
             self.events.append(Event(
                 "warning", "skin_invalid",
@@ -250,8 +293,50 @@ class BridgeCore:
                 "it does not count as fresh skin data",
             ))
             return
+        valid = pad_validity(pressure, self.n_pads)
+        for i, ok in enumerate(valid):
+            if ok:
+                self.invalid_since[i] = None
+            elif self.invalid_since[i] is None:
+                self.invalid_since[i] = now_ns
+        self._update_blind(now_ns)
+        if not any(valid):
+            self.events.append(Event(
+                "error", "skin_blind",
+                f"skin sample {pressure.seq} has no valid pad (every reading not finite or outside "
+                f"[{ABSOLUTE_HPA[0]:g}, {ABSOLUTE_HPA[1]:g}] hPa: a skin in Pa, say): it does not count as fresh "
+                "skin data",
+            ))
+            self._evaluate(now_ns)
+            return
         self.last_skin_ns = now_ns
         self._evaluate(now_ns)
+
+    def _update_blind(self, now_ns: int) -> None:
+        """The pads invalid for blind_pad_s: reported when they change, and at most every BLIND_REPORT_S while
+        any is; the reduced limits (or the stop) while any is."""
+        blind = frozenset(i for i, since in enumerate(self.invalid_since)
+                          if since is not None and now_ns - since >= self.blind_pad_ns)
+        if blind == self.blind:
+            if blind:
+                self.events.append(Event("warning", "skin_blind_pad", self._blind_message(blind),
+                                         every_s=BLIND_REPORT_S))
+            return
+        recovered = self.blind - blind
+        self.blind = blind
+        if blind:
+            self.events.append(Event("warning", "skin_blind_pad", self._blind_message(blind), every_s=0.0))
+        if recovered:
+            self.events.append(Event("info", "skin_pad_recovered",
+                                     f"pad(s) {', '.join(self.pad_names[i] for i in sorted(recovered))} valid again"
+                                     + ("" if blind else ": every pad sees again"), every_s=0.0))
+        self._apply_safety_mode(now_ns, "blind pads" if blind else "")
+
+    def _blind_message(self, blind: frozenset[int]) -> str:
+        what = ("the reduced Cartesian limits while any pad is blind" if self.blind_policy == "reduced"
+                else "task and return held (bridge.blind_pads = \"stop\")")
+        return (f"{len(blind)} of {self.n_pads} pads blind (invalid for more than {self.blind_pad_ns / 1e6:.0f} ms): "
+                f"{', '.join(self.pad_names[i] for i in sorted(blind))}; {what}")
 
     def on_pain(self, pain: m.SkinPain, now_ns: int) -> None:
         """A pain message: the skin data the planners act on is fresh."""
@@ -275,12 +360,27 @@ class BridgeCore:
         return limiter.model.pad_normal(self.tracker.q, self.contact_pad)
 
     def set_safety_mode(self, mode: m.SafetyMode, now_ns: int, requested_by: str = "") -> bool:
-        """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch."""
+        """Switch the Cartesian limits to the normal or the reduced set; False if there is nothing to switch
+        (while a pad is blind and blind_pads is "reduced", the reduced set stays in force until it sees again)."""
         limiter = self.tracker.limiter
-        limits = self.reduced_limits if mode == "reduced" else self.normal_limits
-        if limiter is None or limits is None:
+        if limiter is None or self.normal_limits is None or self.reduced_limits is None:
             self.events.append(Event("warning", "safety_mode_rejected",
                                      f"safety mode {mode!r} refused: this bridge has no Cartesian limits"))
+            return False
+        self.operator_mode = mode
+        if mode == "normal" and self.blind and self.blind_policy == "reduced":
+            self.events.append(Event("warning", "safety_mode", "safety mode normal requested"
+                                     + (f" by {requested_by}" if requested_by else "") + ": the reduced limits stay "
+                                     f"while pad(s) {', '.join(self.pad_names[i] for i in sorted(self.blind))} are "
+                                     "blind", every_s=0.0))
+        return self._apply_safety_mode(now_ns, requested_by)
+
+    def _apply_safety_mode(self, now_ns: int, requested_by: str) -> bool:
+        limiter = self.tracker.limiter
+        blind_reduced = bool(self.blind) and self.blind_policy == "reduced"
+        mode: m.SafetyMode = "reduced" if self.operator_mode == "reduced" or blind_reduced else "normal"
+        limits = self.reduced_limits if mode == "reduced" else self.normal_limits
+        if limiter is None or limits is None:
             return False
         if mode == self.safety_mode:
             return False
@@ -385,6 +485,7 @@ class BridgeCore:
         if fault == self.fault:
             return
         self.tracker.restart(q)
+        self.claims.reset(q, now_ns)
         self.last_command_ns = 0
         if fault is None:
             self.events.append(Event("info", "robot_recovered",
@@ -397,10 +498,67 @@ class BridgeCore:
         self.fault_detail = detail
         self._evaluate(now_ns)
 
-    def observe(self, q: np.ndarray) -> None:
-        """The measured pose; in velocity mode the integrated command follows it."""
-        if self.fault is None:
-            self.tracker.observe(q)
+    def observe(self, q: np.ndarray, dq: np.ndarray, now_ns: int, stamp_s: float | None = None) -> bool:
+        """The reported joint state: checked (:class:`StateCheck`) before anything adopts it.
+
+        A report believed is passed to the tracker (in velocity mode the integrated command follows it); one not
+        believed stops the arm (``state_implausible``: the backend's own controlled stop) and holds it until the
+        reports show it at rest where the bridge stopped it for CLEAR_S. True: that fault has just cleared and
+        the bridge starts over from ``q`` (the backend must resync). ``stamp_s``: the controller's time of the
+        report, if it has one (how far apart two reports are, whenever they arrive).
+        """
+        if self.fault is not None:
+            return False
+        if self.implausible:
+            return self._maybe_clear(np.asarray(q, dtype=float), np.asarray(dq, dtype=float), now_ns)
+        why = self.claims.observe(q, dq, now_ns, stamp_s)
+        if why is not None:
+            self._not_believed(why, now_ns)
+            return False
+        self.tracker.observe(q)
+        return False
+
+    def _not_believed(self, why: str, now_ns: int) -> None:
+        claims = self.claims
+        self.implausible = why
+        self.plausible_since = None
+        # Where the arm should come to rest: the backend's controlled stop from the commanded speed (at the
+        # slowest joint's a_max, as ur_rtde's servoStop / speedStop), on top of the following error allowed.
+        v = claims.speed
+        a_stop = float(np.min(self.env.a_max))
+        b = claims.bounds
+        self.hold_q = claims.expected.copy()
+        self.hold_margin = b.error_rad + (b.lag_s + self.lag_s) * v + v * v / (2.0 * a_stop)
+        self.events.append(Event("error", "state_implausible",
+                                 f"the robot's reported state is not believed: {why}: stopping the arm (the "
+                                 "controller's own stop) and holding it until the reports show it at rest where "
+                                 "it was stopped", every_s=0.0))
+        self._evaluate(now_ns)
+
+    def _maybe_clear(self, q: np.ndarray, dq: np.ndarray, now_ns: int) -> bool:
+        """While ``state_implausible``: clear it once the reports have shown the arm at rest near where it was
+        stopped for CLEAR_S."""
+        ok = (q.shape == self.hold_q.shape and dq.shape == self.hold_q.shape and bool(np.isfinite(q).all())
+              and bool(np.isfinite(dq).all()) and not (np.abs(dq) > CLEAR_SPEED_RAD_S).any()
+              and not (np.abs(q - self.hold_q) > self.hold_margin).any())
+        if not ok:
+            self.plausible_since = None
+            return False
+        if self.plausible_since is None:
+            self.plausible_since = now_ns
+        if now_ns - self.plausible_since < round(CLEAR_S * 1e9):
+            return False
+        self.events.append(Event("info", "state_plausible",
+                                 f"the robot's reported state is believed again (at rest, within "
+                                 f"{float(np.max(np.abs(q - self.hold_q))):.4f} rad of where it was stopped, for "
+                                 f"{CLEAR_S:g} s): waiting for commands", every_s=0.0))
+        self.implausible = ""
+        self.plausible_since = None
+        self.tracker.restart(q)
+        self.claims.reset(q, now_ns)
+        self.last_command_ns = 0
+        self._evaluate(now_ns)
+        return True
 
     def request_stop(self, now_ns: int, reason: str) -> None:
         """Stop for good (shutdown): a controlled stop, then hold."""
@@ -419,6 +577,8 @@ class BridgeCore:
         status: m.RobotStatus
         if self.fault is not None:
             status, detail = self.fault, self.fault_detail
+        elif self.implausible:
+            status, detail = "state_implausible", self.implausible
         elif self.shutdown:
             status, detail = "stopped", self.detail or "stopped"
         elif not self.planner_alive and self.planner_seen:
@@ -432,9 +592,12 @@ class BridgeCore:
             detail = f"no command for more than {self.command_timeout_ns / 1e6:.0f} ms"
             if self.tracker.covered_ns:
                 detail += f" past the {self.tracker.covered_ns / 1e6:.0f} ms the last one planned ahead"
-        elif skin_stale and self.phase != "REFLEX":
+        elif (skin_stale or (self.blind and self.blind_policy == "stop")) and self.phase != "REFLEX":
             status = "stale_skin"
-            if self.last_skin_ns is None:
+            if not skin_stale:
+                pads = ", ".join(self.pad_names[i] for i in sorted(self.blind))
+                age = f"pad(s) {pads} blind (bridge.blind_pads = stop)"
+            elif self.last_skin_ns is None:
                 age = "no skin data yet"
             elif pain_stale and self.last_pain_ns is not None and now_ns - self.last_skin_ns <= self.skin_timeout_ns:
                 age = f"pain data {(now_ns - self.last_pain_ns) / 1e6:.0f} ms old (is the gain estimator running?)"
@@ -476,7 +639,8 @@ class BridgeCore:
         if h <= 0.0:
             return self._setpoint(0.0)
         tracker = self.tracker
-        if self.fault is not None:
+        q_before = tracker.q.copy()
+        if self.fault is not None or self.implausible:
             tracker.hold()
         elif tracker.stop is not None:
             tracker.stop_step(now_ns, h)
@@ -490,12 +654,15 @@ class BridgeCore:
             tracker.hold()
         if not self.joining:  # the first motion of a handover does not widen where it may go
             self.reach.add(tracker.q)
-        return self._setpoint(h)
+        setpoint = self._setpoint(h)
+        self.claims.command(setpoint.mode, q_before, setpoint.q, setpoint.dq, now_ns)
+        return setpoint
 
     def _setpoint(self, h: float) -> Setpoint:
         tracker = self.tracker
         at_rest = not (np.abs(tracker.dq) > REST_SPEED).any()
-        if self.fault is not None or (self.status != "ok" and (tracker.stop is None or tracker.stop.done) and at_rest):
+        stopped = tracker.stop is None or tracker.stop.done
+        if self.fault is not None or self.implausible or (self.status != "ok" and stopped and at_rest):
             mode: SetpointMode = "hold"
         elif tracker.mode == "velocity":
             mode = "velocity"
@@ -523,8 +690,9 @@ class BridgeCore:
         return event
 
     # -- output -----------------------------------------------------------------------
-    def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str) -> m.RobotState:
-        """The robot state to publish, with the measured joints ``q`` and ``dq``."""
+    def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str,
+              pose_stale: bool = False) -> m.RobotState:
+        """The robot state to publish, with the measured joints ``q`` and ``dq`` (``pose_stale``: the last known)."""
         self.publish_now = False
         tracker = self.tracker
         return m.RobotState(
@@ -535,7 +703,7 @@ class BridgeCore:
             stop_time_s=tracker.stop_time_s, skin_age_s=min(self.skin_age_s(now_ns), 1e9), detail=self.detail,
             pending_owner=self.pending.name if self.pending is not None else "", handover=self.handover,
             safety_mode=self.safety_mode, limited=tracker.limited,
-            phase="REFLEX" if tracker.withdrawal else self.phase,
+            phase="REFLEX" if tracker.withdrawal else self.phase, pose_stale=pose_stale,
         )
 
     def release(self) -> None:
@@ -545,6 +713,16 @@ class BridgeCore:
     def drain_events(self) -> list[Event]:
         events, self.events = self.events, []
         return events
+
+
+def pad_validity(pressure: m.SkinPressure, n_pads: int) -> list[bool]:
+    """Per pad, whether its reading is valid: the gateway's own flag (a non-finite reading; all valid when the
+    sample has none), and within what a pad can report (absolute and change, hPa: a skin read in Pa is not)."""
+    lo, hi = ABSOLUTE_HPA
+    flags = pressure.valid if len(pressure.valid) == n_pads else [True] * n_pads
+    valid = [bool(ok) and lo <= a <= hi and abs(c) <= CHANGE_HPA
+             for ok, a, c in zip(flags, pressure.absolute_hpa, pressure.change_hpa, strict=False)]
+    return valid + [False] * (n_pads - len(valid))  # a pad the sample does not cover is not valid
 
 
 def at_rest(dq: np.ndarray) -> bool:

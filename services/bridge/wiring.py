@@ -32,8 +32,9 @@ from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight, peak_point_speed
 from nwr.services.bridge import backends
-from nwr.services.bridge.backend import Backend, SimBackend
+from nwr.services.bridge.backend import Backend, Observation, SimBackend
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
+from nwr.services.bridge.checks import StateBounds
 from nwr.services.bridge.core import BridgeCore, at_rest
 from nwr.services.bridge.envelope import Envelope, make_envelope
 from nwr.services.wiring import Diag, Out, Wiring, event, receives
@@ -63,6 +64,13 @@ def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimite
     """The speed of the task's fastest point (any the limits watch) over one period, m/s (as the profile's load
     checked it against bridge.limits.speed_m_s: :func:`nwr.common.task.peak_point_speed`)."""
     return peak_point_speed(task, period_s, limiter.model, samples)
+
+
+def state_bounds(profile: Profile) -> StateBounds:
+    """How far the robot's reported state may stray before it is not believed, from the profile."""
+    cfg = profile.bridge
+    return StateBounds(error_rad=cfg.following_error_rad, lag_s=cfg.following_lag_s, jump_rad=cfg.report_jump_rad,
+                       speed_jump_rad_s=cfg.report_speed_jump_rad_s, frozen_s=cfg.report_frozen_s)
 
 
 class BridgeWiring(Wiring):
@@ -97,7 +105,13 @@ class BridgeWiring(Wiring):
             reduced=Limits.of(cfg.reduced, model, "bridge.reduced"),
             task_range=task.range(),
             task_peak_m_s=task_peak_speed(task, profile.planner.task.period_s, limiter),
+            physical=(np.asarray(desc.v_max, dtype=float), np.asarray(desc.a_max, dtype=float)),
+            state_bounds=state_bounds(profile), lag_s=backend.lag_s,
+            pad_names=tuple(pad.name for pad in desc.pads), blind_pad_s=cfg.blind_pad_s, blind_pads=cfg.blind_pads,
         )
+        # The last finite report: published (marked stale) while the backend gives none.
+        self.last_q = np.asarray(q0, dtype=float).copy()
+        self.last_dq = np.zeros(env.n)
         self.state_every = max(1, round(cfg.rate_hz / cfg.state_rate_hz))
         self.ticks = 0
         self.seq = 0
@@ -168,10 +182,12 @@ class BridgeWiring(Wiring):
         core, backend = self.core, self.backend
         self.ticks += 1
         obs = backend.get_observation()
+        q = self._finite(obs)
         if obs.fault != core.fault:
-            core.on_fault(obs.fault, obs.detail, obs.q, now)
-            backend.resync(obs.q)
-        core.observe(obs.q)
+            core.on_fault(obs.fault, obs.detail, q, now)
+            backend.resync(q)
+        if core.observe(obs.q, obs.dq, now, obs.stamp_s):  # a non-finite report is a fault there
+            backend.resync(obs.q)  # the reports are believed again: the bridge starts over where the arm is
         self._cycle(now)
         if publish or self.ticks % self.state_every == 0 or core.publish_now:
             self._publish(now)
@@ -190,12 +206,22 @@ class BridgeWiring(Wiring):
 
     def _cycle(self, now: int) -> None:
         setpoint = self.core.step(now)
-        if self.core.fault is None:
+        if self.core.fault is None:  # (state_implausible, the bridge's own fault, sends a hold: the backend's stop)
             self.backend.send_action(setpoint)
+
+    def _finite(self, obs: Observation) -> np.ndarray:
+        """The report's joint positions if it is finite (then kept as the last known), else the last known."""
+        if np.isfinite(obs.q).all() and np.isfinite(obs.dq).all():
+            self.last_q, self.last_dq = obs.q, obs.dq
+            return obs.q
+        return self.last_q
 
     def _publish(self, now: int) -> None:
         obs = self.backend.get_observation()
-        state = self.core.state(self.seq, now, obs.q, obs.dq, self.backend.name)
+        q = self._finite(obs)
+        stale = q is not obs.q or obs.fault == "disconnected"  # never a non-finite value on the wire
+        dq = np.zeros_like(q) if stale else obs.dq
+        state = self.core.state(self.seq, now, q, dq, self.backend.name, pose_stale=stale)
         state.clipped += self.backend.guarded
         self.out(keys.ROBOT_STATE, state)
         self.seq += 1

@@ -42,6 +42,20 @@ elsewhere), one answer line per command line:
   refused for S seconds (default 0).
 * ``stall S``: RTDE input ignored for S seconds, as if the client had gone
   silent: the RTDE watchdog, once armed, stops the script.
+* ``offset J X S [speedj]``: a hostile controller: joint J's (index 0-5)
+  reported position (``actual_q``) offset by X rad for S seconds while the
+  arm itself moves as commanded; with ``speedj``, from the next speedJ the
+  client sends (a velocity reflex's onset) rather than now.
+* ``freeze S [speedj]``: no RTDE data sent to any client for S seconds, the
+  connections open (a controller whose data stream stalls).
+* ``nan J S``: joint J's reported position and speed not a number for S
+  seconds.
+  Each records a fault (``offset`` / ``freeze``) with the true arm's fastest
+  joint speeds (``peak_qd``, from the fault to 1 s after it ended) and its
+  joint positions meanwhile (``track``: [t, q0..q5] every other control
+  period, 4 ms of the arm's motion: ``t`` is the controller's clock when it was
+  integrated), for a test
+  to tell what the real arm would have done.
 * ``state``: the controller's state as one JSON line (joints, modes, whether
   the script runs, each fault with the controller's monotonic time of the
   fault, of the arm's rest after it and of the script's next start, motion
@@ -545,6 +559,14 @@ class Controller:
         self.protective_since = 0.0
         self.power_off_at_rest = False
         self.stall_until = 0.0
+        # Hostile reports: (joint, rad, seconds) of an offset, seconds of a freeze, armed for the next speedJ.
+        self.offset_joint = 0
+        self.offset_rad = 0.0
+        self.offset_until = 0.0
+        self.freeze_until = 0.0
+        self.nan_joint = 0
+        self.nan_until = 0.0
+        self.armed: list[tuple[str, tuple[float, ...]]] = []
         self.faults: list[dict[str, Any]] = []
         # (receipt time, value) of every change of the command register, and motion commands received
         self.command_changes: collections.deque[tuple[float, int]] = collections.deque(maxlen=20000)
@@ -667,6 +689,46 @@ class Controller:
             self.stall_until = self.clock() + seconds
             self.fault("stall")
 
+    def offset(self, joint: int, rad: float, seconds: float, at_speedj: bool = False) -> None:
+        """Report joint ``joint``'s position ``rad`` off for ``seconds`` (the arm itself is not moved)."""
+        if not 0 <= joint < 6 or not math.isfinite(rad) or not 0.0 < seconds < 600.0:
+            raise ValueError(f"offset: joint 0-5, a finite offset and 0-600 s (got {joint}, {rad}, {seconds})")
+        with self.lock:
+            if at_speedj:
+                self.armed.append(("offset", (joint, rad, seconds)))
+                return
+            self.offset_joint, self.offset_rad = joint, rad
+            self.offset_until = self.clock() + seconds
+            self._hostile("offset", seconds, joint=joint, rad=rad)
+
+    def freeze(self, seconds: float, at_speedj: bool = False) -> None:
+        """Send no RTDE data for ``seconds``, the connections open."""
+        if not 0.0 < seconds < 600.0:
+            raise ValueError(f"freeze: 0-600 s (got {seconds})")
+        with self.lock:
+            if at_speedj:
+                self.armed.append(("freeze", (seconds,)))
+                return
+            self.freeze_until = self.clock() + seconds
+            self._hostile("freeze", seconds)
+
+    def nan(self, joint: int, seconds: float) -> None:
+        """Report joint ``joint``'s position and speed as NaN for ``seconds``."""
+        if not 0 <= joint < 6 or not 0.0 < seconds < 600.0:
+            raise ValueError(f"nan: joint 0-5 and 0-600 s (got {joint}, {seconds})")
+        with self.lock:
+            self.nan_joint = joint
+            self.nan_until = self.clock() + seconds
+            self._hostile("nan", seconds, joint=joint)
+
+    def frozen(self) -> bool:
+        return self.clock() < self.freeze_until
+
+    def _hostile(self, name: str, seconds: float, **extra: Any) -> None:
+        record = self.fault(name)
+        record.update(extra, seconds=seconds, end_t=record["t"] + seconds, peak_qd=[0.0] * 6,
+                      track=[[record["t"], *self.arm.q.tolist()]])
+
     def stop_script(self, reason: str) -> None:
         with self.lock:
             if self.script_running:
@@ -705,6 +767,13 @@ class Controller:
     def _log_command(self, now: float, value: int) -> None:
         if not self.command_changes or self.command_changes[-1][1] != value:
             self.command_changes.append((now, value))
+        if value == CMD_SPEEDJ and self.armed:
+            armed, self.armed = self.armed, []
+            for name, args in armed:
+                if name == "offset":
+                    self.offset(int(args[0]), args[1], args[2])
+                else:
+                    self.freeze(args[0])
         if value in (CMD_SERVOJ, CMD_SPEEDJ):
             self.motion_writes += 1
             for fault in self.faults:
@@ -738,7 +807,7 @@ class Controller:
         simple: dict[str, Any] = {
             "timestamp": self.timestamp,
             "target_q": arm.target_q.tolist(), "target_qd": arm.target_qd.tolist(), "target_qdd": arm.qdd.tolist(),
-            "actual_q": arm.q.tolist(), "actual_qd": arm.qd.tolist(),
+            "actual_q": self._reported_q(), "actual_qd": self._reported_qd(),
             "actual_TCP_pose": arm.tcp_pose.tolist(), "target_TCP_pose": arm.tcp_pose.tolist(),
             "actual_TCP_speed": arm.tcp_speed.tolist(), "target_TCP_speed": arm.tcp_speed.tolist(),
             "robot_mode": self.robot_mode, "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
@@ -768,6 +837,20 @@ class Controller:
         kind = _OUTPUT_TYPES[name]  # everything not simulated: zeros
         return [0] * _VECTOR_SIZES[kind] if kind in _VECTOR_SIZES else 0
 
+    def _reported_q(self) -> list[float]:
+        q = self.arm.q.tolist()
+        if self.clock() < self.offset_until:
+            q[self.offset_joint] += self.offset_rad
+        if self.clock() < self.nan_until:
+            q[self.nan_joint] = math.nan
+        return q
+
+    def _reported_qd(self) -> list[float]:
+        qd = self.arm.qd.tolist()
+        if self.clock() < self.nan_until:
+            qd[self.nan_joint] = math.nan
+        return qd
+
     # -- control -------------------------------------------------------------------------
     def tick(self, dt: float = DT) -> None:
         with self.lock:
@@ -780,6 +863,13 @@ class Controller:
                 self.stop_script(f"RTDE watchdog: {self.watchdog_variable} not updated for "
                                  f"{1e3 / self.watchdog_hz:.0f} ms")
             self.arm.step(dt)
+            now = self.clock()
+            for record in self.faults:  # the true arm under a hostile report, until 1 s after it ended
+                if "track" in record and now <= record["end_t"] + 1.0:
+                    record["peak_qd"] = np.maximum(record["peak_qd"], np.abs(self.arm.qd)).tolist()
+                    record["ticks"] = record.get("ticks", 0) + 1
+                    if record["ticks"] % 2 == 0:  # every other period of the arm's (a small state)
+                        record["track"].append([now, *self.arm.q.tolist()])
             if not np.any(self.arm.qd):
                 if self.power_off_at_rest:
                     self.power_off_at_rest = False
@@ -1140,6 +1230,17 @@ class Emulator:
                 return "Stopped"
             if words[:1] == ["drop"]:
                 return f"dropped {self.drop(float(words[1]) if len(words) > 1 else 0.0)}"
+            if words[:1] == ["offset"] and len(words) in (4, 5) and words[4:] in ([], ["speedj"]):
+                c.offset(int(words[1]), float(words[2]), float(words[3]), at_speedj=len(words) == 5)
+                return f"offset joint {words[1]} by {float(words[2]):g} rad for {float(words[3]):g} s" + (
+                    " from the next speedJ" if len(words) == 5 else "")
+            if words[:1] == ["freeze"] and len(words) in (2, 3) and words[2:] in ([], ["speedj"]):
+                c.freeze(float(words[1]), at_speedj=len(words) == 3)
+                return f"freezing RTDE output for {float(words[1]):g} s" + (
+                    " from the next speedJ" if len(words) == 3 else "")
+            if words[:1] == ["nan"] and len(words) == 3:
+                c.nan(int(words[1]), float(words[2]))
+                return f"joint {words[1]} reported NaN for {float(words[2]):g} s"
             if words[:1] == ["stall"] and len(words) == 2:
                 c.stall(float(words[1]))
                 return f"stalling RTDE input for {float(words[1]):g} s"
@@ -1183,7 +1284,7 @@ class Emulator:
             next_send = time.monotonic()
             while not (closed.is_set() or self.stopping.is_set()):
                 period = 1.0 / MAX_FREQUENCY_HZ
-                if session.started and session.outputs:
+                if session.started and session.outputs and not self.controller.frozen():
                     period = 1.0 / next(iter(session.outputs.values())).frequency
                     data = session.data_packages()
                     try:

@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import socket
 import sys
 import threading
 import time
@@ -75,6 +76,12 @@ Factory = Callable[[str, float], tuple[Any, Any]]
 # The loop stuck in one call into ur_rtde for this long has hung (see the module's docstring), s.
 STALL_EXIT_S = 20.0
 EXIT_STALLED = 75  # EX_TEMPFAIL: try again, i.e. start a fresh bridge
+# At release, a reconnection attempt under way is waited for this long (what it connects is released too), s.
+RECONNECT_JOIN_S = 10.0
+# Before a reconnection, the controller's RTDE port must accept a connection within this long, s.
+PROBE_TIMEOUT_S = 1.0
+# ... and keep it open this long, s.
+PROBE_OPEN_S = 0.25
 
 
 class RobotConnectionError(NwrError):
@@ -98,6 +105,18 @@ def rtde_factory(robot_ip: str, frequency_hz: float) -> tuple[Any, Any]:
         receive.disconnect()  # now, not whenever the failed attempt's traceback is collected
         raise
     return control, receive
+
+
+def probe_rtde(robot_ip: str) -> None:
+    """Raise OSError unless the controller's RTDE port accepts a connection and keeps it open (a server that
+    closes it at once, as a controller that is starting or refusing, does not count)."""
+    with socket.create_connection((robot_ip, RTDE_PORT), timeout=PROBE_TIMEOUT_S) as probe:
+        probe.settimeout(PROBE_OPEN_S)
+        try:
+            if probe.recv(1) == b"":
+                raise ConnectionRefusedError(f"{robot_ip}:{RTDE_PORT} closed the connection at once")
+        except TimeoutError:
+            pass  # open and silent, as an RTDE server is until asked
 
 
 class RtdePacer:
@@ -162,15 +181,21 @@ class URRtdeBackend(Backend):
         factory: Factory = rtde_factory,
         clock: Callable[[], float] = time.monotonic,
         stall_exit_s: float | None = None,
+        reconnect_in_thread: bool | None = None,
     ) -> None:
         """``stall_exit_s``: the stall guard's limit (default :data:`STALL_EXIT_S` with the real ur_rtde;
-        none with a test double's ``factory`` unless given)."""
+        none with a test double's ``factory`` unless given); ``reconnect_in_thread``: reconnection attempts in a
+        thread of their own, the control loop going on meanwhile (default: with the real ur_rtde only)."""
         super().__init__(env, dt)
         if not robot_ip:
             raise RobotConnectionError("the ur_rtde backend needs the robot's IP address (--robot-ip)")
         self.robot_ip = robot_ip
         self.lookahead_s = lookahead_s
         self.gain = gain
+        # servoJ's lag behind its target: a first-order lag whose time constant grows with the lookahead time and
+        # shrinks with the gain (the controller emulator's model; 0.1 s at the defaults). The bridge's check of
+        # the reported state allows bridge.following_lag_s per rad/s on top (docs/bridge.md).
+        self.lag_s = min(0.2, lookahead_s) * 300.0 / max(gain, 100.0)
         self.reconnect_min_s = reconnect_min_s
         self.reconnect_max_s = reconnect_max_s
         self.watchdog_hz = watchdog_hz
@@ -197,6 +222,12 @@ class URRtdeBackend(Backend):
         self.stall_exit_s = stall_exit_s if stall_exit_s is not None else (
             STALL_EXIT_S if factory is rtde_factory else 0.0)
         self.progress_at = time.monotonic()
+        self.reconnect_in_thread = reconnect_in_thread if reconnect_in_thread is not None else \
+            factory is rtde_factory
+        self._connector: threading.Thread | None = None
+        self._attempt_at = 0.0  # when the last reconnection attempt began (the clock's), s
+        self._connected_pair: tuple[Any, Any] | None = None
+        self._connect_error: BaseException | None = None
         self._guard: threading.Thread | None = None
         self._guard_stop = threading.Event()
         self.last_q = np.zeros(env.n)
@@ -312,25 +343,73 @@ class URRtdeBackend(Backend):
         self.next_attempt = max(self.next_attempt, self.clock())
 
     def _try_reconnect(self) -> None:
+        """Reconnect with backoff; with the real ur_rtde in a thread of its own, so that the control loop goes on
+        publishing the state (``disconnected``) meanwhile: ur_rtde's constructors retry for as long as the
+        controller refuses connections (2 s of a dropped connection blocked the loop 2 s)."""
+        connector = self._connector
+        if connector is not None:
+            if connector.is_alive():
+                return  # an attempt under way
+            connector.join()
+            self._connector = None
+            self._finish_reconnect()
+            return
         now = self.clock()
         if now < self.next_attempt:
             return
         self.reconnects += 1
-        ok = False
+        self._attempt_at = now
+        # Fresh interfaces, never ur_rtde's reconnect(): after a dropped
+        # connection, RTDEReceiveInterface.reconnect() / RTDEControlInterface.reconnect()
+        # following failed attempts corrupted the heap (ur_rtde 1.6.5: "malloc(): mismatching
+        # next->prev_size", the bridge killed by SIGABRT; tests/test_ur_bridge_e2e.py).
+        old = [self.control, self.receive]
+        self.control = self.receive = None
+        if not self.reconnect_in_thread:
+            self._attempt(old)
+            self._finish_reconnect()
+            return
+        self._connector = threading.Thread(target=self._attempt, args=(old,), name="rtde-reconnect", daemon=True)
+        self._connector.start()
+
+    def _attempt(self, old: list[Any]) -> None:
+        """One connection attempt (possibly in its own thread): the lost interfaces closed, fresh ones made.
+
+        The lost interfaces are dropped here, in this thread: ur_rtde's destructors take a second, holding the
+        GIL, and whatever holds the last reference runs them (an error's traceback did, in the control loop).
+        """
+        self._connected_pair = None
+        self._connect_error = None
         try:
-            # Fresh interfaces, never ur_rtde's reconnect(): after a dropped
-            # connection, RTDEReceiveInterface.reconnect() / RTDEControlInterface.reconnect()
-            # following failed attempts corrupted the heap (ur_rtde 1.6.5: "malloc(): mismatching
-            # next->prev_size", the bridge killed by SIGABRT; tests/test_ur_bridge_e2e.py).
-            self._discard()
-            self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
-            ok = True
-            if not self._arm_watchdog():
-                self.control.stopScript()  # never a running script the controller does not watch
-                raise RuntimeError(f"the controller refused the RTDE watchdog at {self.watchdog_hz:g} Hz")
+            self._discard(*old)
+            old.clear()
+            if self.factory is rtde_factory:
+                # ur_rtde's constructors hold the GIL while they retry a refused connection (a second and
+                # more: the loop stood still even with this attempt in its own thread): only once the
+                # controller accepts connections again are they called.
+                probe_rtde(self.robot_ip)
+            self._connected_pair = self.factory(self.robot_ip, 1.0 / self.dt)
         except (RuntimeError, OSError) as exc:
-            self.fault_reason = f"reconnection {self.reconnects} failed ({exc})"
-            ok = False
+            old.clear()
+            self._connect_error = exc.with_traceback(None)
+
+    def _finish_reconnect(self) -> None:
+        """The attempt's outcome, in the control loop: the watchdog armed and the connection used, or backoff."""
+        pair, error = self._connected_pair, self._connect_error
+        self._connected_pair = self._connect_error = None
+        ok = False
+        if pair is not None:
+            self.control, self.receive = pair
+            try:
+                ok = True
+                if not self._arm_watchdog():
+                    self.control.stopScript()  # never a running script the controller does not watch
+                    raise RuntimeError(f"the controller refused the RTDE watchdog at {self.watchdog_hz:g} Hz")
+            except (RuntimeError, OSError) as exc:
+                error = exc
+                ok = False
+        if not ok:
+            self.fault_reason = f"reconnection {self.reconnects} failed ({error})"
         if ok:
             log.info("reconnected to the UR controller at %s (attempt %d)", self.robot_ip, self.reconnects)
             self.connected = True
@@ -339,24 +418,31 @@ class URRtdeBackend(Backend):
             self.backoff_s = self.reconnect_min_s
             self.last_sent = None
         else:
-            self.next_attempt = now + self.backoff_s
+            self.next_attempt = self._attempt_at + self.backoff_s
             log.warning("%s: next attempt in %.1f s", self.fault_reason, self.backoff_s)
             self.backoff_s = min(2.0 * self.backoff_s, self.reconnect_max_s)
 
-    def _discard(self) -> None:
-        """Close and drop the interfaces of a lost connection (errors ignored: it is gone)."""
-        for interface in (self.control, self.receive):
+    @staticmethod
+    def _discard(*interfaces: Any) -> None:
+        """Close the interfaces of a lost connection (errors ignored: it is gone)."""
+        for interface in interfaces:
             if interface is not None:
                 try:
                     interface.disconnect()
                 except RuntimeError as exc:
                     log.debug("closing a lost interface: %s", exc)
-        self.control = self.receive = None
 
     def disconnect(self) -> None:
         """Release the robot: end the stream, stop the control script, close both interfaces."""
         self.take_over()
         self.progress_at = time.monotonic()  # releasing may hang too: the guard still watches
+        connector = self._connector
+        if connector is not None:  # an attempt under way: what it connects is released too
+            connector.join(timeout=RECONNECT_JOIN_S)
+            self._connector = None
+            if self._connected_pair is not None and self.control is None:
+                self.control, self.receive = self._connected_pair
+                self._connected_pair = None
         control, receive = self.control, self.receive
         if control is not None:
             for call in (self._end_stream, control.stopScript, control.disconnect):
@@ -395,10 +481,12 @@ class URRtdeBackend(Backend):
                                    f"{self.robot_ip}: connection lost, reconnecting")
             q = self._read_q()
             dq = np.asarray(self.receive.getActualQd(), dtype=float)
-            if q.shape != (self.env.n,) or not np.all(np.isfinite(q)):
-                self.lost(f"getActualQ returned {q.tolist()}")
+            stamp = float(self.receive.getTimestamp())  # the controller's clock: how far apart two reports are
+            if q.shape != (self.env.n,) or dq.shape != (self.env.n,):
+                self.lost(f"getActualQ returned {q.tolist()}, getActualQd {dq.tolist()}")
                 return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
-            self.last_q = q
+            if np.isfinite(q).all():  # a non-finite report is passed on: the bridge's check stops the arm on it
+                self.last_q = q
             if self.receive.isEmergencyStopped():
                 self.streaming = None
                 return Observation(q, dq, "emergency_stop", "emergency stop pressed: release it and restart the arm")
@@ -446,7 +534,7 @@ class URRtdeBackend(Backend):
             self.lost(str(exc))
             return Observation(self.last_q.copy(), np.zeros(self.env.n), "disconnected", self.fault_reason)
         self.backoff_s = self.reconnect_min_s
-        return Observation(q, dq)
+        return Observation(q, dq, stamp_s=stamp)
 
     # -- commands ---------------------------------------------------------------------
     def _end_stream(self) -> None:
