@@ -6,7 +6,9 @@ itself: the bridge's measured robot states, which it observes all along
 (:class:`Seen`), and the task's own definition. A peer's claimed saved pose
 is used only if it is where this planner saw the arm leave its task; a
 claimed task time only if the task's pose at that time is where the arm is.
-Anything else is refused and reported, naming the claimant.
+Anything else is refused and reported, naming the claimant. While standing
+by, an active planner's status that contradicts the arm as measured
+(:func:`contradiction`) is not mirrored (:mod:`.standby`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from nwr.common import messages as m
+from nwr.common.task import FigureEight
 
 # A claimed pose this close (every joint, rad) to the pose the planner measured counts as confirmed.
 CONFIRM_RAD = 0.05
@@ -68,3 +71,26 @@ class Seen:
 def distance(a: np.ndarray, b: np.ndarray) -> float:
     """The largest joint difference, rad."""
     return float(np.max(np.abs(a - b)))
+
+
+def contradiction(status: m.PlannerStatus, seen: Seen, task: FigureEight, joints: tuple[str, ...]) -> str | None:
+    """What in the active planner's status disagrees with the arm as measured (``seen``), if anything."""
+    assert seen.q is not None
+    if status.saved_pose is not None:
+        saved = np.asarray(status.saved_pose, dtype=float)
+        if saved.shape != seen.q.shape:
+            return f"a saved pose of {saved.size} joints"
+        outside = seen.outside_range(saved)
+        if outside is not None:
+            i, by = outside
+            return (f"its saved pose puts joint {joints[i]} {by:.3f} rad outside the range measured "
+                    "in this session")
+    if (status.mode == "TASK") != (seen.phase == "TASK"):  # a return ends a withdrawal: either may show
+        return (f"mode {status.mode} while the bridge has followed its {seen.phase} commands for over "
+                f"{SETTLE_S} s")
+    if status.mode == "TASK":
+        claimed = status.task_time_s  # as of just now: it was published on receipt
+        off = distance(task.position(claimed), seen.q)
+        if off > TASK_TIME_RAD:
+            return f"task time {claimed:.3f} s puts the task {off:.3f} rad from the measured arm"
+    return None

@@ -30,7 +30,8 @@ from nwr.common.journal import Journal
 from nwr.common.pacing import Rate
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner import retreat
-from nwr.services.planner.core import Planner, RetreatCheck
+from nwr.services.planner.core import Planner
+from nwr.services.planner.reflex import RetreatCheck
 from nwr.services.wiring import Diag, Out, Wiring, event, receives
 
 

@@ -1,0 +1,161 @@
+"""HOLDING: after the reflex's motion, brake to rest and stay away while the touch lasts.
+
+With ``sustained_contact = "hold"`` (the default), once the reflex's motion
+is over the arm brakes to rest (a jerk-limited brake, ruckig in velocity
+mode) and stays away while the touch lasts. The return begins when the
+touched pad has not felt a touch (pain level 2 or more) for ``release_s``
+and no other pad that feels one would be brought closer to it by the return.
+After ``max_hold_s`` the arm returns only as far as it can without bringing
+any pad closer to a touch still felt, and holds there (a partial return). A
+reflex that cannot move the touched pad away from the contact (its retreat
+check finds under 2 mm of withdrawal, :mod:`.reflex`) stops and holds at
+once. During a return, a touch felt on a pad the return brings closer to it
+stops the return (the same brake) and the arm holds there. With
+``sustained_contact = "paper"`` (the paper's behaviour) there is no HOLDING:
+the return begins as soon as the reflex's motion is over.
+
+:class:`Holding` owns the brake, when each pad last felt a touch, and the
+hold's own state (since when, whether it reached ``max_hold_s``, whether
+the return under way is a partial one).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from ruckig import ControlInterface, InputParameter, OutputParameter, Ruckig
+
+from nwr.common import messages as m
+from nwr.common.config import CartesianLimits, PlannerSection
+from nwr.common.robot import RobotDescription, RobotModel
+from nwr.services.planner import retreat
+from nwr.services.planner.returning import Returning
+
+log = logging.getLogger(__name__)
+
+# A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
+FELT_LEVEL = 2
+# How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
+HOLD_CHECK_NS = 20_000_000
+
+
+class Holding(Returning):
+    """The hold after a withdrawal: the brake, the hold, the partial return, the touches felt ahead."""
+
+    def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, *,
+                 limits: CartesianLimits | None = None) -> None:
+        super().__init__(cfg, desc, model, limits=limits)
+        n = len(desc.joints)
+        self.holds = cfg.sustained_contact == "hold"
+        self.last_level = [1] * len(desc.pads)  # each pad's pain level in the last pain message
+        self.felt_ns = np.full(len(desc.pads), np.iinfo(np.int64).min // 2, dtype=np.int64)  # each pad's last touch
+        self.hold_since_ns = 0
+        self.held_max = False  # this hold has reached max_hold_s (and made its partial return, if any)
+        self.partial = False  # the return under way is a partial one after max_hold_s: hold again on arrival
+        self.braking = False  # HOLDING: still braking to rest
+        self._hold_check_ns = 0
+        # The hold's brake: from the commanded state to rest, jerk-limited.
+        self._brake = Ruckig(n, self.dt)
+        self._brake_in = InputParameter(n)
+        self._brake_out = OutputParameter(n)
+        self._brake_in.control_interface = ControlInterface.Velocity
+        self._brake_in.max_velocity = self._otg_in.max_velocity
+        self._brake_in.max_acceleration = self._otg_in.max_acceleration
+        self._brake_in.max_jerk = self._otg_in.max_jerk
+        self._brake_in.target_velocity = [0.0] * n
+        self._brake_in.target_acceleration = [0.0] * n
+
+    def _withdrawal_over(self, now_ns: int) -> None:
+        """The reflex's motion is over: hold while the touch lasts, or (the paper) return at once."""
+        if self.holds:
+            self._begin_hold(now_ns)
+        else:
+            self._begin_return()
+
+    def _begin_hold(self, now_ns: int, *, keep_since: bool = False) -> None:
+        """Brake to rest (jerk-limited) and hold there: HOLDING."""
+        self._legs = []
+        self.partial = False
+        if not keep_since or self.mode != "HOLDING":
+            self.hold_since_ns = now_ns
+            self.held_max = False
+        self._hold_check_ns = now_ns + HOLD_CHECK_NS
+        inp = self._brake_in
+        inp.current_position = self.q.tolist()
+        inp.current_velocity = self.dq.tolist()
+        inp.current_acceleration = self.ddq.tolist()
+        self._brake.reset()
+        self.braking = bool(np.any(self.dq != 0.0) or np.any(self.ddq != 0.0))
+        if self.mode != "HOLDING":
+            self.changed = True
+        self.mode = "HOLDING"
+
+    def _hold_step(self, now_ns: int) -> m.PositionCommand | None:
+        """One cycle of HOLDING: brake, hold, or (None) begin the return."""
+        if self.braking:
+            if self._ruckig_step(self._brake, self._brake_in, self._brake_out):
+                self.braking = False
+                self.dq[:] = 0.0
+                self.ddq[:] = 0.0
+            return self._position_command(now_ns)
+        if now_ns < self._hold_check_ns:
+            return self._position_command(now_ns)
+        self._hold_check_ns = now_ns + HOLD_CHECK_NS
+        assert self.saved is not None
+        blocking = self._blocking(self.saved, now_ns)
+        if not blocking:
+            self._begin_return()
+            return None
+        if not self.held_max and now_ns - self.hold_since_ns >= round(self.cfg.max_hold_s * 1e9):
+            self.held_max = True
+            self._partial_return(blocking)
+            if self.mode == "RETURNING":
+                return None
+        return self._position_command(now_ns)
+
+    def _partial_return(self, blocking: list[int]) -> None:
+        """After max_hold_s: return as far as no pad in ``blocking`` comes closer to its touch, and hold there."""
+        assert self.saved is not None
+        delta = self.saved - self.q
+        for _ in range(2):  # correcting for one pad may move another: once more
+            for pad in blocking:
+                delta, _ = retreat.guard_displacement(self.model, self.q, delta, pad, self.desc.q_min,
+                                                      self.desc.q_max)
+        names = ", ".join(self.desc.pads[i].name for i in blocking)
+        moved = float(np.max(np.abs(delta)))
+        if moved < 1e-3:
+            message = (f"touch still felt on {names} after {self.cfg.max_hold_s:g} s (planner.max_hold_s): no "
+                       "return moves away from it; holding until it ends")
+        else:
+            message = (f"touch still felt on {names} after {self.cfg.max_hold_s:g} s (planner.max_hold_s): "
+                       f"returning {moved:.3f} rad of the way, only along directions that approach no touch, "
+                       "then holding until it ends")
+        log.warning("%s", message)
+        self.notes.append(("warning", "max_hold", message))
+        if moved >= 1e-3:
+            self._begin_return(self.q + delta)
+            self.partial = True
+
+    def _blocking(self, target: np.ndarray, now_ns: int) -> list[int]:
+        """The pads that keep the arm holding: the touched pad while it feels the touch (within release_s),
+        and any other pad feeling one that the way to ``target`` would bring closer to it."""
+        within = np.flatnonzero(now_ns - self.felt_ns < round(self.cfg.release_s * 1e9)).tolist()
+        recent: list[int] = sorted(set(within) | {i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL})
+        touched = self.reflex.contact.pad if self.reflex is not None else -1
+        out = []
+        for pad in recent:
+            if pad == touched or retreat.toward_along_path(self.model, self.q, target - self.q, pad)[0] > \
+                    retreat.TOLERANCE_M:
+                out.append(pad)
+        return out
+
+    def _felt_ahead(self, now_ns: int) -> list[int]:
+        """The pads feeling a touch now that the rest of the return brings closer to it."""
+        assert self.saved is not None
+        felt = [i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL]
+        if not felt:
+            return []
+        d = self.saved - self.q
+        return [pad for pad in felt if float((self.model.pad_jacobian(self.q, pad)[:3] @ d)
+                                             @ self.model.pad_normal(self.q, pad)) > retreat.TOLERANCE_M]
