@@ -248,7 +248,7 @@ def test_an_input_ruckig_rejects_falls_back_to_the_acceleration_limited_law(monk
     def refuse(*_args: object) -> None:
         raise RuckigError("[ruckig] error in step 1, dof: 1 input: ...")
 
-    monkeypatch.setattr(c.tracker, "_otg", type("Refusing", (), {"calculate": staticmethod(refuse)})())
+    monkeypatch.setattr(c.tracker.law, "otg", type("Refusing", (), {"calculate": staticmethod(refuse)})())
     qs, dqs, ddqs = drive(c, 50, lambda k, t: vel((0.5, -0.5), 5 + k, t), t0=10 * MS)
     assert np.isfinite(qs).all() and np.abs(dqs[-1] - (0.5, -0.5)).max() < 1e-6  # it keeps following the command
     assert np.all(np.abs(ddqs) <= ENV.a_max * (1 + JERK_TOL)) and np.all(np.abs(dqs) <= ENV.v_max * (1 + JERK_TOL))

@@ -28,7 +28,8 @@ from nwr.common.errors import ConfigError
 from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.checks import CheckContext, Event, Reach, StateBounds, StateCheck, check_command, command_name
 from nwr.services.bridge.envelope import Envelope
-from nwr.services.bridge.tracking import REJOIN_FLOOR_M_S, Tracker
+from nwr.services.bridge.limits import REJOIN_FLOOR_M_S
+from nwr.services.bridge.tracking import Tracker
 
 # A control step never integrates more than this, s: after a stall of the
 # bridge's loop the arm is not teleported along a long step.

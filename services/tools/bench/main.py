@@ -754,7 +754,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "reflex's)")
     p.add_argument("--against", metavar="TRACKING_PY",
                    help="with --tracking: compare with another version of services/bridge/tracking.py, "
-                        "e.g. git show REV:services/bridge/tracking.py > old.py")
+                        "e.g. git show REV:services/bridge/tracking.py > old.py (a revision after its split "
+                        "into reference, law, limits and stop: only tracking.py itself is the other version's)")
     p.add_argument("--jitter-ms", type=float, default=0.0,
                    help="with --tracking: delay each command by up to this much, each bridge cycle by a quarter "
                         "of it (seeded), as a loaded machine does")

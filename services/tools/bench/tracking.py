@@ -395,7 +395,11 @@ def stop_overshoot(profile: Profile, *, tracker: type | None = None, ramp_s: flo
 
 
 def tracker_from(path: str) -> type:
-    """The ``Tracker`` of another ``tracking.py`` (e.g. ``git show REV:services/bridge/tracking.py > old.py``)."""
+    """The ``Tracker`` of another ``tracking.py`` (e.g. ``git show REV:services/bridge/tracking.py > old.py``).
+
+    Since the tracker was split into parts (``reference.py``, ``law.py``, ``limits.py``, ``stop.py``), a
+    ``tracking.py`` of a later revision imports this tree's parts, not its own: only its own module differs.
+    """
     spec = importlib.util.spec_from_file_location("nwr_tracking_against", Path(path))
     if spec is None or spec.loader is None:
         raise FileNotFoundError(path)
