@@ -163,3 +163,23 @@ def test_an_owner_token_names_its_service_pipeline_host_pid_and_start() -> None:
     assert "started alone" in keys.Owner("bridge", keys.NO_INSTANCE, "h", 1, 2).describe()
     for bad in ("alive/bridge", "owner/bridge/x/h/pid/2", "owner/bridge/x/h/1"):
         assert keys.parse_owner(bad) is None
+
+
+def test_a_plugin_kind_lists_its_package_and_says_what_a_module_lacks(tmp_path, monkeypatch) -> None:
+    from nwr.common.errors import ConfigError
+    from nwr.common.plugins import Kind
+
+    package = tmp_path / "nwr_test_arms"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "good.py").write_text("NAME = 'good'\nREAL_ARM = False\ndef make(): return 1\n")
+    (package / "bad.py").write_text("NAME = 'bad'\nREAL_ARM = 'no'\n")
+    (package / "_helper.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    kind = Kind("nwr_test_arms", [str(package)], "bridge.backend", "backend", {"REAL_ARM": "bool", "make": "callable"})
+    assert kind.names() == ["bad", "good"]
+    assert kind.get("good").make() == 1
+    with pytest.raises(ConfigError, match=r"bad.py is no backend: it lacks REAL_ARM \(bool\), make \(callable\)"):
+        kind.get("bad")
+    with pytest.raises(ConfigError, match="bridge.backend = 'other' is no backend; there are: bad, good"):
+        kind.get("other")
