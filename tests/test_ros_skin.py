@@ -229,6 +229,17 @@ def test_the_callback_never_raises_and_reports_each_bad_message() -> None:
     assert (skin.count, skin.bad) == (4, 4)
 
 
+def test_a_skin_in_pascal_is_one_units_error_naming_the_scale_and_its_samples_have_no_valid_pad() -> None:
+    skin, outs, diags = adapter()
+    skin.on_message(FakeMessage([v * 100.0 for v in rest()]))  # Pa, not hPa
+    assert len(outs) == 1 and not any(outs[0].valid)
+    assert [d[:2] for d in diags] == [("error", "ros1_units")]
+    assert "every value on /bullet_ros/airskin_status is outside 0..5000 hPa" in diags[0][2]
+    assert "scale_hpa = 0.01" in diags[0][2]
+    skin.on_message(FakeMessage(rest()))  # the units fixed at the device: no error
+    assert len(diags) == 1 and all(outs[1].valid)
+
+
 def test_the_watchdog_reports_a_silent_topic_and_a_master_gone() -> None:
     skin, _, diags = adapter()
     skin.last -= 10.0

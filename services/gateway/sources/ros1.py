@@ -10,7 +10,8 @@ same baseline filter and ``skin/pressure`` as the simulated skin.
   reported once at start (log and diagnostic ``ros1_mapping``);
 - a message of the wrong length, with non-finite or out-of-range values:
   a diagnostic (``ros1_bad_message``, rate limited) and those pads invalid in
-  that sample; nothing a message carries stops the gateway;
+  that sample; nothing a message carries stops the gateway; every value out
+  of range is the wrong units or scale (``ros1_units``, an error);
 - no message for ``timeout_s``, or the ROS master unreachable: diagnostics
   ``ros1_no_messages`` / ``ros1_master_unreachable``. The gateway publishes
   nothing without messages: the skin goes stale and the bridge stops the arm
@@ -34,13 +35,15 @@ import time
 from typing import Any
 from urllib.parse import urlparse
 
+import numpy as np
+
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile, Ros1SkinSection
 from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
-from nwr.common.skinmap import PadMap, map_values, pad_map
+from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, PadMap, map_values, pad_map
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
 
 log = logging.getLogger(__name__)
@@ -132,6 +135,15 @@ class Ros1Skin:
             log.info("skin messages on %s again", self.cfg.topic)
         if mapped.problems:
             self.bad += 1
+            if "range" in mapped.problems and not np.isfinite(mapped.absolute_hpa).any():
+                # Every pad out of range: not a bad message but the wrong units or scale (a device in Pa).
+                lo, hi = ABSOLUTE_RANGE_HPA
+                self.diag("error", "ros1_units",
+                          f"every value on {self.cfg.topic} is outside {lo:g}..{hi:g} hPa after gateway.ros1's "
+                          f"scale_hpa = {self.cfg.scale_hpa:g} and offset_hpa = {self.cfg.offset_hpa:g}: the skin is "
+                          "blind and the bridge holds the arm; a device that reports Pa needs scale_hpa = 0.01, one "
+                          "that reports a change from rest an offset_hpa (docs/lab.md)", every_s=10.0)
+                return
             self.diag("warning", "ros1_bad_message", f"{self.cfg.topic}: " + "; ".join(mapped.problems.values()))
 
     def check(self, master_uri: str) -> None:
