@@ -26,7 +26,7 @@ log = logging.getLogger("nwr")
 # Modules that add subcommands of their own (see build_parser).
 COMMAND_MODULES: list[str] = [
     "nwr.services.tools.demo",
-    "nwr.services.tools.summary",
+    "nwr.services.tools.recordings.summary",
     "nwr.services.tools.press",
     "nwr.services.recorder.commands",
     "nwr.services.tools.figures",
@@ -35,10 +35,10 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.tools.safety",
     "nwr.services.tools.status",
     "nwr.services.tools.router",
-    "nwr.services.tools.replay",
-    "nwr.services.tools.compare",
-    "nwr.services.tools.rosbag_import",
-    "nwr.services.tools.verify",
+    "nwr.services.tools.recordings.replay",
+    "nwr.services.tools.recordings.compare",
+    "nwr.services.tools.recordings.rosbag_import",
+    "nwr.services.tools.recordings.verify",
     "nwr.services.tools.study.main",
     "nwr.services.tools.bench.main",
     "nwr.services.tools.certs",

@@ -29,7 +29,7 @@ from mcap.stream_reader import StreamReader
 from nwr.common.config import Profile
 from nwr.common.recordings import RecordingError, read_recording
 from nwr.services import cli
-from nwr.services.tools import replay
+from nwr.services.tools.recordings import replay
 from nwr.services.view import commands as view_commands
 
 SCRIPT = """

@@ -38,8 +38,8 @@ from nwr.common.config import GainSection, load_script
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
-from nwr.services.tools import analysis
-from nwr.services.tools.summary import print_summary
+from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings.summary import print_summary
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.docker]
 

@@ -19,8 +19,8 @@ from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
-from nwr.services.tools import analysis
-from nwr.services.tools.verify import verify
+from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -10,8 +10,9 @@ from matplotlib.colors import same_color, to_rgb
 from nwr.common.config import Profile
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.planner import retreat
-from nwr.services.tools import analysis, compare, figures
-from nwr.services.tools.replay import simulate
+from nwr.services.tools import figures
+from nwr.services.tools.recordings import analysis, compare
+from nwr.services.tools.recordings.replay import simulate
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()
@@ -178,7 +179,7 @@ def test_compare_figure_names_the_joints_and_the_files(short_sessions):
 # --------------------------------------------------------------------------- the reflex quality table
 
 def _touch(pad, peak, gain, withdrawal, toward=0.0, other=0.0, jerk=None, withdraws=True):
-    from nwr.services.tools.analysis import TouchSummary
+    from nwr.services.tools.recordings.analysis import TouchSummary
 
     return TouchSummary(pad=pad, name=f"p{pad}", region="r", start_ns=0, end_ns=0, first_seq=0, last_seq=0,
                         peak_hpa=peak, gain=gain, reflex_seq=1, withdrawal_mm=withdrawal, toward_mm=toward,
@@ -186,7 +187,7 @@ def _touch(pad, peak, gain, withdrawal, toward=0.0, other=0.0, jerk=None, withdr
 
 
 def test_the_quality_row_counts_approaches_repeats_and_the_gain_ranking():
-    from nwr.services.tools.analysis import quality
+    from nwr.services.tools.recordings.analysis import quality
 
     touches = [
         _touch(0, 6.0, 0.2, 10.0, toward=1.0, other=3.0, jerk=50.0),
@@ -206,7 +207,7 @@ def test_the_quality_row_counts_approaches_repeats_and_the_gain_ranking():
 
 
 def test_peak_jerk_tells_a_velocity_step_from_a_ramp():
-    from nwr.services.tools.analysis import peak_jerk
+    from nwr.services.tools.recordings.analysis import peak_jerk
 
     t = np.arange(0, 21) * 20_000_000  # states at 50 Hz
     step = np.zeros((21, 3))

@@ -282,9 +282,9 @@ def _is_module(name: str) -> bool:
 
 def test_the_layering_check_sees_an_upward_import(tmp_path: Path) -> None:
     bad = tmp_path / "m.py"
-    bad.write_text("def f():\n    from nwr.services.tools import replay\n")
-    assert "nwr.services.tools.replay" in _imports(bad, "nwr.common.m")
-    assert _layer("nwr.services.tools.replay") == 3 and _layer("nwr.common.keys") == 0
+    bad.write_text("def f():\n    from nwr.services.tools.recordings import replay\n")
+    assert "nwr.services.tools.recordings.replay" in _imports(bad, "nwr.common.m")
+    assert _layer("nwr.services.tools.recordings.replay") == 3 and _layer("nwr.common.keys") == 0
     assert _layer("nwr.services.bridge.core") == 1 and _layer("nwr.services.pipeline.lockstep") == 2
 
 

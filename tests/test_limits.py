@@ -22,7 +22,7 @@ from nwr.common.task import FigureEight
 from nwr.services.bridge.wiring import BridgeWiring
 from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
-from nwr.services.tools import analysis
+from nwr.services.tools.recordings import analysis
 from nwr.services.wiring import no_diag
 
 DESC = load_description()

@@ -17,8 +17,8 @@ from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import Gateway, SimSkin
 from nwr.services.pipeline.lockstep import Lockstep
-from nwr.services.tools import analysis, compare
-from nwr.services.tools.replay import select
+from nwr.services.tools.recordings import analysis, compare
+from nwr.services.tools.recordings.replay import select
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()
@@ -163,8 +163,8 @@ def test_replay_fast_cli_and_live_against_the_outside_planner(tmp_path):
 
 
 def test_a_lockstep_recording_prints_no_latency_and_says_why(tmp_path, capsys):
-    from nwr.services.tools.replay import simulate
-    from nwr.services.tools.summary import print_summary
+    from nwr.services.tools.recordings.replay import simulate
+    from nwr.services.tools.recordings.summary import print_summary
 
     path = simulate(Profile(), str(Path(__file__).parent / "data" / "short.toml"), "cartesian",
                     tmp_path / "lockstep.mcap")[0]

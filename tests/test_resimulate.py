@@ -24,9 +24,9 @@ from nwr.services.gateway.core import (
     touch_message,
     withdrawal_m,
 )
-from nwr.services.tools import analysis, compare
-from nwr.services.tools.replay import run_fast, simulate
-from nwr.services.tools.verify import verify
+from nwr.services.tools.recordings import analysis, compare
+from nwr.services.tools.recordings.replay import run_fast, simulate
+from nwr.services.tools.recordings.verify import verify
 
 DATA = Path(__file__).parent / "data"
 DESC = load_description()

@@ -40,7 +40,8 @@ from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
-from nwr.services.tools import analysis, certs, router
+from nwr.services.tools import certs, router
+from nwr.services.tools.recordings import analysis
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -17,7 +17,7 @@ from nwr.common.config import ZenohSection
 from nwr.common.node import Node
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services.tools.verify import verify
+from nwr.services.tools.recordings.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -1,6 +1,6 @@
 """The whole pipeline with the bridge on the ur_rtde backend, against the UR controller emulator.
 
-The real ``ur_rtde`` talks to ``services/tools/ur_emulator.py`` on 127.0.0.1
+The real ``ur_rtde`` talks to ``services/tools/hardware/ur_emulator.py`` on 127.0.0.1
 (ur_rtde fixes its ports, RTDE 30004, dashboard 29999, script 30003: the tests
 skip when something else holds them): ``nwr demo --backend ur_rtde
 --robot-ip 127.0.0.1 --i-am-next-to-the-robot``, the unmodified pipeline.
@@ -31,8 +31,8 @@ from ur_support import emulator_process, skip_unless_free
 from nwr.common import keys
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services.tools import analysis
-from nwr.services.tools import ur_emulator as u
+from nwr.services.tools.hardware import ur_emulator as u
+from nwr.services.tools.recordings import analysis
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from ur_support import emulator_process, skip_unless_free
 
-from nwr.services.tools import ur_emulator as u
+from nwr.services.tools.hardware import ur_emulator as u
 
 HOME = [0.0, -1.15, 1.85, -2.27, -1.57, 0.0]
 

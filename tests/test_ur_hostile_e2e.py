@@ -1,6 +1,6 @@
 """A hostile controller: the whole pipeline on the ur_rtde backend against an emulator that misreports the arm.
 
-The controller emulator (``services/tools/ur_emulator.py``) offsets one
+The controller emulator (``services/tools/hardware/ur_emulator.py``) offsets one
 joint's reported position for a while (the arm itself moves as commanded)
 or stops sending any data with its connections open; the bridge must not
 believe it. Each case is measured on the emulator's true arm: its fastest
@@ -23,7 +23,7 @@ from test_ur_bridge_e2e import Emulator, demo, demo_log, emulator, interrupt  # 
 
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools import ur_emulator as u
+from nwr.services.tools.hardware import ur_emulator as u
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

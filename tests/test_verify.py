@@ -21,8 +21,8 @@ from nwr.common.journal import Divergence, Playback, Recording
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.common.robot import DEFAULT_DESCRIPTION
 from nwr.services import cli
-from nwr.services.tools.replay import simulate
-from nwr.services.tools.verify import NO_JOURNAL, verify
+from nwr.services.tools.recordings.replay import simulate
+from nwr.services.tools.recordings.verify import NO_JOURNAL, verify
 
 SCRIPT = str(Path(__file__).parent / "data" / "short.toml")
 
@@ -224,7 +224,7 @@ def test_a_description_larger_than_verify_reads_is_refused(session, tmp_path, mo
     records, _ = read_recording(session)
     here = tmp_path / "session"
     robot = copy_robot(here / "robot")
-    monkeypatch.setattr("nwr.services.tools.verify.MAX_FILE_BYTES", 1000)
+    monkeypatch.setattr("nwr.services.tools.recordings.verify.MAX_FILE_BYTES", 1000)
     results = verify(rewrite(with_description(records, str(robot)), here / "big.mcap"))
     assert results[0].verdict == "unverifiable" and "more than nwr verify reads (1000)" in results[0].detail
 

@@ -12,7 +12,7 @@ import pytest
 
 from nwr.common.config import ZenohSection
 from nwr.common.node import Node
-from nwr.services.tools.verify import verify
+from nwr.services.tools.recordings.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

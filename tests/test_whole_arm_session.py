@@ -21,8 +21,8 @@ import pytest
 from nwr.common.config import Profile
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools import analysis
-from nwr.services.tools.replay import simulate
+from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings.replay import simulate
 
 pytestmark = pytest.mark.slow
 

@@ -28,10 +28,11 @@ def skip_unless_free(*extra: int) -> None:
 
 @contextlib.contextmanager
 def emulator_process(log_path: Path, *args: str) -> Iterator[subprocess.Popen[str]]:
-    """``python -m nwr.services.tools.ur_emulator --host 127.0.0.1 ARGS``, ready (it printed ``ready``), then ended."""
+    """``python -m nwr.services.tools.hardware.ur_emulator --host 127.0.0.1 ARGS``, ready (it printed ``ready``),
+    then ended."""
     log = open(log_path, "w")  # its log: a pipe nobody drains would block it
-    process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.ur_emulator", "--host", "127.0.0.1", *args],
-                               stdout=subprocess.PIPE, stderr=log, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.hardware.ur_emulator", "--host", "127.0.0.1",
+                                *args], stdout=subprocess.PIPE, stderr=log, text=True)
     try:
         assert process.stdout is not None
         line = process.stdout.readline()

@@ -18,7 +18,7 @@ from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
 from nwr.services.planner import strategies
 from nwr.services.recorder.main import session_name
-from nwr.services.tools.summary import print_summary
+from nwr.services.tools.recordings.summary import print_summary
 
 
 def add_launch_arguments(p: argparse.ArgumentParser) -> None:
@@ -105,7 +105,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
 def run_demo_fast(args: argparse.Namespace) -> int:
     """``nwr demo --fast``: the demo session in lockstep, recorded, then its per-touch table."""
-    from nwr.services.tools.replay import simulate
+    from nwr.services.tools.recordings.replay import simulate
 
     real_arm = bool(args.backend) and backends.plugin(args.backend).REAL_ARM
     unsupported = [flag for flag, value in (("--planners", args.planners), ("--follow-target", args.follow_target),

@@ -33,7 +33,7 @@ from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services.gain.core import continuous_gain, discrete_gain
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies import names as strategy_names
-from nwr.services.tools.analysis import contact_motion
+from nwr.services.tools.recordings.analysis import contact_motion
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"

@@ -25,7 +25,7 @@ from nwr.common import keys
 from nwr.common.config import Profile, Touch, TouchScript, profile_for
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools.analysis import TouchSummary, cell, format_table, summarize
+from nwr.services.tools.recordings.analysis import TouchSummary, cell, format_table, summarize
 
 # The press begins once the arm has reached its task (the approach from the start pose is over), s.
 START_S = 2.0

@@ -229,7 +229,7 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
     missing or unreadable is noted, not fatal. ``desc``: a RobotDescription, or a callable returning one
     (loaded only when a recording is there)."""
     from nwr.common.recordings import read_recording
-    from nwr.services.tools import analysis
+    from nwr.services.tools.recordings import analysis
 
     blocks = sorted({(r.condition, r.participant, r.block, r.recording) for r in ratings})
     out: dict[str, ConditionMeasures] = {}

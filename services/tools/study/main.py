@@ -221,7 +221,7 @@ def _run_blocks(args: argparse.Namespace, profile: Profile, conditions: tuple[st
 def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
     from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
-    from nwr.services.tools import analysis
+    from nwr.services.tools.recordings import analysis
 
     desc = load_description(profile.robot.description or None)
     print("\nblock  condition  touches  reflexes  onset p50 (ms)  approached  file")

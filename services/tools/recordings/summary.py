@@ -12,7 +12,7 @@ from nwr.common.config import Profile, load_profile, load_script, profile_for
 def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:
     from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
-    from nwr.services.tools import analysis
+    from nwr.services.tools.recordings import analysis
 
     records, metadata = read_recording(path)
     profile = profile or load_profile(None)

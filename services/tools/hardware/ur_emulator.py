@@ -1,6 +1,6 @@
 """A UR e-Series controller emulator that the unmodified ``ur_rtde`` library talks to.
 
-Run it with ``python -m nwr.services.tools.ur_emulator --host 127.0.0.1``; then
+Run it with ``python -m nwr.services.tools.hardware.ur_emulator --host 127.0.0.1``; then
 ``rtde_receive.RTDEReceiveInterface("127.0.0.1")`` and
 ``rtde_control.RTDEControlInterface("127.0.0.1")`` connect to it as to a real
 arm (or URSim).
@@ -1362,7 +1362,7 @@ def take_program(buffer: str) -> tuple[str | None, str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.ur_emulator",
+    parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.hardware.ur_emulator",
                                      description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--rtde-port", type=int, default=30004, help="ur_rtde always uses 30004")

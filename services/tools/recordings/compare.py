@@ -32,7 +32,7 @@ from nwr.common import keys
 from nwr.common.config import profile_for
 from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
-from nwr.services.tools import analysis
+from nwr.services.tools.recordings import analysis
 
 
 @dataclass
