@@ -6,7 +6,7 @@ for every input it handles: a message (named by key, sequence number and
 stamp: the message itself is in the recording), a tick of its loop, a
 liveliness token, a measurement of the arm. Inputs, their order and the clock
 readings are all a deterministic wiring needs to be re-run exactly: ``nwr
-verify`` (:mod:`nwr.services.tools.verify`) feeds a recording's journal back
+verify`` (:mod:`nwr.services.tools.recordings.verify`) feeds a recording's journal back
 through the same wiring (:class:`Playback`) and compares what it publishes
 with what was recorded.
 

@@ -11,6 +11,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -90,3 +91,13 @@ def stop(proc: subprocess.Popen[bytes], timeout_s: float = 10.0) -> int | None:
             proc.kill()
             proc.wait(timeout_s)
     return proc.returncode
+
+
+def wait_for(condition: Any, timeout_s: float, every_s: float = 0.1) -> bool:
+    """Whether ``condition()`` came true within ``timeout_s`` (a guard, not a measurement)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(every_s)
+    return False

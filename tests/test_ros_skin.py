@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop
+from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop, wait_for
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -278,15 +278,6 @@ def test_a_message_type_that_cannot_be_had_is_one_line(message_type: str, defini
 
 PRESSED_INDEX = 4  # elbow_outer by the default mapping
 PORT = 17950
-
-
-def wait_for(condition: Any, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.1)
-    return False
 
 
 @pytest.mark.e2e

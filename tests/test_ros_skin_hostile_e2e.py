@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop
+from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop, wait_for
 
 from nwr.common import keys
 from nwr.common.config import ZenohSection
@@ -30,15 +30,6 @@ HOSTILE_S = 2.0  # how long each hostile skin lasts
 MODEL = RobotModel(load_description())
 # Guards, not measurements: how long to wait for something that must happen before calling the test failed.
 WAIT_S = 120.0
-
-
-def wait_for(condition: Any, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def peak_speed(state: Any) -> float:
