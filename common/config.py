@@ -25,6 +25,7 @@ default, hard bound and safe range):
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import logging
 import math
@@ -77,7 +78,9 @@ class ZenohSection(_Section):
     # When set, services connect only to these and listen nowhere.
     router: list[str] = []
     # Address the embedded mesh listens and connects on. Keep it loopback
-    # unless every service really runs on another host.
+    # unless every service really runs on another host: without secure mode,
+    # an address beyond loopback (and a router endpoint beyond it) is refused
+    # at start unless NWR_INSECURE=1 acknowledges the open network.
     host: str = "127.0.0.1"
     # First port of the embedded mesh: service i listens on base_port + i.
     base_port: Port = 7450
@@ -1078,7 +1081,26 @@ def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profi
             profile.zenoh.secure = True
     if insecure(overrides):
         profile.zenoh.secure = False
+    elif not profile.zenoh.secure:
+        beyond = [e for e in [*profile.zenoh.router, f"tcp/{profile.zenoh.host}:{profile.zenoh.base_port}"]
+                  if not _loopback(e)]
+        if beyond:
+            raise ConfigError(
+                f"{', '.join(beyond)} reaches beyond this machine without TLS: anyone on that network could move "
+                "the arm. Use the secure deployment (NWR_TLS_CA / NWR_TLS_CERT / NWR_TLS_KEY or [zenoh] secure, "
+                "docs/security.md), or acknowledge the open network with NWR_INSECURE=1 (a trusted network only)")
     return profile
+
+
+def _loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) names this machine (127.0.0.0/8, ::1, localhost)."""
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def insecure(overrides: Mapping[str, str]) -> bool:

@@ -73,7 +73,7 @@ def test_env_overrides_router_and_robot() -> None:
     overrides = env_overrides({"NWR_ROUTER": " tcp/10.0.0.2:7447,tcp/10.0.0.3:7447 ", "NWR_ROBOT": "arm2",
                                "NWR_OTHER": "x"})
     assert overrides == {"NWR_ROUTER": "tcp/10.0.0.2:7447,tcp/10.0.0.3:7447", "NWR_ROBOT": "arm2"}
-    profile = apply_env_overrides(load_profile(), overrides)
+    profile = apply_env_overrides(load_profile(), {**overrides, "NWR_INSECURE": "1"})
     assert profile.zenoh.router == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:7447"]
     assert profile.robot.name == "arm2"
     assert env_overrides({"NWR_ROUTER": ""}) == {}
@@ -133,3 +133,18 @@ def test_router_status_and_check_on_loopback(capsys: pytest.CaptureFixture[str])
     finally:
         token.undeclare()
         session.close()
+
+
+def test_reaching_beyond_the_machine_without_tls_needs_nwr_insecure() -> None:
+    with pytest.raises(ConfigError, match="tcp/10.0.0.2:7447 reaches beyond this machine without TLS.*NWR_INSECURE=1"):
+        apply_env_overrides(load_profile(), {"NWR_ROUTER": "tcp/10.0.0.2:7447"})
+    for endpoint in ("tcp/127.0.0.1:7447", "tcp/127.0.1.1:7447", "tcp/[::1]:7447", "tcp/localhost:7447"):
+        assert apply_env_overrides(load_profile(), {"NWR_ROUTER": endpoint}).zenoh.router == [endpoint]
+    lan = load_profile()
+    lan.zenoh.host = "192.168.1.20"  # the embedded mesh on the LAN
+    with pytest.raises(ConfigError, match="tcp/192.168.1.20:7450 reaches beyond this machine"):
+        apply_env_overrides(lan, {})
+    assert not apply_env_overrides(lan, {"NWR_INSECURE": "1"}).zenoh.secure
+    secure = apply_env_overrides(load_profile(), {"NWR_ROUTER": "tcp/10.0.0.2:7447", "NWR_TLS_CA": "/c/ca.crt"})
+    assert secure.zenoh.secure  # TLS: the secure deployment checks its own files where it connects
+
