@@ -31,7 +31,7 @@ from ur_support import emulator_process, skip_unless_free
 from nwr.common import keys
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
-from nwr.services.tools.hardware import ur_emulator as u
+from nwr.services.tools.hardware import ur_controller as ur_ctl
 from nwr.services.tools.recordings import analysis
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -176,7 +176,7 @@ def test_demo_session_through_the_emulator(tmp_path: Path, emulator: Emulator) -
     for s in states:
         if s.accepted is not None and s.reflex_seq not in onsets:
             onsets[s.reflex_seq] = s
-    speedj = [t for t, value in final["command_changes"] if value == u.CMD_SPEEDJ]
+    speedj = [t for t, value in final["command_changes"] if value == ur_ctl.CMD_SPEEDJ]
     figures = []
     for touch in reflexes:
         onset = onsets[touch.reflex_seq]
@@ -214,7 +214,8 @@ def _resumed(state: dict[str, Any], fault: dict[str, Any] | None) -> bool:
     """The script runs again and motion commands arrived after it restarted."""
     if fault is None or fault["cleared_t"] is None or not state["script_running"]:
         return False
-    return any(t > fault["cleared_t"] and v in (u.CMD_SERVOJ, u.CMD_SPEEDJ) for t, v in state["command_changes"])
+    moving = (ur_ctl.CMD_SERVOJ, ur_ctl.CMD_SPEEDJ)
+    return any(t > fault["cleared_t"] and v in moving for t, v in state["command_changes"])
 
 
 FAULTS: list[tuple[str, str, list[str], str]] = [

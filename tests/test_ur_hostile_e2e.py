@@ -21,9 +21,10 @@ import numpy as np
 import pytest
 from test_ur_bridge_e2e import Emulator, demo, demo_log, emulator, interrupt  # noqa: F401  (a fixture)
 
+from nwr.common.config import Profile
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.tools.hardware import ur_emulator as u
+from nwr.services.tools.hardware import ur_arm, ur_controller
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -50,7 +51,7 @@ def _hostile(state: dict[str, Any], since: float,
 def pad_speed(track: list[list[float]], model: RobotModel) -> float:
     """The fastest pad's fastest speed along the true arm's track (a row every 2 control periods), m/s."""
     points = np.array([model.pad_points(row[1:]) for row in track])  # (samples, pads, 3)
-    return float((np.linalg.norm(np.diff(points, axis=0), axis=2) / (2 * u.DT)).max())
+    return float((np.linalg.norm(np.diff(points, axis=0), axis=2) / (2 * ur_arm.DT)).max())
 
 
 def test_a_hostile_controller_is_not_believed(tmp_path: Path, emulator: Emulator) -> None:  # noqa: F811
@@ -90,7 +91,8 @@ def test_a_hostile_controller_is_not_believed(tmp_path: Path, emulator: Emulator
     for name, f in faults:
         t0, end = f["t"], f["end_t"] + 1.0
         track = f["track"]
-        stops = [t for t, v in f["command_changes"] if t >= t0 and v in (u.CMD_SERVO_STOP, u.CMD_SPEED_STOP)]
+        stop_commands = (ur_controller.CMD_SERVO_STOP, ur_controller.CMD_SPEED_STOP)
+        stops = [t for t, v in f["command_changes"] if t >= t0 and v in stop_commands]
         during = [s for s in states if t0 * 1e9 <= s.stamp_ns <= end * 1e9]
         implausible = [s.stamp_ns * 1e-9 for s in during if s.status == "state_implausible"]
         told = [d for d in diags if t0 * 1e9 <= d.stamp_ns <= end * 1e9 and d.code == "state_implausible"]
@@ -124,7 +126,10 @@ def test_a_hostile_controller_is_not_believed(tmp_path: Path, emulator: Emulator
     for r in results:
         assert "state_implausible" in r["statuses"], r
         assert r["diag"] is not None, r
-        assert r["stop_ms"] is not None and r["stop_ms"] < 150.0, r  # a few cycles, on a loaded machine
+        # A few cycles on a loaded machine after the check can tell: at once for a jump, after the profile's
+        # report_frozen_s for a stream that stops changing.
+        allowed = 150.0 + (1e3 * Profile().bridge.report_frozen_s if "frozen" in r["name"] else 0.0)
+        assert r["stop_ms"] is not None and r["stop_ms"] < allowed, r
         assert r["rest_ms"] is not None and r["rest_ms"] < 1000.0, r
         assert r["elbow_moved"] < 0.15, r  # the true elbow never follows the false report
     # never a false alarm: every state_implausible lies within a case (its clearing after it included)
