@@ -24,14 +24,12 @@ default, hard bound and safe range):
 
 from __future__ import annotations
 
-import argparse
-import ipaddress
 import json
 import logging
 import math
 import re
 import tomllib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
@@ -543,26 +541,6 @@ class Profile(_Section):
     safety: SafetySection = msgspec.field(default_factory=SafetySection)
 
 
-class Touch(_Section):
-    # Pad name (or id as a string) of the robot's skin.
-    pad: str
-    # Start time from the beginning of the session, s.
-    start_s: NonNegative
-    # Time at peak (steps) or between the ends of the ramps (ramps), s.
-    duration_s: Positive
-    # Peak pressure change, hPa.
-    peak_hpa: Annotated[float, msgspec.Meta(gt=0, le=200)]
-    shape: Literal["step", "ramp"] = "step"
-    # Rise and fall time of a ramp, s.
-    ramp_s: NonNegative = 0.3
-
-
-class TouchScript(_Section):
-    # Length of the session, s.
-    duration_s: Positive
-    touch: list[Touch] = []
-
-
 def _decode(path: Path, kind: type) -> object:
     try:
         text = path.read_bytes()
@@ -781,6 +759,9 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
                               + (f" times the moving links' {moving:.3g} kg)" if unit == "kg m/s" else ")"))
 
     check_task(task, desc, model, q_lo, q_hi, bridge.limits.speed_m_s)
+
+
+ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 
 
 # ------------------------------------------------------------------------------ safety beside a person
@@ -1002,116 +983,3 @@ def check_acknowledgements(profile: Profile) -> list[Loosened]:
         raise ConfigError("safety.reason is set but safety.acknowledge names nothing, and nothing is loosened: "
                           "remove the reason")
     return found
-
-
-def resolve_script(name_or_path: str) -> Path:
-    path = Path(name_or_path)
-    if path.suffix == ".toml" or path.exists():
-        return path
-    packaged = SCRIPTS_DIR / f"{name_or_path}.toml"
-    if not packaged.exists():
-        known = sorted(p.stem for p in SCRIPTS_DIR.glob("*.toml"))
-        raise ConfigError(f"no touch script {name_or_path!r}: give a path to a .toml file or one of {known}")
-    return packaged
-
-
-def load_script(name_or_path: str) -> TouchScript:
-    script = _decode(resolve_script(name_or_path), TouchScript)
-    assert isinstance(script, TouchScript)
-    for touch in script.touch:
-        if touch.start_s + touch.duration_s + 2 * touch.ramp_s > script.duration_s:
-            raise ConfigError(
-                f"touch on {touch.pad} at {touch.start_s} s ends after the script's duration {script.duration_s} s"
-            )
-    return script
-
-
-def encode_profile(profile: Profile) -> bytes:
-    """The profile as JSON, for session metadata."""
-    return msgspec.json.encode(profile)
-
-
-# <protocol>/<address>[:port], Zenoh's endpoint syntax (tcp/10.0.0.2:7447, tcp/[::]:7447).
-ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
-
-
-def parse_endpoints(text: str, what: str) -> list[str]:
-    """Comma-separated Zenoh endpoints; ConfigError naming the bad one."""
-    endpoints = [e.strip() for e in text.split(",") if e.strip()]
-    for e in endpoints:
-        if not ENDPOINT.match(e):
-            raise ConfigError(f"{what}: {e!r} is not a Zenoh endpoint; write <protocol>/<host>:<port>, "
-                              "e.g. tcp/0.0.0.0:7447 or tcp/10.0.0.2:7447")
-    return endpoints
-
-
-# Environment variables that override the profile (the compose deployment
-# sets them per host): variable -> what it overrides.
-ENV_OVERRIDES = {
-    "NWR_ROUTER": "[zenoh] router: comma-separated router endpoints, e.g. tcp/10.0.0.2:7447",
-    "NWR_ROBOT": "[robot] name: the key prefix nwr/<name>/",
-    "NWR_TLS_CA": "[zenoh] ca_certificate: the lab CA's ca.crt; any NWR_TLS_* turns secure mode on",
-    "NWR_TLS_CERT": "[zenoh] certificate: this service's NAME.crt (nwr certs issue)",
-    "NWR_TLS_KEY": "[zenoh] private_key: this service's NAME.key",
-    "NWR_INSECURE": "1: secure mode off (no TLS, no access control), whatever the profile and NWR_TLS_* say",
-}
-# Spellings of NWR_INSECURE; anything else is an error rather than a guess.
-_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
-
-
-def env_overrides(environ: Mapping[str, str]) -> dict[str, str]:
-    """The profile overrides set in ``environ`` (empty values are unset)."""
-    return {name: environ[name].strip() for name in ENV_OVERRIDES if environ.get(name, "").strip()}
-
-
-def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profile:
-    """``profile`` with NWR_ROUTER, NWR_ROBOT, NWR_TLS_* and NWR_INSECURE applied; ConfigError naming a bad value."""
-    if "NWR_ROUTER" in overrides:
-        profile.zenoh.router = parse_endpoints(overrides["NWR_ROUTER"], "NWR_ROUTER")
-    if "NWR_ROBOT" in overrides:
-        name = overrides["NWR_ROBOT"]
-        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", name):
-            raise ConfigError(f"NWR_ROBOT={name!r} is not a robot name: lower-case letters, digits, '_' and '-', "
-                              "starting with a letter, at most 32 characters (e.g. ur10e)")
-        profile.robot.name = name
-    for variable, field in (("NWR_TLS_CA", "ca_certificate"), ("NWR_TLS_CERT", "certificate"),
-                            ("NWR_TLS_KEY", "private_key")):
-        if variable in overrides:
-            setattr(profile.zenoh, field, overrides[variable])
-            profile.zenoh.secure = True
-    if insecure(overrides):
-        profile.zenoh.secure = False
-    elif not profile.zenoh.secure:
-        beyond = [e for e in [*profile.zenoh.router, f"tcp/{profile.zenoh.host}:{profile.zenoh.base_port}"]
-                  if not _loopback(e)]
-        if beyond:
-            raise ConfigError(
-                f"{', '.join(beyond)} reaches beyond this machine without TLS: anyone on that network could move "
-                "the arm. Use the secure deployment (NWR_TLS_CA / NWR_TLS_CERT / NWR_TLS_KEY or [zenoh] secure, "
-                "docs/security.md), or acknowledge the open network with NWR_INSECURE=1 (a trusted network only)")
-    return profile
-
-
-def _loopback(endpoint: str) -> bool:
-    """Whether a Zenoh endpoint (``tcp/HOST:PORT``) names this machine (127.0.0.0/8, ::1, localhost)."""
-    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def insecure(overrides: Mapping[str, str]) -> bool:
-    """Whether NWR_INSECURE asks for secure mode off; ConfigError for a value that is neither yes nor no."""
-    value = overrides.get("NWR_INSECURE", "0").lower()
-    if value not in _TRUE + _FALSE:
-        raise ConfigError(f"NWR_INSECURE={value!r}: set it to 1 to run without TLS and access control, "
-                          "or unset it (0)")
-    return value in _TRUE
-
-
-def profile_for(args: argparse.Namespace) -> Profile:
-    """The profile of ``--profile`` with the environment's overrides that the CLI read (``args.env_overrides``)."""
-    return apply_env_overrides(load_profile(args.profile), getattr(args, "env_overrides", {}))

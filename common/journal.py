@@ -28,8 +28,9 @@ from typing import Any, Protocol
 
 from nwr.common import messages as m
 from nwr.common.clock import Clock
-from nwr.common.config import Profile, encode_profile
+from nwr.common.config import Profile
 from nwr.common.errors import NwrError
+from nwr.common.launch import encode_profile
 
 Entry = m.JournalEntry
 # A service's journal is published in batches this often, s (docs/verify.md).

@@ -16,8 +16,8 @@ import sys
 from importlib import import_module
 from typing import Any
 
-from nwr.common.config import env_overrides, insecure, profile_for
 from nwr.common.errors import NwrError
+from nwr.common.launch import env_overrides, insecure, profile_for
 from nwr.common.node import setup_logging
 from nwr.services.pipeline.graph import SERVICES, process_name
 

@@ -12,8 +12,9 @@ import msgspec
 import pytest
 
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_profile, load_script
+from nwr.common.config import Profile, load_profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import load_script
 from nwr.common.pacing import Rate
 from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description

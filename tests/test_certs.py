@@ -12,8 +12,9 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from nwr.common.config import ZenohSection, apply_env_overrides, env_overrides, load_profile
+from nwr.common.config import ZenohSection, load_profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import apply_env_overrides, env_overrides
 from nwr.common.node import check_tls_files, tls_endpoints, zenoh_config
 from nwr.services.cli import main
 from nwr.services.tools import certs

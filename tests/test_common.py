@@ -7,8 +7,9 @@ import pytest
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_profile, load_script
+from nwr.common.config import Profile, load_profile
 from nwr.common.errors import ConfigError, DecodeError
+from nwr.common.launch import load_script
 
 TR = m.Trace(3, 100)
 

@@ -34,7 +34,8 @@ import numpy as np
 import pytest
 import yaml
 
-from nwr.common.config import GainSection, load_script
+from nwr.common.config import GainSection
+from nwr.common.launch import load_script
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator

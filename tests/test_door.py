@@ -23,8 +23,9 @@ from wrong_messages import catalogue
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import TouchScript, load_profile, load_script
+from nwr.common.config import load_profile
 from nwr.common.door import SEQ_LIMIT, Door
+from nwr.common.launch import TouchScript, load_script
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep

@@ -14,7 +14,8 @@ import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import GainSection, ZenohSection, load_script
+from nwr.common.config import GainSection, ZenohSection
+from nwr.common.launch import load_script
 from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description

@@ -45,7 +45,8 @@ from mcap.reader import make_reader
 
 from nwr.common import keys, recordings
 from nwr.common import messages as m
-from nwr.common.config import Profile, Touch, TouchScript
+from nwr.common.config import Profile
+from nwr.common.launch import Touch, TouchScript
 from nwr.common.recordings import McapRecorder, read_recording, schema_for
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.stepped import SimulatedSkin

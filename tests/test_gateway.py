@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from nwr.common.config import GatewaySection, SimSkinSection, Touch, TouchScript
+from nwr.common.config import GatewaySection, SimSkinSection
 from nwr.common.errors import ConfigError
+from nwr.common.launch import Touch, TouchScript
 from nwr.common.robot import Pad
 from nwr.services.gateway.core import BaselineFilter, Gateway, SimSkin, touch_profile
 

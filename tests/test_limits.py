@@ -14,8 +14,9 @@ import pytest
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import ManualClock
-from nwr.common.config import Profile, TouchScript, load_profile, load_script
+from nwr.common.config import Profile, load_profile
 from nwr.common.journal import Untracked
+from nwr.common.launch import TouchScript, load_script
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight

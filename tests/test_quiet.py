@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from nwr.common.config import load_profile, load_script
+from nwr.common.config import load_profile
+from nwr.common.launch import load_script
 from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.planner import strategies

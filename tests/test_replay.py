@@ -12,7 +12,8 @@ import pytest
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_script
+from nwr.common.config import Profile
+from nwr.common.launch import load_script
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import Gateway, SimSkin

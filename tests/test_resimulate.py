@@ -11,8 +11,9 @@ import pytest
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import GatewaySection, Profile, Touch, TouchScript
+from nwr.common.config import GatewaySection, Profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import Touch, TouchScript
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import (

@@ -10,8 +10,9 @@ import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import apply_env_overrides, env_overrides, load_profile
+from nwr.common.config import load_profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import apply_env_overrides, env_overrides
 from nwr.services.tools import router, status
 
 ROBOT = "ur10e"

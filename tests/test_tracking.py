@@ -14,7 +14,8 @@ import pytest
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
 from nwr.common import messages as m
-from nwr.common.config import Profile, TouchScript, load_profile
+from nwr.common.config import Profile, load_profile
+from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight
 from nwr.services.bridge.core import BridgeCore

@@ -81,7 +81,7 @@ def test_the_shoulder_pads_withdraw_sideways_and_the_status_says_so(session: tup
 
 
 def test_the_survey_is_the_packaged_script(tmp_path: Path) -> None:
-    from nwr.common.config import load_script
+    from nwr.common.launch import load_script
 
     script = load_script("survey")
     pads = {t.pad for t in script.touch}

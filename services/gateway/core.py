@@ -37,8 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import GatewaySection, SimSkinSection, Touch, TouchScript
+from nwr.common.config import GatewaySection, SimSkinSection
 from nwr.common.errors import ConfigError
+from nwr.common.launch import Touch, TouchScript
 from nwr.common.robot import Pad
 
 

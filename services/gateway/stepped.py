@@ -22,8 +22,9 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import ManualClock
-from nwr.common.config import Profile, TouchScript
+from nwr.common.config import Profile
 from nwr.common.journal import Journal
+from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel
 from nwr.services.gateway.core import Resimulator, touch_message
 from nwr.services.gateway.wiring import GatewayWiring

@@ -27,8 +27,9 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, TouchScript
+from nwr.common.config import Profile
 from nwr.common.journal import Journal
+from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
 from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives

@@ -10,8 +10,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nwr.common.config import Profile, load_script, profile_for
+from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import load_script, profile_for
 from nwr.services.bridge import backends
 from nwr.services.bridge.main import CONFIRM_FLAG, add_arm_arguments, check_arm_flags
 from nwr.services.pipeline import supervisor

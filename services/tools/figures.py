@@ -28,7 +28,8 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import CartesianLimits, PlannerSection, profile_for
+from nwr.common.config import CartesianLimits, PlannerSection
+from nwr.common.launch import profile_for
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services.gain.core import continuous_gain, discrete_gain
 from nwr.services.planner.core import Planner

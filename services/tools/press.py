@@ -22,7 +22,8 @@ from typing import Any
 import msgspec
 
 from nwr.common import keys
-from nwr.common.config import Profile, Touch, TouchScript, profile_for
+from nwr.common.config import Profile
+from nwr.common.launch import Touch, TouchScript, profile_for
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.tools.recordings.analysis import TouchSummary, cell, format_table, summarize

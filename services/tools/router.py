@@ -42,8 +42,9 @@ from pathlib import Path
 import zenoh
 
 from nwr.common import keys
-from nwr.common.config import ZenohSection, parse_endpoints, profile_for
+from nwr.common.config import ZenohSection
 from nwr.common.errors import ConfigError
+from nwr.common.launch import parse_endpoints, profile_for
 from nwr.common.node import check_tls_files, tls_config, tls_endpoints
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ import argparse
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import profile_for
+from nwr.common.launch import profile_for
 from nwr.common.node import Node
 from nwr.services.tools.switch import ask_the_bridge, requested_by
 

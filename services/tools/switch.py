@@ -18,7 +18,7 @@ from typing import Any
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import profile_for
+from nwr.common.launch import profile_for
 from nwr.common.node import Node
 
 CYCLE_S = 0.002

@@ -16,8 +16,9 @@ import os
 import threading
 import time
 
-from nwr.common.config import Profile, load_script
+from nwr.common.config import Profile
 from nwr.common.door import Door
+from nwr.common.launch import load_script
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring

@@ -50,7 +50,8 @@ from ruckig import InputParameter, Result, Ruckig, Trajectory
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import ManualClock
-from nwr.common.config import Profile, TouchScript, load_script
+from nwr.common.config import Profile
+from nwr.common.launch import TouchScript, load_script
 from nwr.common.journal import Untracked
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.common.task import FigureEight

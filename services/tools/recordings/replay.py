@@ -43,8 +43,9 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, load_script, loosened_safety, profile_for
+from nwr.common.config import Profile, loosened_safety
 from nwr.common.errors import ConfigError
+from nwr.common.launch import load_script, profile_for
 from nwr.common.node import Node
 from nwr.common.recordings import McapRecorder, Recorded, new_file, read_recording, session_metadata
 from nwr.common.robot import RobotModel, load_description

@@ -45,8 +45,9 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, profile_for
+from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import profile_for
 from nwr.common.recordings import McapRecorder, new_file, session_metadata
 from nwr.common.robot import RobotDescription, load_description
 from nwr.common.skinmap import PadMap, map_values, pad_map

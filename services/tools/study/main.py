@@ -40,8 +40,9 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, profile_for
+from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
+from nwr.common.launch import profile_for
 from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
