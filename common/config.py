@@ -29,10 +29,10 @@ import logging
 import math
 import re
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
 
 import msgspec
 
@@ -60,6 +60,14 @@ Steepness = Annotated[float, msgspec.Meta(ge=0.1, le=50)]
 
 
 _Section = Section
+
+
+class Plugged(_Section):
+    """A section whose plug-ins keep their own tables: ``[<section>.<plug-in>]``, each decoded by the plug-in's
+    Settings where the profile is loaded (:mod:`nwr.common.plugins`; docs/profile.md lists their fields)."""
+
+    # The plug-ins' tables by plug-in name, as the profile gives them.
+    plugins: dict[str, dict[str, Any]] = {}
 
 
 class RobotSection(_Section):
@@ -94,64 +102,8 @@ class ZenohSection(_Section):
     private_key: str = ""
 
 
-class SimSkinSection(_Section):
-    # Seed of the noise and drift generators (a run is reproducible).
-    seed: int = 7
-    # Absolute no-contact pressure of a pad, hPa (pads differ by up to +-spread).
-    base_hpa: Annotated[float, msgspec.Meta(gt=0, le=5000)] = 1013.0
-    spread_hpa: NonNegative = 3.0
-    # White noise, standard deviation in hPa.
-    noise_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.08
-    # Slow drift (temperature): a random walk of this many hPa per sqrt(s),
-    # plus a sine of this amplitude and period.
-    drift_walk_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.02
-    drift_sine_hpa: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.3
-    drift_period_s: Positive = 60.0
-    # Touch script (TOML, [[touch]] tables); empty = no touches.
-    script: str = ""
-    # Contact model: the finger stays where it met the pad; once the pad has
-    # withdrawn w metres from it along the pad's normal, the touch presses
-    # with (1 - w / contact_depth_m) of its scripted pressure (none beyond
-    # the depth; never more than scripted when the pad moves toward it). The
-    # finger's indentation of the pad's air cushion at the scripted pressure, m.
-    contact_depth_m: Annotated[float, msgspec.Meta(gt=0, le=0.2)] = 0.02
-    # true: the live simulated skin applies that model (closed loop: a pad
-    # that withdraws feels its pressure fall); false: touches press as
-    # scripted whatever the arm does (open loop, the default). Re-simulation
-    # (`nwr replay --fast --resimulate`) always applies it.
-    closed_loop: bool = False
 
-
-# The default pad mapping of gateway.ros1.pads: device index i -> the UR10e's pad i, the 11th index unused.
-# A placeholder: check it on the lab's skin (docs/lab.md) and write the real one in the lab's profile.
-ROS1_DEFAULT_PADS = ["shoulder_back", "shoulder_outer", "upper_arm_top", "upper_arm_bottom", "elbow_outer",
-                     "forearm_top", "forearm_bottom", "wrist_1", "wrist_2", "wrist_3", ""]
-
-
-class Ros1SkinSection(_Section):
-    # The ROS 1 topic that carries the skin's pressures (AIRSKIN: ~30 Hz).
-    topic: str = "/bullet_ros/airskin_status"
-    # Its message type, package/Name as `rostopic type TOPIC` prints it.
-    message_type: str = "airskin_msgs/AirskinStatus"
-    # The type's definition (its .msg text), for a type this machine has no
-    # ROS package of: generated at start. Empty: import the type from ROS
-    # (e.g. std_msgs/Float32MultiArray with values_field = "data").
-    definition: str = "float32[] pressures"
-    # The message's field holding the pressures (an array of numbers).
-    values_field: str = "pressures"
-    # The pad mapping: entry i names the robot's pad that the message's value
-    # i is; "" = a value no pad takes. A message must carry this many values.
-    pads: list[str] = msgspec.field(default_factory=lambda: list(ROS1_DEFAULT_PADS))
-    # A value v is the absolute pressure v * scale_hpa + offset_hpa, hPa
-    # (the gateway takes each pad's change from its own baseline).
-    scale_hpa: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 1.0
-    offset_hpa: Annotated[float, msgspec.Meta(ge=-5000, le=5000)] = 0.0
-    # No message for this long, or the ROS master unreachable: a diagnostic
-    # (the skin is stale; the bridge stops the arm after bridge.skin_timeout_s).
-    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
-
-
-class GatewaySection(_Section):
+class GatewaySection(Plugged):
     # Skin sample rate, Hz (AIRSKIN delivers about 25 Hz).
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
     # The skin source, a module of services/gateway/sources/ (checked where the
@@ -170,8 +122,6 @@ class GatewaySection(_Section):
     # A "contact" longer than this is taken as a new no-contact level (a pad
     # that changed, not a hand): the baseline is re-acquired, with a warning.
     max_contact_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 120.0
-    sim: SimSkinSection = msgspec.field(default_factory=SimSkinSection)
-    ros1: Ros1SkinSection = msgspec.field(default_factory=Ros1SkinSection)
 
 
 class PadGainOverride(_Section):
@@ -193,48 +143,6 @@ class GainSection(_Section):
     pl3_gain: Fraction = 0.35
     # Per-pad overrides, by pad name.
     overrides: dict[str, PadGainOverride] = {}
-
-
-# The body regions a pad may belong to (as common.robot.REGIONS).
-REGION_NAMES = ("shoulder", "upper_arm", "elbow", "forearm", "wrist")
-# Four weights in [0, 1]: [w_base, w_shoulder, w_elbow, w_wrist].
-Weights = Annotated[list[Annotated[float, msgspec.Meta(ge=0, le=1)]], msgspec.Meta(min_length=4, max_length=4)]
-
-
-def _w(*rows: list[float]) -> dict[str, list[float]]:
-    return dict(zip(REGION_NAMES, rows))
-
-
-class LocationWeights(_Section):
-    # The paper's Table II: [w_base, w_shoulder, w_elbow, w_wrist] per body
-    # region, for pain level 3 and 4 (PL 1-2: all zero, no motion). The wrist
-    # weight applies to all three wrist joints. Every region of the robot's
-    # pads needs its row.
-    pl3: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
-        [0.2, 0.8, 0.6, 0.0], [0.2, 0.8, 0.6, 0.0], [0.0, 0.6, 0.8, 0.2], [0.0, 0.6, 0.8, 0.2], [0.0, 0.3, 0.6, 0.8]))
-    pl4: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
-        [0.5, 1.0, 0.7, 0.1], [0.5, 1.0, 0.7, 0.1], [0.0, 0.8, 1.0, 0.4], [0.0, 0.8, 1.0, 0.4], [0.0, 0.6, 0.8, 1.0]))
-
-
-class WholeArmSection(_Section):
-    # The whole-arm withdrawal ("whole-arm"): every control cycle a small QP
-    # finds the joint velocity that moves the touched pad away from the
-    # contact while no other sampled point of the arm comes closer to it
-    # (docs/reflexes.md). Its stream lasts duration_s, ramped in and out
-    # (raised cosine, ramp_s each, at most half of duration_s).
-    duration_s: Annotated[float, msgspec.Meta(gt=0, le=2.0)] = 1.0
-    ramp_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.3
-    # How far the touched pad withdraws at G(p) = 1 when nothing limits it, m
-    # (in proportion to the gain below; the Cartesian reflex's 0.125 m).
-    distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.3)] = 0.125
-    # No sampled point of the arm (pads, joints, points along the links,
-    # flange) faster than this, m/s: the whole motion is scaled down to it.
-    point_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.5
-    # Weight of the arm's mean squared point speed beside the pad's squared
-    # speed error: the rest of the arm as still as the withdrawal lets it.
-    motion_weight: Annotated[float, msgspec.Meta(ge=0, le=1.0)] = 0.02
-    # Weight of |q_dot|^2 (m^2/rad^2): makes the solution unique.
-    regularization: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 1e-4
 
 
 class RestartSection(_Section):
@@ -266,7 +174,7 @@ class RestartSection(_Section):
     flicker_window_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 1.0
 
 
-class PlannerSection(_Section):
+class PlannerSection(Plugged):
     # Instance name: the planner publishes reflex/<name>/status and signs its
     # commands with it; the bridge follows the planner named active_planner.
     name: Name = "cartesian"
@@ -290,12 +198,6 @@ class PlannerSection(_Section):
     # joint limits.
     q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = msgspec.field(
         default_factory=lambda: [40.0, 70.0, 146.0, 73.0, 0.0, 0.0])
-    uniform_fraction: Fraction = 0.5
-    location_weights: LocationWeights = msgspec.field(default_factory=LocationWeights)
-    # Smoothed Cartesian reflex: rise and fall time of its velocity (a raised
-    # cosine), s; the plateau is raised so the displacement equals the plain
-    # reflex's.
-    smooth_ramp_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.1
     # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
     # motion would move the touched pad toward the contact, and report it.
     guarded: bool = False
@@ -348,7 +250,6 @@ class PlannerSection(_Section):
     # priority (1-99), as on a lab PC with a real-time kernel; 0 = off. Needs
     # CAP_SYS_NICE or an rtprio limit; without it, a warning and no change.
     realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
-    whole_arm: WholeArmSection = msgspec.field(default_factory=WholeArmSection)
     restarts: RestartSection = msgspec.field(default_factory=RestartSection)
     task: TaskSection = msgspec.field(default_factory=TaskSection)
 
@@ -410,7 +311,7 @@ class ReducedLimits(CartesianLimits):
     stopping_distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.04
 
 
-class BridgeSection(_Section):
+class BridgeSection(Plugged):
     # The arm, a module of services/bridge/backends/ (checked where the bridge
     # or a launch starts): "sim", the simulated arm; "ur_rtde", a real UR (or
     # URSim) through ur_rtde, which also needs --robot-ip and
@@ -487,18 +388,6 @@ class BridgeSection(_Section):
     # looser (a configuration error names the field).
     limits: CartesianLimits = msgspec.field(default_factory=CartesianLimits)
     reduced: ReducedLimits = msgspec.field(default_factory=ReducedLimits)
-    # ur_rtde backend: servoJ lookahead time, s (UR allows 0.03-0.2; longer is
-    # smoother but lags more) and proportional gain (UR allows 100-2000).
-    servo_lookahead_s: Annotated[float, msgspec.Meta(ge=0.03, le=0.2)] = 0.1
-    servo_gain: Annotated[float, msgspec.Meta(ge=100, le=2000)] = 300.0
-    # ur_rtde backend: reconnection backoff, doubling from min to max (min <= max), s.
-    reconnect_min_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
-    reconnect_max_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 8.0
-    # ur_rtde backend: the controller's watchdog on the bridge, Hz. The bridge
-    # kicks it every cycle; if no kick arrives within 1/watchdog_hz (a hung or
-    # starved bridge process), the controller stops the control script and
-    # with it the arm. It cannot be switched off.
-    watchdog_hz: Annotated[float, msgspec.Meta(ge=1, le=125)] = 10.0
 
 
 class RecorderSection(_Section):
@@ -541,6 +430,61 @@ class Profile(_Section):
     safety: SafetySection = msgspec.field(default_factory=SafetySection)
 
 
+# Fields that moved into a plug-in's table: (section, old key) -> (plug-in, its field; "" = the whole table). A
+# profile (or a session's journaled one) written before still loads, as if it had written the new place.
+MOVED: dict[tuple[str, str], tuple[str, str]] = {
+    ("planner", "uniform_fraction"): ("uniform", "fraction"),
+    ("planner", "location_weights"): ("location", ""),
+    ("planner", "smooth_ramp_s"): ("cartesian-smooth", "ramp_s"),
+    ("planner", "whole_arm"): ("whole-arm", ""),
+    **{("bridge", key): ("ur_rtde", key)
+       for key in ("servo_lookahead_s", "servo_gain", "reconnect_min_s", "reconnect_max_s", "watchdog_hz")},
+}
+
+
+def _moved(name: str) -> str:
+    """A dotted field name written before its field moved into a plug-in's table, as it is now."""
+    section, _, rest = name.partition(".")
+    key, _, tail = rest.partition(".")
+    if (section, key) not in MOVED:
+        return name
+    plugin, field = MOVED[section, key]
+    return ".".join(part for part in (section, plugin, field, tail) if part)
+
+
+def decode_profile(raw: Any, where: str) -> Profile:
+    """A profile from plain data (TOML's or a session's journaled JSON): every table under a plugged section
+    that is no field of it is a plug-in's (:class:`Plugged`); fields that moved into a plug-in's table
+    (:data:`MOVED`) are read where they were. ConfigError naming ``where`` and the field."""
+    if isinstance(raw, dict):
+        raw = dict(raw)
+        for name, kind in (("gateway", GatewaySection), ("planner", PlannerSection), ("bridge", BridgeSection)):
+            if not isinstance(raw.get(name), dict):
+                continue
+            table = dict(raw[name])
+            plugins = {key: dict(value) for key, value in dict(table.pop("plugins", {}) or {}).items()}
+            for key in list(table):
+                if (name, key) in MOVED:
+                    plugin, field = MOVED[name, key]
+                    value = table.pop(key)
+                    if field:
+                        plugins.setdefault(plugin, {})[field] = value
+                    else:
+                        plugins[plugin] = {**value, **plugins.get(plugin, {})}
+                elif key not in kind.__struct_fields__ and isinstance(table[key], dict):
+                    plugins[key] = {**table.pop(key), **plugins.get(key, {})}
+            table["plugins"] = plugins
+            raw[name] = table
+        safety = raw.get("safety")
+        if isinstance(safety, dict) and isinstance(safety.get("acknowledge"), list):
+            raw["safety"] = {**safety, "acknowledge": [_moved(n) if isinstance(n, str) else n
+                                                      for n in safety["acknowledge"]]}
+    try:
+        return msgspec.convert(raw, Profile)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"{where}: {exc} (docs/profile.md gives every field's bounds)") from exc
+
+
 def _decode(path: Path, kind: type) -> object:
     try:
         text = path.read_bytes()
@@ -552,11 +496,12 @@ def _decode(path: Path, kind: type) -> object:
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+    if kind is Profile:
+        return decode_profile(raw, str(path))
     try:
         return msgspec.convert(raw, kind)
     except msgspec.ValidationError as exc:
-        hint = " (docs/profile.md gives every field's bounds)" if kind is Profile else ""
-        raise ConfigError(f"{path}: {exc}{hint}") from exc
+        raise ConfigError(f"{path}: {exc}") from exc
 
 
 def resolve_profile(name_or_path: str | None) -> Path:
@@ -573,8 +518,16 @@ def resolve_profile(name_or_path: str | None) -> Path:
     return packaged
 
 
-def load_profile(name_or_path: str | None = None) -> Profile:
-    """The profile by packaged name or path, checked in full (the module docstring's three steps).
+# What checks a profile's plug-in tables against the robot, giving their safety-relevant fields
+# (nwr.services.profile.check_plugins: the plug-ins are the services').
+PluginCheck = Callable[["Profile", "RobotDescription"], "list[Guarded]"]
+
+
+def load_profile(name_or_path: str | None = None, plugins: PluginCheck | None = None,
+                 deferred: Iterable[str] = ()) -> Profile:
+    """The profile by packaged name or path, checked in full (the module docstring's three steps); ``plugins``
+    checks the plug-ins' tables (without it, they are left as written, unchecked); the plug-ins under the
+    sections ``deferred`` are another process's (:func:`check_acknowledgements`).
 
     Each acknowledged loosened value is logged as one warning: every service
     and tool that loads a profile says so at start.
@@ -584,10 +537,13 @@ def load_profile(name_or_path: str | None = None) -> Profile:
     profile = _decode(resolve_profile(name_or_path), Profile)
     assert isinstance(profile, Profile)
     _check_profile(profile)
-    check_against_robot(profile, load_description(profile.robot.description or None))
-    for item in check_acknowledgements(profile):
+    desc = load_description(profile.robot.description or None)
+    check_against_robot(profile, desc)
+    plugged = plugins(profile, desc) if plugins else []
+    ranges = {item.field: safe_range(item) for item in [*guarded(profile), *plugged]}
+    for item in check_acknowledgements(profile, plugged, deferred):
         log.warning("safety: %s = %s is loosened past its default %s (safe range %s), acknowledged in [safety]: %s",
-                    item.field, toml_value(item.value), toml_value(item.default), safe_range(item.field), item.reason)
+                    item.field, toml_value(item.value), toml_value(item.default), ranges[item.field], item.reason)
     return profile
 
 
@@ -646,11 +602,6 @@ def _check_profile(profile: Profile) -> None:
             f"not within bridge.command_timeout_s = {bridge.command_timeout_s} s: the bridge would stop the arm "
             "between every two; raise the rate"
         )
-    for level in ("pl3", "pl4"):
-        unknown = sorted(set(getattr(planner.location_weights, level)) - set(REGION_NAMES))
-        if unknown:
-            raise ConfigError(f"planner.location_weights.{level} has rows for {unknown}, which are no body regions; "
-                              f"the regions are {list(REGION_NAMES)}")
     normal = bridge.limits.checked("bridge.limits")
     reduced = bridge.reduced.checked("bridge.reduced")
     for field in normal.__struct_fields__:
@@ -667,9 +618,6 @@ def _check_profile(profile: Profile) -> None:
     ):
         if value > bound:
             raise ConfigError(f"{field} = {value} m/s is above {bound_name} = {bound} m/s ({what}): lower it")
-    if bridge.reconnect_min_s > bridge.reconnect_max_s:
-        raise ConfigError(f"bridge.reconnect_min_s = {bridge.reconnect_min_s} s is above bridge.reconnect_max_s = "
-                          f"{bridge.reconnect_max_s} s: the backoff doubles from min to max")
 
 
 def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
@@ -733,18 +681,6 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
         if unknown:
             raise ConfigError(f"{field} names {unknown}, which robot {desc.name!r} has no pad of; "
                               f"its pads: {', '.join(sorted(pads))}")
-    if profile.gateway.source == "ros1":  # the mapping names this robot's pads (the simulated skin needs none)
-        from nwr.common.skinmap import pad_map
-
-        ros1 = profile.gateway.ros1
-        pad_map(ros1.pads, [pad.name for pad in desc.pads], scale_hpa=ros1.scale_hpa, offset_hpa=ros1.offset_hpa)
-    regions = sorted({pad.region for pad in desc.pads})
-    for level in ("pl3", "pl4"):
-        missing = [r for r in regions if r not in getattr(planner.location_weights, level)]
-        if missing:
-            raise ConfigError(f"planner.location_weights.{level} has no row for {missing}, regions of robot "
-                              f"{desc.name!r}'s pads: give [w_base, w_shoulder, w_elbow, w_wrist] for each")
-
     model = RobotModel(desc)
     top = desc.max_point_speed
     moving = float(model.link_masses.sum())
@@ -803,15 +739,9 @@ GUARDS: dict[str, Guard] = {
     # How far and how fast a reflex moves the arm.
     "gain.pl3_gain": Guard("above"),
     "planner.q_max_deg": Guard("above", "deg"),
-    "planner.uniform_fraction": Guard("above"),
-    **{f"planner.location_weights.{level}.{region}": Guard("above")
-       for level in ("pl3", "pl4") for region in REGION_NAMES},
     "planner.v_max_m_s": Guard("above", "m/s"),
     "planner.reflex_duration_s": Guard("above", "s"),
     "planner.speed_fraction": Guard("above"),
-    "planner.whole_arm.duration_s": Guard("below", "s"),
-    "planner.whole_arm.distance_m": Guard("above", "m"),
-    "planner.whole_arm.point_speed_m_s": Guard("above", "m/s"),
     # Sustained contact: when and how the arm comes back.
     "planner.sustained_contact": Guard("other"),
     "planner.release_s": Guard("below", "s"),
@@ -834,7 +764,6 @@ GUARDS: dict[str, Guard] = {
     "bridge.report_speed_jump_rad_s": Guard("above", "rad/s"),
     "bridge.report_frozen_s": Guard("above", "s"),
     "bridge.blind_pad_s": Guard("above", "s"),
-    "bridge.watchdog_hz": Guard("below", "Hz"),
     **{f"bridge.{mode}.{field}": Guard("above", unit)
        for mode in ("limits", "reduced")
        for field, unit in (("speed_m_s", "m/s"), ("withdrawal_speed_m_s", "m/s"), ("momentum_kg_m_s", "kg m/s"),
@@ -881,12 +810,16 @@ def toml_value(value: Any) -> str:
     return repr(value)
 
 
-def safe_range(name: str) -> str:
-    """What a safety-relevant field may hold without an acknowledgement (docs/profile.md prints the same)."""
-    pattern = _pattern(name)
-    if pattern is None:
-        raise KeyError(name)
-    guard, default = GUARDS[pattern], _default(name)
+def safe_range(field: str | Guarded) -> str:
+    """What a safety-relevant field (a profile section's by dotted name, or a plug-in's) may hold without an
+    acknowledgement (docs/profile.md prints the same)."""
+    if isinstance(field, Guarded):
+        guard, default = field.guard, field.default
+    else:
+        pattern = _pattern(field)
+        if pattern is None:
+            raise KeyError(field)
+        guard, default = GUARDS[pattern], _default(field)
     unit = f" {guard.unit}" if guard.unit else ""
     each = "each " if isinstance(default, list) else ""
     if guard.loosens == "other":
@@ -919,67 +852,86 @@ class Loosened(msgspec.Struct, frozen=True):
     reason: str
 
 
-def _guarded(profile: Profile) -> Iterator[tuple[str, Any]]:
-    """(dotted name, value) of every safety-relevant field the profile holds."""
-    for pattern in GUARDS:
+class Guarded(NamedTuple):
+    """A safety-relevant field as a profile holds it: its dotted name, value, documented default and guard."""
+
+    field: str
+    value: Any
+    default: Any
+    guard: Guard
+
+
+def guarded(profile: Profile) -> list[Guarded]:
+    """Every safety-relevant field of the profile's own sections (the plug-ins' come from their tables)."""
+    found = []
+    for pattern, guard in GUARDS.items():
         if "<pad>" in pattern:
             for pad, override in profile.gain.overrides.items():
                 if override.thresholds_hpa is not None:
-                    yield pattern.replace("<pad>", pad), override.thresholds_hpa
-        elif pattern.startswith("planner.location_weights."):
-            _, _, level, region = pattern.split(".")
-            row = getattr(profile.planner.location_weights, level).get(region)
-            if row is not None:
-                yield pattern, row
+                    name = pattern.replace("<pad>", pad)
+                    found.append(Guarded(name, override.thresholds_hpa, _default(name), guard))
         else:
-            yield pattern, _get(profile, pattern)
+            found.append(Guarded(pattern, _get(profile, pattern), _default(pattern), guard))
+    return found
 
 
-def loosened(profile: Profile) -> list[Loosened]:
-    """Every safety-relevant value of ``profile`` past its default on the side that loosens it."""
-    return [Loosened(name, value, _default(name), profile.safety.reason)
-            for name, value in _guarded(profile) if _loosens(GUARDS[_pattern(name) or name], value, _default(name))]
+def loosened(profile: Profile, plugins: Iterable[Guarded] = ()) -> list[Loosened]:
+    """Every safety-relevant value of ``profile`` (and of its plug-ins' tables, ``plugins``) past its default on
+    the side that loosens it."""
+    return [Loosened(item.field, item.value, item.default, profile.safety.reason)
+            for item in [*guarded(profile), *plugins] if _loosens(item.guard, item.value, item.default)]
 
 
-def loosened_safety(profile: Profile) -> list[dict[str, Any]]:
+def loosened_safety(profile: Profile, plugins: Iterable[Guarded] = ()) -> list[dict[str, Any]]:
     """:func:`loosened` as plain data, for the session's metadata (``loosened_safety``)."""
-    return [msgspec.to_builtins(item) for item in loosened(profile)]
+    return [msgspec.to_builtins(item) for item in loosened(profile, plugins)]
 
 
-def check_acknowledgements(profile: Profile) -> list[Loosened]:
-    """The loosened values, each acknowledged in ``[safety]``; else a ConfigError naming the field."""
+def _deferred(name: str, sections: Iterable[str]) -> bool:
+    """Whether ``name`` is a field of a plug-in's table under one of ``sections``."""
+    section, _, rest = name.partition(".")
+    plugged = {"gateway": GatewaySection, "planner": PlannerSection, "bridge": BridgeSection}.get(section)
+    return section in sections and plugged is not None and rest.partition(".")[0] not in plugged.__struct_fields__
+
+
+def check_acknowledgements(profile: Profile, plugins: Iterable[Guarded] = (),
+                           deferred: Iterable[str] = ()) -> list[Loosened]:
+    """The loosened values (the plug-ins' among them: ``plugins``), each acknowledged in ``[safety]``; else a
+    ConfigError naming the field. Acknowledgements of plug-in fields under the sections ``deferred`` are left to
+    the services that load those plug-ins."""
     safety = profile.safety
-    given = safety.acknowledge
+    given = [name for name in safety.acknowledge if not _deferred(name, tuple(deferred))]
+    held = {item.field: item for item in [*guarded(profile), *plugins]}
     for name in given:
-        if _pattern(name) is None:
+        if _pattern(name) is None and name not in held:
             raise ConfigError(f"safety.acknowledge names {name!r}, which is no safety-relevant field "
                               "(docs/profile.md lists them, e.g. \"bridge.skin_timeout_s\")")
     repeated = sorted({name for name in given if given.count(name) > 1})
     if repeated:
         raise ConfigError(f"safety.acknowledge names {repeated} more than once: name each loosened value once")
-    found = loosened(profile)
+    found = loosened(profile, plugins)
     names = [item.field for item in found]
     missing = [item for item in found if item.field not in given]
     if missing:
         values = "; ".join(f"{item.field} = {toml_value(item.value)} (default {toml_value(item.default)}, safe range "
-                           f"{safe_range(item.field)})" for item in missing)
+                           f"{safe_range(held[item.field])})" for item in missing)
         raise ConfigError(
             f"{values}: loosened past the default, which is unsafe beside a person. Keep the safe range, or, with "
             f"nobody in the cell, acknowledge every loosened value in the profile: [safety] acknowledge = "
             f"{toml_value(names)} and reason = \"who, when, why\" (docs/profile.md)"
         )
-    held = dict(_guarded(profile))
     for name in given:
         if name not in names:
+            item = held.get(name)
             raise ConfigError(
                 f"safety.acknowledge names {name}, which this profile does not loosen ({name} = "
-                f"{toml_value(held.get(name))}, safe range {safe_range(name)}): remove it; a stale acknowledgement "
-                "would hide a later change"
+                f"{toml_value(item.value if item else None)}, safe range {safe_range(item or name)}): remove it; a "
+                "stale acknowledgement would hide a later change"
             )
     if given and not safety.reason.strip():
         raise ConfigError(f"safety.reason is empty: say who loosened {names}, when and why "
                           "(e.g. \"bench test without a person in the cell, 2026-11-23, J. Doe\")")
-    if safety.reason.strip() and not given:
+    if safety.reason.strip() and not safety.acknowledge:
         raise ConfigError("safety.reason is set but safety.acknowledge names nothing, and nothing is loosened: "
                           "remove the reason")
     return found

@@ -6,7 +6,6 @@ The profile itself, its sections and its checks are :mod:`nwr.common.config`.
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import re
 from collections.abc import Mapping
@@ -23,7 +22,6 @@ from nwr.common.config import (
     Profile,
     _decode,
     _Section,
-    load_profile,
 )
 from nwr.common.errors import ConfigError
 
@@ -153,8 +151,3 @@ def insecure(overrides: Mapping[str, str]) -> bool:
         raise ConfigError(f"NWR_INSECURE={value!r}: set it to 1 to run without TLS and access control, "
                           "or unset it (0)")
     return value in _TRUE
-
-
-def profile_for(args: argparse.Namespace) -> Profile:
-    """The profile of ``--profile`` with the environment's overrides that the CLI read (``args.env_overrides``)."""
-    return apply_env_overrides(load_profile(args.profile), getattr(args, "env_overrides", {}))

@@ -17,7 +17,7 @@ from importlib import import_module
 from typing import Any
 
 from nwr.common.errors import NwrError
-from nwr.common.launch import env_overrides, insecure, profile_for
+from nwr.common.launch import env_overrides, insecure
 from nwr.common.node import setup_logging
 from nwr.services.pipeline.graph import SERVICES, process_name
 
@@ -69,11 +69,20 @@ def build_parser(service: str | None = None) -> argparse.ArgumentParser:
             continue
         p = run_sub.add_parser(name, help=doc, description=doc)
         _service_module(name).add_arguments(p)
-        p.set_defaults(handler=lambda args: _service_module(args.service).run(profile_for(args), args))
+        p.set_defaults(handler=_run_service)
 
     for name in COMMAND_MODULES if service is None else ():
         import_module(name).register(sub)
     return parser
+
+
+def _run_service(args: argparse.Namespace) -> Any:
+    from nwr.services.profile import PACKAGES, profile_for
+
+    # A service checks its own plug-ins' tables (a launch checked them all); the recorder keeps every loosened
+    # value, the plug-ins' included, in the session's metadata.
+    sections = PACKAGES if args.service == "recorder" else [s for s in PACKAGES if s == args.service]
+    return _service_module(args.service).run(profile_for(args, sections), args)
 
 
 def _service_run(argv: list[str]) -> str | None:

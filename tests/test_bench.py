@@ -19,7 +19,7 @@ from nwr.common.pacing import Rate
 from nwr.common.recordings import Recorded
 from nwr.common.robot import load_description
 from nwr.services.gain.core import GainEstimator
-from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.services.gateway.core import Gateway, SimSkin, sim_settings
 from nwr.services.tools.bench import core as bench_core
 from nwr.services.tools.bench import main as bench
 from nwr.services.tools.bench import ros1 as bench_ros1
@@ -99,7 +99,7 @@ def test_match_traces_reports_unmatched_samples_and_orphan_decisions():
 
 def _skin(script: str, seconds: float) -> list[m.SkinPressure]:
     profile = Profile()
-    sim = SimSkin(profile.gateway.sim, DESC.pads, load_script(script))
+    sim = SimSkin(sim_settings(profile.gateway), DESC.pads, load_script(script))
     gateway = Gateway(profile.gateway, len(DESC.pads))
     out = []
     for i in range(int(seconds * 25)):

@@ -57,7 +57,14 @@ def test_json_schemas_are_objects(topic):
 
 
 def test_default_profile_is_the_struct_default():
-    assert load_profile("default") == Profile()
+    from nwr.services import profile as services_profile
+
+    assert services_profile.load_profile("default") == services_profile.resolve(Profile())
+    # it spells out every plug-in's table that has settings (a backend without settings has none)
+    spelled = load_profile("default")
+    for kind in services_profile.kinds():
+        with_settings = {n for n in kind.names() if kind.settings_class(n).__struct_fields__}
+        assert set(getattr(spelled, kind.section).plugins) == with_settings, kind.section
 
 
 def test_profile_errors_are_helpful(tmp_path):

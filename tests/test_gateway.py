@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from nwr.common.config import GatewaySection, SimSkinSection
+from nwr.common.config import GatewaySection
 from nwr.common.errors import ConfigError
 from nwr.common.launch import Touch, TouchScript
 from nwr.common.robot import Pad
-from nwr.services.gateway.core import BaselineFilter, Gateway, SimSkin, touch_profile
+from nwr.services.gateway.core import BaselineFilter, Gateway, SimSkin, SimSkinSettings, touch_profile, with_sim
 
 RATE = 25.0
 
@@ -105,7 +105,7 @@ def pads():
 
 def test_sim_skin_with_gateway_recovers_the_script():
     script = TouchScript(duration_s=10.0, touch=[Touch(pad="p1", start_s=4.0, duration_s=1.0, peak_hpa=9.0)])
-    sim = SimSkin(SimSkinSection(), pads(), script)
+    sim = SimSkin(SimSkinSettings(), pads(), script)
     gw = Gateway(GatewaySection(), 3)
     changes = []
     for i in range(250):
@@ -122,7 +122,7 @@ def test_sim_skin_with_gateway_recovers_the_script():
 def test_sim_skin_rejects_unknown_pad():
     script = TouchScript(duration_s=10.0, touch=[Touch(pad="nope", start_s=1.0, duration_s=1.0, peak_hpa=9.0)])
     with pytest.raises(ConfigError, match="nope"):
-        SimSkin(SimSkinSection(), pads(), script)
+        SimSkin(SimSkinSettings(), pads(), script)
 
 
 def test_target_follower_presses_the_target_periodically():
@@ -134,7 +134,7 @@ def test_target_follower_presses_the_target_periodically():
     assert pad == 4 and touch.start_s == 2.0 and touch.peak_hpa == TargetFollower.PEAKS_HPA[0]
     assert f.poll(2.5, 4) is None
     assert f.poll(4.1, -1) is None  # no target published yet
-    sim = SimSkin(SimSkinSection(noise_hpa=0.0, drift_walk_hpa=0.0, drift_sine_hpa=0.0), pads(), None)
+    sim = SimSkin(SimSkinSettings(noise_hpa=0.0, drift_walk_hpa=0.0, drift_sine_hpa=0.0), pads(), None)
     sim.add_touch(1, touch)
     assert sim.touch_pressure(2.0 + touch.ramp_s + 0.1)[1] == pytest.approx(touch.peak_hpa)
 
@@ -224,7 +224,7 @@ def test_a_late_loop_takes_the_periods_it_missed_each_of_its_own_time_and_replay
 
     profile = Profile()
     profile.gateway.rate_hz = 1000.0
-    profile.gateway.sim.noise_hpa = 0.0
+    profile.gateway = with_sim(profile.gateway, noise_hpa=0.0)
     script = TouchScript(duration_s=1.0, touch=[Touch(pad="forearm_top", start_s=0.05, duration_s=0.2, peak_hpa=12.0,
                                                       shape="ramp", ramp_s=0.05)])
     period = 1_000_000

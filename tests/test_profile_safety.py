@@ -17,27 +17,45 @@ import msgspec
 import msgspec.inspect as mi
 import pytest
 
+from nwr.common import config
 from nwr.common.config import (
     GUARDS,
     PROFILES_DIR,
+    Guarded,
+    Loosened,
     Profile,
     check_acknowledgements,
     check_against_robot,
-    load_profile,
-    loosened,
-    loosened_safety,
-    safe_range,
     toml_value,
 )
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.gain.core import continuous_gain, scaled_sigmoid, sigmoid
+from nwr.services.planner.strategies.location import LocationSettings
+from nwr.services.profile import check_plugins, kinds, load_profile, loosened_safety
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "profile.md"
 DEFAULT = Profile()
 REASON = "bench test without a person in the cell, 2026-11-23, J. Doe"
+
+
+DESC = load_description()
+
+
+def plugin_guards(profile: Profile | None = None) -> list[Guarded]:
+    """The plug-ins' safety-relevant fields as ``profile`` (default: the defaults) holds them."""
+    return check_plugins(profile or Profile(), DESC)
+
+
+def loosened(profile: Profile) -> list[Loosened]:
+    """Every loosened value of ``profile``, its plug-ins' included."""
+    return config.loosened(profile, plugin_guards(profile))
+
+
+def safe_range(field: str) -> str:
+    return config.safe_range({g.field: g for g in plugin_guards()}.get(field, field))
 
 
 def write(tmp_path: Path, text: str, name: str = "p.toml") -> str:
@@ -53,8 +71,8 @@ def acknowledge(*fields: str, reason: str = REASON) -> str:
 def toml_of(field: str, value: Any) -> str:
     """A profile table that sets the dotted ``field`` to ``value`` (a location-weights row: in its full table)."""
     table, _, key = field.rpartition(".")
-    if table.startswith("planner.location_weights."):
-        rows = dict(msgspec.to_builtins(getattr(DEFAULT.planner.location_weights, table.rsplit(".", 1)[1])))
+    if table.startswith("planner.location."):
+        rows = dict(msgspec.to_builtins(getattr(LocationSettings(), table.rsplit(".", 1)[1])))
         rows[key] = value
         return f"[{table}]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in rows.items())
     return f"[{table}]\n{key} = {toml_value(value)}\n"
@@ -78,16 +96,16 @@ LOOSENED: dict[str, Any] = {
     "planner.restarts.interval_s": 0.1,
     "gain.pl3_gain": 0.5,
     "planner.q_max_deg": [40.0, 70.0, 146.0, 80.0, 0.0, 0.0],
-    "planner.uniform_fraction": 0.6,
-    **{f"planner.location_weights.{level}.{region}": [min(1.0, w + 0.1) for w in row]
+    "planner.uniform.fraction": 0.6,
+    **{f"planner.location.{level}.{region}": [min(1.0, w + 0.1) for w in row]
        for level in ("pl3", "pl4")
-       for region, row in getattr(DEFAULT.planner.location_weights, level).items()},
+       for region, row in getattr(LocationSettings(), level).items()},
     "planner.v_max_m_s": 0.3,
     "planner.reflex_duration_s": 0.6,
     "planner.speed_fraction": 0.95,
-    "planner.whole_arm.duration_s": 0.8,
-    "planner.whole_arm.distance_m": 0.15,
-    "planner.whole_arm.point_speed_m_s": 0.6,
+    "planner.whole-arm.duration_s": 0.8,
+    "planner.whole-arm.distance_m": 0.15,
+    "planner.whole-arm.point_speed_m_s": 0.6,
     "planner.sustained_contact": "paper",
     "planner.release_s": 0.1,
     "planner.max_hold_s": 10.0,
@@ -101,7 +119,7 @@ LOOSENED: dict[str, Any] = {
     "bridge.command_timeout_s": 0.05,
     "bridge.skin_timeout_s": 5.0,
     "bridge.position_jump_rad": 0.2,
-    "bridge.watchdog_hz": 5.0,
+    "bridge.ur_rtde.watchdog_hz": 5.0,
     "bridge.limits.speed_m_s": 0.3,
     "bridge.limits.withdrawal_speed_m_s": 0.6,
     "bridge.limits.momentum_kg_m_s": 12.0,
@@ -125,7 +143,7 @@ LOOSENED: dict[str, Any] = {
 
 def test_every_safety_relevant_field_has_a_loosened_case() -> None:
     patterns = {re.sub(r"^gain\.overrides\.[^.]+\.", "gain.overrides.<pad>.", f) for f in LOOSENED}
-    assert patterns == set(GUARDS)
+    assert patterns == set(GUARDS) | {g.field for g in plugin_guards()}
 
 
 @pytest.mark.parametrize("field", sorted(LOOSENED))
@@ -222,18 +240,23 @@ def test_stale_unknown_or_unexplained_acknowledgements_are_refused(tmp_path: Pat
     ("[gain]\nthresholds_hpa = [2.0, 6.0, 12.0, 3000.0]\n", r"up to 2000 hPa"),
     ("[planner]\ntarget_order = [\"wrist_9\"]\n", r"planner.target_order names \['wrist_9'\]"),
     ("[gain.overrides.wrist_9]\nk = 4.0\n", r"gain.overrides names \['wrist_9'\]"),
-    ("[planner.location_weights.pl3]\nwrist = [0.0, 0.3, 0.6, 0.8]\n",
-     r"planner.location_weights.pl3 has no row for \['elbow', 'forearm', 'shoulder', 'upper_arm'\]"),
-    ("[planner.location_weights.pl4]\n" + "".join(f"{r} = [0.0, 0.0, 0.0, 0.0]\n" for r in
-                                                 ("shoulder", "upper_arm", "elbow", "forearm", "wrist", "knee")),
-     r"planner.location_weights.pl4 has rows for \['knee'\]"),
+    ("[planner.location.pl3]\nwrist = [0.0, 0.3, 0.6, 0.8]\n",
+     r"planner.location.pl3 has no row for \['elbow', 'forearm', 'shoulder', 'upper_arm'\]"),
+    ("[planner.location.pl4]\n" + "".join(f"{r} = [0.0, 0.0, 0.0, 0.0]\n" for r in
+                                          ("shoulder", "upper_arm", "elbow", "forearm", "wrist", "knee")),
+     r"planner.location.pl4 has rows for \['knee'\]"),
     ("[planner.task]\namplitude_rad = [0.35, 0.10, -1.5, 0.0, 0.0, 0.0]\n",
      r"planner.task.amplitude_rad\[2\] = -1.5 swings elbow_joint .* beyond its limits"),
     ("[bridge]\nq_max = [1.0, 1.0, 9.0, 1.0, 1.0, 1.0]\n", r"bridge.q_max\[2\] = 9.0 is looser"),
     ("[bridge]\ninitial_q = [0.0, -1.15, 1.85, -2.27, -1.57, 7.0]\n", r"bridge.initial_q\[5\] = 7.0 is outside"),
     ("[bridge.limits]\nspeed_m_s = 1.5\n", r"bridge.limits.speed_m_s = 1.5 m/s is beyond what the robot"),
     ("[zenoh]\nrouter = [\"10.0.0.2:7447\"]\n", r"zenoh.router: '10.0.0.2:7447' is not a Zenoh endpoint"),
-    ("[bridge]\nreconnect_min_s = 10.0\nreconnect_max_s = 2.0\n", r"bridge.reconnect_min_s = 10.0 s is above"),
+    ("[bridge.ur_rtde]\nreconnect_min_s = 10.0\nreconnect_max_s = 2.0\n",
+     r"bridge.ur_rtde.reconnect_min_s = 10.0 s is above"),
+    ("[bridge.ur_rtde]\nservo_gain = 50.0\n", r"bridge.ur_rtde: .* >= 100.0 - at `\$.servo_gain`"),
+    ("[bridge.ur_rtd]\nservo_gain = 500.0\n", r"\[bridge.ur_rtd\] names no backend; the backends are sim, ur_rtde"),
+    ("[planner.whole-arm]\nramp_s = 0.6\n", r"planner.whole-arm.ramp_s = 0.6 s is more than half"),
+    ("[gateway.ros1]\ntopc = \"/skin\"\n", r"gateway.ros1: Object contains unknown field `topc`"),
 ])
 def test_values_never_safe_or_meaningful_are_refused_even_acknowledged(tmp_path: Path, text: str, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -270,9 +293,9 @@ def test_a_per_joint_list_of_the_wrong_length_names_the_field(tmp_path: Path, te
 
 
 @pytest.mark.parametrize(("text", "match"), [
-    ("[planner.location_weights.pl3]\n" + "".join(f"{r} = [0.2, 0.8, 0.6]\n" for r in
-                                                 ("shoulder", "upper_arm", "elbow", "forearm", "wrist")),
-     r"array` of length >= 4 - at `\$.planner.location_weights.pl3"),
+    ("[planner.location.pl3]\n" + "".join(f"{r} = [0.2, 0.8, 0.6]\n" for r in
+                                          ("shoulder", "upper_arm", "elbow", "forearm", "wrist")),
+     r"planner.location: Expected `array` of length >= 4 - at `\$.pl3"),
     ("[gain]\nthresholds_hpa = [2.0, 6.0, 12.0]\n", r"gain: thresholds_hpa must be four increasing"),
     ("[gain.overrides.wrist_3]\nthresholds_hpa = [2.0, 6.0, 12.0, 20.0, 30.0]\n",
      r"gain.overrides.wrist_3: thresholds_hpa must be four increasing"),
@@ -314,7 +337,8 @@ def test_every_packaged_and_deployed_profile_loads_with_nothing_loosened() -> No
     profiles = sorted(PROFILES_DIR.glob("*.toml")) + sorted((ROOT / "deploy" / "profiles").glob("*.toml"))
     assert PROFILES_DIR / "default.toml" in profiles
     for path in profiles:
-        assert check_acknowledgements(load_profile(str(path))) == []
+        profile = load_profile(str(path))
+        assert check_acknowledgements(profile, plugin_guards(profile)) == []
 
 
 def test_the_session_metadata_keeps_the_loosened_values(tmp_path: Path) -> None:
@@ -393,6 +417,8 @@ def _fields() -> dict[str, tuple[Any, str]]:
 
     def walk(prefix: str, struct: mi.StructType, default: Any) -> None:
         for field in struct.fields:
+            if field.name == "plugins":  # the plug-ins' tables: each one's Settings below
+                continue
             name, t, value = f"{prefix}{field.name}", field.type, getattr(default, field.name)
             if isinstance(t, mi.StructType):
                 walk(f"{name}.", t, value)
@@ -408,6 +434,12 @@ def _fields() -> dict[str, tuple[Any, str]]:
     info = mi.type_info(Profile)
     assert isinstance(info, mi.StructType)
     walk("", info, DEFAULT)
+    for kind in kinds():
+        for plugin in kind.names():
+            cls = kind.settings_class(plugin)
+            settings = mi.type_info(cls)
+            assert isinstance(settings, mi.StructType)
+            walk(f"{kind.section}.{plugin}.", settings, cls())
     return found
 
 
@@ -434,9 +466,10 @@ def test_the_documented_defaults_bounds_and_safe_ranges_are_the_codes() -> None:
         assert doc_default == f"`{toml_value(default)}`", name
         assert hard.startswith(bound) and hard, name  # the Meta bound first, then the cross-checks
         pattern = name.replace(name.split(".")[2], "<pad>") if name.startswith("gain.overrides.") else name
-        if pattern in GUARDS:
+        plugins = {g.field: g for g in plugin_guards()}
+        if pattern in GUARDS or name in plugins:
             assert safe == safe_range(name), name
-            assert unit == GUARDS[pattern].unit, name
+            assert unit == (GUARDS[pattern] if pattern in GUARDS else plugins[name].guard).unit, name
         else:
             assert safe == "any", name
         assert why, name
@@ -448,3 +481,74 @@ def test_the_safe_range_is_the_side_of_the_default_that_does_not_loosen() -> Non
     assert safe_range("planner.sustained_contact") == '= "hold"'
     assert safe_range("planner.task.amplitude_rad") == "each magnitude <= [0.35, 0.1, 0.12, 0.0, 0.0, 0.0] rad"
     assert safe_range("gain.overrides.wrist_3.thresholds_hpa") == "each <= [2.0, 6.0, 12.0, 20.0] hPa"
+
+
+# -- plug-in tables; profiles written before the tables moved ------------------------------------------------------
+
+LEGACY = """[planner]
+uniform_fraction = 0.4
+smooth_ramp_s = 0.05
+[planner.location_weights.pl3]
+shoulder = [0.1, 0.8, 0.6, 0.0]
+upper_arm = [0.2, 0.8, 0.6, 0.0]
+elbow = [0.0, 0.6, 0.8, 0.2]
+forearm = [0.0, 0.6, 0.8, 0.2]
+wrist = [0.0, 0.3, 0.6, 0.8]
+[planner.whole_arm]
+duration_s = 0.8
+[bridge]
+servo_gain = 500.0
+watchdog_hz = 5.0
+"""
+CURRENT = """[planner.uniform]
+fraction = 0.4
+[planner.cartesian-smooth]
+ramp_s = 0.05
+[planner.location.pl3]
+shoulder = [0.1, 0.8, 0.6, 0.0]
+upper_arm = [0.2, 0.8, 0.6, 0.0]
+elbow = [0.0, 0.6, 0.8, 0.2]
+forearm = [0.0, 0.6, 0.8, 0.2]
+wrist = [0.0, 0.3, 0.6, 0.8]
+[planner.whole-arm]
+duration_s = 0.8
+[bridge.ur_rtde]
+servo_gain = 500.0
+watchdog_hz = 5.0
+"""
+
+
+def test_a_profile_written_before_the_plug_in_tables_loads_as_its_current_form(tmp_path: Path) -> None:
+    old = load_profile(write(tmp_path, LEGACY + acknowledge("bridge.watchdog_hz", "planner.whole_arm.duration_s"),
+                             "old.toml"))
+    new = load_profile(write(tmp_path, CURRENT + acknowledge("bridge.ur_rtde.watchdog_hz",
+                                                             "planner.whole-arm.duration_s"), "new.toml"))
+    assert old == new
+    assert old.safety.acknowledge == ["bridge.ur_rtde.watchdog_hz", "planner.whole-arm.duration_s"]
+    assert old.planner.plugins["uniform"]["fraction"] == 0.4
+    assert old.planner.plugins["location"]["pl3"]["shoulder"] == [0.1, 0.8, 0.6, 0.0]
+    assert old.planner.plugins["location"]["pl4"]["wrist"] == [0.0, 0.6, 0.8, 1.0]  # the rest: its defaults
+    # a session's journaled profile (JSON, as a recording keeps it) decodes the same, either form
+    journaled = json.loads(msgspec.json.encode(new))
+    assert config.decode_profile(journaled, "journal") == new
+
+
+def test_every_plug_in_table_is_resolved_in_full_for_the_journal() -> None:
+    profile = load_profile(None)
+    for kind in kinds():
+        section = getattr(profile, kind.section)
+        assert sorted(section.plugins) == sorted(kind.names())
+        for name in kind.names():
+            assert section.plugins[name] == msgspec.to_builtins(kind.settings_class(name)())
+
+
+def test_a_service_checks_its_own_plug_ins_and_leaves_the_others_to_theirs(tmp_path: Path) -> None:
+    loosened_bridge = "[bridge.ur_rtde]\nwatchdog_hz = 5.0\n"
+    path = write(tmp_path, loosened_bridge + acknowledge("bridge.ur_rtde.watchdog_hz"))
+    gain = load_profile(path, sections=())  # the gain runs no plug-in: the bridge's table as written
+    assert gain.bridge.plugins["ur_rtde"] == {"watchdog_hz": 5.0}
+    assert "whole-arm" not in gain.planner.plugins
+    bridge = load_profile(path, sections=("bridge",))
+    assert bridge.bridge.plugins["ur_rtde"]["servo_gain"] == 300.0  # resolved in full for its journal
+    with pytest.raises(ConfigError, match=r"bridge.ur_rtde.watchdog_hz = 5.0 .* safe range >= 10.0 Hz"):
+        load_profile(write(tmp_path, loosened_bridge, "bare.toml"), sections=("bridge",))

@@ -18,6 +18,7 @@ import pytest
 
 from nwr.common.config import load_profile
 from nwr.common.launch import load_script
+from nwr.services.gateway.core import with_sim
 from nwr.services.gateway.stepped import SimulatedSkin
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.planner import strategies
@@ -32,7 +33,7 @@ BASE_PORT = 17650  # away from the default mesh and the other e2e tests
 def test_a_demo_session_in_lockstep_reports_no_warning(strategy: str, closed_loop: bool,
                                                        caplog: pytest.LogCaptureFixture) -> None:
     profile = load_profile()
-    profile.gateway.sim.closed_loop = closed_loop
+    profile.gateway = with_sim(profile.gateway, closed_loop=closed_loop)
     reports: list[tuple[str, str, str]] = []
     chain = Lockstep(profile, strategy=strategy, journal=False,
                      diag=lambda level, code, message, every_s=1.0: reports.append((level, code, message)))

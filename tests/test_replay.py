@@ -16,7 +16,7 @@ from nwr.common.config import Profile
 from nwr.common.launch import load_script
 from nwr.common.recordings import McapRecorder, Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.gateway.core import Gateway, SimSkin
+from nwr.services.gateway.core import Gateway, SimSkin, sim_settings
 from nwr.services.pipeline.lockstep import Lockstep
 from nwr.services.tools.recordings import analysis, compare
 from nwr.services.tools.recordings.replay import select
@@ -28,7 +28,7 @@ DESC = load_description()
 def skin_samples(script: str = "short.toml") -> list[m.SkinPressure]:
     """The skin stream of a touch script, from the gateway's cores (25 Hz, no network)."""
     profile = Profile()
-    sim = SimSkin(profile.gateway.sim, DESC.pads, load_script(str(DATA / script)))
+    sim = SimSkin(sim_settings(profile.gateway), DESC.pads, load_script(str(DATA / script)))
     gateway = Gateway(profile.gateway, len(DESC.pads))
     out = []
     for i in range(int(load_script(str(DATA / script)).duration_s * 25)):

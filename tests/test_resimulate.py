@@ -22,7 +22,9 @@ from nwr.services.gateway.core import (
     SimSkin,
     TouchSet,
     contact_pressure,
+    sim_settings,
     touch_message,
+    with_sim,
     withdrawal_m,
 )
 from nwr.services.tools.recordings import analysis, compare
@@ -126,7 +128,7 @@ def simulated_stream(q: np.ndarray, script: TouchScript, *, closed_loop: bool = 
                      origin_ns: int = 10**9) -> tuple[list[m.SkinPressure], list[m.SkinTouch]]:
     """The gateway's cores on a script with the arm held at ``q`` (25 Hz)."""
     profile = Profile()
-    sim = SimSkin(msgspec.structs.replace(profile.gateway.sim, closed_loop=closed_loop), DESC.pads, script)
+    sim = SimSkin(sim_settings(with_sim(profile.gateway, closed_loop=closed_loop)), DESC.pads, script)
     gateway = Gateway(profile.gateway, N)
     points, normals = MODEL.pad_points(q), MODEL.pad_normals(q)
     samples, touches = [], []
@@ -222,7 +224,7 @@ def demo_sessions(tmp_path_factory):
     out = {}
     out["open"] = simulate(Profile(), DEMO, "cartesian", d / "open.mcap")[0]
     closed = Profile()
-    closed.gateway.sim.closed_loop = True
+    closed.gateway = with_sim(closed.gateway, closed_loop=True)
     out["closed"] = simulate(closed, DEMO, "cartesian", d / "closed.mcap")[0]
     records, metadata = read_recording(out["open"])
     for strategy, runs in (("cartesian", (1, 2)), ("uniform", (1,))):

@@ -20,7 +20,7 @@ from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.clock import ManualClock
-from nwr.common.config import ROS1_DEFAULT_PADS, Profile, ZenohSection, load_profile
+from nwr.common.config import Profile, ZenohSection
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Playback, Recording
 from nwr.common.node import zenoh_config
@@ -29,8 +29,9 @@ from nwr.common.robot import load_description
 from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, map_values, pad_map
 from nwr.services import cli
 from nwr.services.gateway.sources import ros1
-from nwr.services.gateway.sources.ros1 import Ros1Skin
+from nwr.services.gateway.sources.ros1 import ROS1_DEFAULT_PADS, Ros1Skin, settings_of
 from nwr.services.gateway.wiring import GatewayWiring
+from nwr.services.profile import load_profile
 
 PADS = [p.name for p in load_description().pads]
 N_VALUES = 11
@@ -208,7 +209,7 @@ def adapter() -> tuple[Ros1Skin, list[m.SkinPressure], list[tuple[str, str, str]
     wiring = GatewayWiring(profile, journal=Recording(clock), out=lambda k, msg: outs.append(msg),
                            diag=lambda *a: None)
     wiring.origin()
-    skin = Ros1Skin(profile.gateway.ros1, default_map(), wiring, threading.Lock(),
+    skin = Ros1Skin(settings_of(profile), default_map(), wiring, threading.Lock(),
                     lambda level, code, text, **kw: diags.append((level, code, text)))
     return skin, outs, diags
 
@@ -263,9 +264,9 @@ def test_without_rospy_the_ros1_source_says_what_to_install(monkeypatch: pytest.
 ])
 def test_a_message_type_that_cannot_be_had_is_one_line(message_type: str, definition: str, match: str) -> None:
     # In a child process: genpy comes from the system's packages, which this process must not take on.
-    code = ("import sys\nfrom nwr.common.config import Ros1SkinSection\nfrom nwr.common.errors import ConfigError\n"
-            "from nwr.services.gateway.sources.ros1 import message_class\n"
-            f"try:\n    message_class(Ros1SkinSection(message_type={message_type!r}, definition={definition!r}))\n"
+    code = ("import sys\nfrom nwr.common.errors import ConfigError\n"
+            "from nwr.services.gateway.sources.ros1 import Settings, message_class\n"
+            f"try:\n    message_class(Settings(message_type={message_type!r}, definition={definition!r}))\n"
             "except ConfigError as exc:\n    print(exc)\n    sys.exit(3)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     if "needs rospy" in proc.stdout:

@@ -18,6 +18,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from nwr.common import messages as m
 from nwr.common.recordings import McapRecorder, Recorded
 from nwr.common.robot import RobotModel, load_description
+from nwr.services.planner.strategies.whole_arm import WholeArmSettings
 from nwr.services.view import core as c
 from nwr.services.view.export import ExportError, export_foxglove, load_records
 from nwr.services.view.playback import Player
@@ -475,7 +476,7 @@ def test_ghost_of_a_whole_arm_withdrawal_is_its_displacement_and_none_when_it_ho
     ghost = core.frame(0).ghost
     assert ghost is not None and ghost.arrow is not None and ghost.strategy == "whole-arm"
     length = float(np.linalg.norm(ghost.arrow.tip - ghost.arrow.tail))
-    assert length == pytest.approx(0.58 * cfg.whole_arm.distance_m)
+    assert length == pytest.approx(0.58 * WholeArmSettings().distance_m)
     assert ghost.arrow.tip - ghost.arrow.tail == pytest.approx(-length * MODEL.pad_normal(q0, pad), abs=1e-3)
     blocked = msgspec.structs.replace(info, direction=[0.0, 0.0, 0.0], reason="blocked")
     core.apply(status("REFLEX", seq=1, reflex=blocked, saved=list(q0)))

@@ -24,7 +24,12 @@ from nwr.common.task import FigureEight, TaskSection
 from nwr.services.planner import strategies
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies import whole_arm
-from nwr.services.planner.strategies.whole_arm import APPROACH_BUDGET_M, TOWARD_BUDGET_M, WholeArm
+from nwr.services.planner.strategies.whole_arm import (
+    APPROACH_BUDGET_M,
+    TOWARD_BUDGET_M,
+    WholeArm,
+    WholeArmSettings,
+)
 
 DESC = load_description()
 MODEL = RobotModel(DESC)
@@ -46,9 +51,7 @@ def contact(pad: int, gain: float) -> m.Contact:
 
 
 def build(**overrides: float) -> WholeArm:
-    cfg = PlannerSection(strategy="whole-arm")
-    for k, v in overrides.items():
-        setattr(cfg.whole_arm, k, v)
+    cfg = PlannerSection(strategy="whole-arm", plugins={"whole-arm": dict(overrides)})
     strategy = strategies.build(cfg, DESC, MODEL, cfg.speed_fraction * DESC.v_max)
     assert isinstance(strategy, WholeArm)
     return strategy
@@ -202,13 +205,13 @@ def test_the_planner_streams_it_for_its_own_duration_and_the_status_says_sideway
     assert planner.mode == "REFLEX"
     status = planner.status(t)
     assert status.reflex is not None and status.reflex.reason == "sideways"
-    assert status.reflex.duration_s == cfg.whole_arm.duration_s
+    assert status.reflex.duration_s == WholeArmSettings().duration_s
     cycles = 0
     while planner.mode == "REFLEX":
         t += 2_000_000
         planner.step(t)
         cycles += 1
-    assert cycles == pytest.approx(cfg.whole_arm.duration_s * cfg.rate_hz, abs=2)
+    assert cycles == pytest.approx(WholeArmSettings().duration_s * cfg.rate_hz, abs=2)
 
 
 def _reflex_and_return(pad: str, gain: float) -> np.ndarray:

@@ -33,14 +33,59 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Annotated
 
+import msgspec
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import GatewaySection, SimSkinSection
+from nwr.common.config import GatewaySection, NonNegative, Positive
 from nwr.common.errors import ConfigError
 from nwr.common.launch import Touch, TouchScript
 from nwr.common.robot import Pad
+from nwr.common.section import Section
+from nwr.services.gateway.sources import KIND as SOURCES
+
+
+class SimSkinSettings(Section):
+    """The simulated skin's settings: ``[gateway.sim]`` (the ``sim`` skin source's table)."""
+
+    # Seed of the noise and drift generators (a run is reproducible).
+    seed: int = 7
+    # Absolute no-contact pressure of a pad, hPa (pads differ by up to +-spread).
+    base_hpa: Annotated[float, msgspec.Meta(gt=0, le=5000)] = 1013.0
+    spread_hpa: NonNegative = 3.0
+    # White noise, standard deviation in hPa.
+    noise_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.08
+    # Slow drift (temperature): a random walk of this many hPa per sqrt(s),
+    # plus a sine of this amplitude and period.
+    drift_walk_hpa: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.02
+    drift_sine_hpa: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.3
+    drift_period_s: Positive = 60.0
+    # Touch script (TOML, [[touch]] tables); empty = no touches.
+    script: str = ""
+    # Contact model: the finger stays where it met the pad; once the pad has
+    # withdrawn w metres from it along the pad's normal, the touch presses
+    # with (1 - w / contact_depth_m) of its scripted pressure (none beyond
+    # the depth; never more than scripted when the pad moves toward it). The
+    # finger's indentation of the pad's air cushion at the scripted pressure, m.
+    contact_depth_m: Annotated[float, msgspec.Meta(gt=0, le=0.2)] = 0.02
+    # true: the live simulated skin applies that model (closed loop: a pad
+    # that withdraws feels its pressure fall); false: touches press as
+    # scripted whatever the arm does (open loop, the default). Re-simulation
+    # (`nwr replay --fast --resimulate`) always applies it.
+    closed_loop: bool = False
+
+
+def sim_settings(gateway: GatewaySection) -> SimSkinSettings:
+    """The profile's ``[gateway.sim]``."""
+    return SOURCES.settings(gateway, "sim", SimSkinSettings)
+
+
+def with_sim(gateway: GatewaySection, **values: object) -> GatewaySection:
+    """``gateway`` with fields of ``[gateway.sim]`` set (e.g. ``closed_loop=True``), checked when next read."""
+    plugins = {**gateway.plugins, "sim": {**gateway.plugins.get("sim", {}), **values}}
+    return msgspec.structs.replace(gateway, plugins=plugins)
 
 
 @dataclass
@@ -247,7 +292,7 @@ class TouchSet:
 class SimSkin:
     """Simulated AIRSKIN pads: absolute pressure with noise, drift and scripted touches."""
 
-    def __init__(self, cfg: SimSkinSection, pads: tuple[Pad, ...], script: TouchScript | None) -> None:
+    def __init__(self, cfg: SimSkinSettings, pads: tuple[Pad, ...], script: TouchScript | None) -> None:
         self.cfg = cfg
         self.pads = pads
         self.rng = np.random.default_rng(cfg.seed)
@@ -410,7 +455,7 @@ class Resimulator:
             raise ConfigError(f"the recorded touches come from {len(origins)} runs of the simulated skin (its "
                               "gateway restarted): re-simulate each run's part on its own with --start/--end")
         self.origin_ns = origins[0]
-        self.touches = TouchSet(n_pads, cfg.sim.contact_depth_m, closed_loop=True)
+        self.touches = TouchSet(n_pads, sim_settings(cfg).contact_depth_m, closed_loop=True)
         for t in sorted(touches, key=lambda t: (t.start_s, t.seq)):
             self.touches.add(t.pad, Touch(pad=t.name, start_s=t.start_s, duration_s=t.duration_s,
                                           peak_hpa=t.peak_hpa, shape=t.shape, ramp_s=t.ramp_s))

@@ -31,7 +31,7 @@ from nwr.common.config import Profile
 from nwr.common.journal import Journal
 from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, touch_message
+from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, sim_settings, touch_message
 from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives
 
 SERVICE = "gateway"
@@ -49,10 +49,11 @@ class GatewayWiring(Wiring):
         self.pads = self.desc.pads
         self.script = script
         self.follow_target_s = follow_target_s
-        self.sim = SimSkin(cfg.sim, self.pads, script)
+        sim = sim_settings(cfg)
+        self.sim = SimSkin(sim, self.pads, script)
         self.gateway = Gateway(cfg, len(self.pads), source=cfg.source)
         self.model = RobotModel(self.desc)
-        self.follower = TargetFollower(follow_target_s, cfg.sim.seed) if follow_target_s else None
+        self.follower = TargetFollower(follow_target_s, sim.seed) if follow_target_s else None
         self.journal = journal
         self.out = out
         self.diag = diag

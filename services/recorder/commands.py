@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from nwr.common.launch import profile_for
+from nwr.services.profile import profile_for
 from nwr.services.recorder import main as recorder_main
 from nwr.services.recorder import salvage
 

@@ -28,11 +28,12 @@ from typing import IO
 import zenoh
 
 from nwr.common import keys
-from nwr.common.config import Profile, loosened_safety
+from nwr.common.config import Profile
 from nwr.common.errors import DecodeError
 from nwr.common.launch import encode_profile
 from nwr.common.node import Node
 from nwr.common.recordings import RecordingError, fits_mcap, parse_labels, session_metadata
+from nwr.services.profile import loosened_safety
 from nwr.services.recorder.disk import PartFiles, SessionRecorder, SplitPolicy
 
 log = logging.getLogger(__name__)

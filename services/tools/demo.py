@@ -12,12 +12,14 @@ from pathlib import Path
 
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
-from nwr.common.launch import load_script, profile_for
+from nwr.common.launch import load_script
 from nwr.services.bridge import backends
 from nwr.services.bridge.main import CONFIRM_FLAG, add_arm_arguments, check_arm_flags
+from nwr.services.gateway.core import sim_settings, with_sim
 from nwr.services.pipeline import supervisor
 from nwr.services.pipeline.graph import Layout, recorder_args
 from nwr.services.planner import strategies
+from nwr.services.profile import profile_for
 from nwr.services.recorder.main import session_name
 from nwr.services.tools.recordings.summary import print_summary
 
@@ -117,13 +119,13 @@ def run_demo_fast(args: argparse.Namespace) -> int:
         raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")
     profile = profile_for(args)
     if args.closed_loop:
-        profile.gateway.sim.closed_loop = True
+        profile.gateway = with_sim(profile.gateway, closed_loop=True)
     _, output = output_path(args, profile)
     strategy = args.reflex or profile.planner.strategy
     strategies.check(strategy)  # before the recording is opened
     path, simulated, wall = simulate(profile, args.script, strategy, output)
     print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
-          f"{wall:.2f} s{' (closed loop)' if profile.gateway.sim.closed_loop else ''}: {path}")
+          f"{wall:.2f} s{' (closed loop)' if sim_settings(profile.gateway).closed_loop else ''}: {path}")
     return print_summary(path, args.script, profile)
 
 

@@ -29,11 +29,11 @@ import numpy as np
 
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
-from nwr.common.launch import profile_for
 from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.services.gain.core import continuous_gain, discrete_gain
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies import names as strategy_names
+from nwr.services.profile import profile_for
 from nwr.services.tools.recordings.analysis import contact_motion
 
 CONTINUOUS_COLOR = "#d62728"

@@ -23,9 +23,10 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common.config import Profile
-from nwr.common.launch import Touch, TouchScript, profile_for
+from nwr.common.launch import Touch, TouchScript
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotModel, load_description
+from nwr.services.profile import profile_for
 from nwr.services.tools.recordings.analysis import TouchSummary, cell, format_table, summarize
 
 # The press begins once the arm has reached its task (the approach from the start pose is over), s.
@@ -46,12 +47,11 @@ class Press:
 def held_press(profile: Profile, strategy: str, pad: str, *, closed_loop: bool, press_s: float = 3.0,
                peak_hpa: float = 15.0, model: RobotModel | None = None) -> Press:
     """One press of ``press_s`` at ``peak_hpa`` on ``pad``, in lockstep; its per-touch figures."""
+    from nwr.services.gateway.core import with_sim
     from nwr.services.gateway.stepped import SimulatedSkin
     from nwr.services.pipeline.lockstep import Lockstep
 
-    gateway = msgspec.structs.replace(
-        profile.gateway, sim=msgspec.structs.replace(profile.gateway.sim, closed_loop=closed_loop))
-    profile = msgspec.structs.replace(profile, gateway=gateway)
+    profile = msgspec.structs.replace(profile, gateway=with_sim(profile.gateway, closed_loop=closed_loop))
     script = TouchScript(duration_s=START_S + press_s + AFTER_S,
                          touch=[Touch(pad=pad, start_s=START_S, duration_s=press_s, peak_hpa=peak_hpa)])
     records: list[Recorded] = []

@@ -44,8 +44,9 @@ import zenoh
 from nwr.common import keys
 from nwr.common.config import ZenohSection
 from nwr.common.errors import ConfigError
-from nwr.common.launch import parse_endpoints, profile_for
+from nwr.common.launch import parse_endpoints
 from nwr.common.node import check_tls_files, tls_config, tls_endpoints
+from nwr.services.profile import profile_for
 
 log = logging.getLogger(__name__)
 

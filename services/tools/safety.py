@@ -12,8 +12,8 @@ import argparse
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.launch import profile_for
 from nwr.common.node import Node
+from nwr.services.profile import profile_for
 from nwr.services.tools.switch import ask_the_bridge, requested_by
 
 

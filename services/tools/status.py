@@ -289,7 +289,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
 
 def _handler(args: argparse.Namespace) -> int:
-    from nwr.common.launch import profile_for
+    from nwr.services.profile import profile_for
 
     return run(profile_for(args), args)
 
@@ -307,7 +307,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m nwr.services.tools.status``: ``nwr status`` without importing every service."""
-    from nwr.common.launch import env_overrides, profile_for
+    from nwr.common.launch import env_overrides
+    from nwr.services.profile import profile_for
 
     parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.status", description=__doc__.split("\n")[0])
     parser.add_argument("--profile", "-p", default=os.environ.get("NWR_PROFILE", "default"))

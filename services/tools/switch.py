@@ -18,8 +18,8 @@ from typing import Any
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.launch import profile_for
 from nwr.common.node import Node
+from nwr.services.profile import profile_for
 
 CYCLE_S = 0.002
 # Long enough for a new session to connect and its subscriber to see a robot state (50 Hz).

@@ -19,7 +19,7 @@ from typing import Any
 
 from foxglove.websocket import Capability, PlaybackCommand, PlaybackState, PlaybackStatus
 
-from nwr.common.launch import profile_for
+from nwr.services.profile import profile_for
 from nwr.services.view import main as view_main
 from nwr.services.view.core import DEFAULT_RATE_HZ, Output
 from nwr.services.view.export import ExportError, export_foxglove, load_records, make_core, recording_timeline

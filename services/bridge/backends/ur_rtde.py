@@ -46,15 +46,21 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
+import msgspec
 import numpy as np
 
-from nwr.common.config import BridgeSection
-from nwr.common.errors import NwrError
+from nwr.common.config import BridgeSection, Guard, Profile
+from nwr.common.errors import ConfigError, NwrError
+from nwr.common.section import Section
 from nwr.services.bridge.backend import Backend, Observation
+from nwr.services.bridge.backends import KIND
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.envelope import Envelope
+
+if TYPE_CHECKING:
+    from nwr.common.robot import RobotDescription
 
 log = logging.getLogger(__name__)
 
@@ -62,11 +68,41 @@ NAME = "ur_rtde"
 REAL_ARM = True
 
 
+class Settings(Section):
+    """The UR backend's settings: ``[bridge.ur_rtde]``."""
+
+    # servoJ lookahead time, s (UR allows 0.03-0.2; longer is
+    # smoother but lags more) and proportional gain (UR allows 100-2000).
+    servo_lookahead_s: Annotated[float, msgspec.Meta(ge=0.03, le=0.2)] = 0.1
+    servo_gain: Annotated[float, msgspec.Meta(ge=100, le=2000)] = 300.0
+    # Reconnection backoff, doubling from min to max (min <= max), s.
+    reconnect_min_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+    reconnect_max_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 8.0
+    # The controller's watchdog on the bridge, Hz. The bridge
+    # kicks it every cycle; if no kick arrives within 1/watchdog_hz (a hung or
+    # starved bridge process), the controller stops the control script and
+    # with it the arm. It cannot be switched off.
+    watchdog_hz: Annotated[float, msgspec.Meta(ge=1, le=125)] = 10.0
+
+
+# Safety-relevant beside a person ([safety] acknowledges a value past its default on this side).
+GUARDS = {"watchdog_hz": Guard("below", "Hz")}
+
+
+def check_settings(cfg: Settings, profile: Profile, desc: RobotDescription) -> None:
+    if cfg.reconnect_min_s > cfg.reconnect_max_s:
+        raise ConfigError(f"bridge.ur_rtde.reconnect_min_s = {cfg.reconnect_min_s} s is above "
+                          f"bridge.ur_rtde.reconnect_max_s = {cfg.reconnect_max_s} s: the backoff doubles from min "
+                          "to max")
+
+
 def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
-    """The UR at ``--robot-ip`` (its ``[bridge]`` servo and reconnection settings); it starts where it is."""
-    return URRtdeBackend(env, 1.0 / cfg.rate_hz, args.robot_ip, lookahead_s=cfg.servo_lookahead_s,
-                         gain=cfg.servo_gain, reconnect_min_s=cfg.reconnect_min_s,
-                         reconnect_max_s=cfg.reconnect_max_s, watchdog_hz=cfg.watchdog_hz)
+    """The UR at ``--robot-ip`` (its ``[bridge.ur_rtde]`` servo and reconnection settings); it starts where it
+    is."""
+    ur = KIND.settings(cfg, NAME, Settings)
+    return URRtdeBackend(env, 1.0 / cfg.rate_hz, args.robot_ip, lookahead_s=ur.servo_lookahead_s,
+                         gain=ur.servo_gain, reconnect_min_s=ur.reconnect_min_s,
+                         reconnect_max_s=ur.reconnect_max_s, watchdog_hz=ur.watchdog_hz)
 
 # Ports the two interfaces use on the controller (see docs/bridge.md).
 RTDE_PORT = 30004  # RTDE: joint state out, registers in

@@ -32,23 +32,70 @@ import socket
 import sys
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 from urllib.parse import urlparse
 
+import msgspec
 import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, Ros1SkinSection
+from nwr.common.config import Profile
 from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
+from nwr.common.section import Section
 from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, PadMap, map_values, pad_map
+from nwr.services.gateway.sources import KIND
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+
+if TYPE_CHECKING:
+    from nwr.common.robot import RobotDescription
 
 log = logging.getLogger(__name__)
 
 NAME = "ros1"
+
+# The default pad mapping of gateway.ros1.pads: device index i -> the UR10e's pad i, the 11th index unused.
+# A placeholder: check it on the lab's skin (docs/lab.md) and write the real one in the lab's profile.
+ROS1_DEFAULT_PADS = ["shoulder_back", "shoulder_outer", "upper_arm_top", "upper_arm_bottom", "elbow_outer",
+                     "forearm_top", "forearm_bottom", "wrist_1", "wrist_2", "wrist_3", ""]
+
+
+class Settings(Section):
+    """The ROS 1 skin source's settings: ``[gateway.ros1]``."""
+
+    # The ROS 1 topic that carries the skin's pressures (AIRSKIN: ~30 Hz).
+    topic: str = "/bullet_ros/airskin_status"
+    # Its message type, package/Name as `rostopic type TOPIC` prints it.
+    message_type: str = "airskin_msgs/AirskinStatus"
+    # The type's definition (its .msg text), for a type this machine has no
+    # ROS package of: generated at start. Empty: import the type from ROS
+    # (e.g. std_msgs/Float32MultiArray with values_field = "data").
+    definition: str = "float32[] pressures"
+    # The message's field holding the pressures (an array of numbers).
+    values_field: str = "pressures"
+    # The pad mapping: entry i names the robot's pad that the message's value
+    # i is; "" = a value no pad takes. A message must carry this many values.
+    pads: list[str] = msgspec.field(default_factory=lambda: list(ROS1_DEFAULT_PADS))
+    # A value v is the absolute pressure v * scale_hpa + offset_hpa, hPa
+    # (the gateway takes each pad's change from its own baseline).
+    scale_hpa: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 1.0
+    offset_hpa: Annotated[float, msgspec.Meta(ge=-5000, le=5000)] = 0.0
+    # No message for this long, or the ROS master unreachable: a diagnostic
+    # (the skin is stale; the bridge stops the arm after bridge.skin_timeout_s).
+    timeout_s: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+
+
+def settings_of(profile: Profile) -> Settings:
+    """The profile's ``[gateway.ros1]``."""
+    return KIND.settings(profile.gateway, NAME, Settings)
+
+
+def check_settings(cfg: Settings, profile: Profile, desc: RobotDescription) -> None:
+    """The pad mapping names the robot's pads, when this is the gateway's source (the simulated skin needs none)."""
+    if profile.gateway.source == NAME:
+        pad_map(cfg.pads, [pad.name for pad in desc.pads], scale_hpa=cfg.scale_hpa, offset_hpa=cfg.offset_hpa)
 
 # Where Debian's and ROS's own Python packages live; appended (never prepended) to sys.path when rospy is not
 # importable as is, so that this environment's own packages (numpy, ...) win.
@@ -74,7 +121,7 @@ def import_ros(module: str = "rospy") -> Any:
         raise ConfigError(NO_ROSPY.format(error=exc)) from exc
 
 
-def message_class(cfg: Ros1SkinSection) -> Any:
+def message_class(cfg: Settings) -> Any:
     """The ROS message class of ``cfg.message_type``: generated from ``cfg.definition``, or imported from ROS."""
     package, _, name = cfg.message_type.partition("/")
     if not package or not name:
@@ -95,7 +142,7 @@ def message_class(cfg: Ros1SkinSection) -> Any:
                           "install its message package, or give its .msg text as gateway.ros1.definition") from exc
 
 
-def check_field(cls: Any, cfg: Ros1SkinSection) -> None:
+def check_field(cls: Any, cfg: Settings) -> None:
     slots = list(getattr(cls, "__slots__", ()))
     if cfg.values_field not in slots:
         raise ConfigError(f"gateway.ros1.values_field = {cfg.values_field!r} is no field of {cfg.message_type} "
@@ -105,7 +152,7 @@ def check_field(cls: Any, cfg: Ros1SkinSection) -> None:
 class Ros1Skin:
     """The subscriber's callback and the watchdog's checks, around the gateway's wiring."""
 
-    def __init__(self, cfg: Ros1SkinSection, pmap: PadMap, wiring: GatewayWiring, lock: threading.Lock,
+    def __init__(self, cfg: Settings, pmap: PadMap, wiring: GatewayWiring, lock: threading.Lock,
                  diag: Any) -> None:
         self.cfg = cfg
         self.pmap = pmap
@@ -195,7 +242,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     """The gateway with the ROS 1 source, until stopped."""
     from nwr.common.robot import load_description
 
-    cfg = profile.gateway.ros1
+    cfg = settings_of(profile)
     rospy = import_ros("rospy")
     rosgraph = import_ros("rosgraph")
     cls = message_class(cfg)

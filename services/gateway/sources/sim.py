@@ -21,12 +21,14 @@ from nwr.common.door import Door
 from nwr.common.launch import load_script
 from nwr.common.node import Node
 from nwr.common.pacing import Rate
+from nwr.services.gateway.core import SimSkinSettings, sim_settings, with_sim
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
 from nwr.services.wiring import subscribe
 
 log = logging.getLogger(__name__)
 
 NAME = "sim"
+Settings = SimSkinSettings  # [gateway.sim], beside the simulated skin it configures (gateway/core.py)
 
 # The most a late loop catches up with, s of sample periods: longer stalls lose the periods beyond it.
 CATCH_UP_S = 0.1
@@ -37,8 +39,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.rate:
         cfg.rate_hz = args.rate
     if getattr(args, "closed_loop", False):
-        cfg.sim.closed_loop = True
-    script_name = args.script or cfg.sim.script
+        cfg = profile.gateway = with_sim(cfg, closed_loop=True)
+    sim = sim_settings(cfg)
+    script_name = args.script or sim.script
     script = load_script(script_name) if script_name else None
     lock = threading.Lock()  # the state handler, the loop and the journal's batches
     with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway",
@@ -61,9 +64,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             f", touch script {script_name} ({len(wiring.sim.touches)} touches, {script.duration_s} s)"
             if script else "",
         )
-        if cfg.sim.closed_loop:
-            log.info("closed loop: a touch's pressure falls as its pad withdraws (depth %.3f m)",
-                     cfg.sim.contact_depth_m)
+        if sim.closed_loop:
+            log.info("closed loop: a touch's pressure falls as its pad withdraws (depth %.3f m)", sim.contact_depth_m)
         rate = Rate(cfg.rate_hz, "gateway")
         # A late loop takes the sample periods it missed, each of its own time (a device's samples, read
         # late, are all there), up to CATCH_UP_S of them; beyond that, the periods are skipped (an overrun).

@@ -32,9 +32,11 @@ from typing import ClassVar, Literal
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection
+from nwr.common.config import Guard, PlannerSection
 from nwr.common.errors import ConfigError
+from nwr.common.plugins import NoSettings, Plugins
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.section import Section
 
 CommandMode = Literal["position", "velocity"]
 
@@ -62,6 +64,10 @@ class ReflexStrategy(ABC):
     name: ClassVar[str]  # the profile's planner.strategy
     rank: ClassVar[int]  # place among the strategies (names())
     mode: ClassVar[CommandMode]
+    # Its own parameters, the profile's [planner.<name>] (KIND.settings), and which of them are safety-relevant
+    # beside a person; a staticmethod check_settings(settings, profile, desc) may add cross-checks.
+    Settings: ClassVar[type[Section]] = NoSettings
+    GUARDS: ClassVar[dict[str, Guard]] = {}
 
     # Velocity mode: the return to the saved pose goes back along the withdrawal's own path (through poses
     # on it), not on the straight line in joint space, which can swing another part of the arm closer to the
@@ -126,6 +132,24 @@ def check(name: str) -> None:
     if name not in _registry():
         raise ConfigError(f"planner.strategy {name!r} is not a reflex strategy; the strategies are "
                           f"{', '.join(names())}")
+
+
+class Strategies(Plugins):
+    """The strategies as plug-ins with their tables ``[planner.<name>]`` (:class:`nwr.common.plugins.Plugins`)."""
+
+    section = "planner"
+    field = "planner.strategy"
+    what = "strategy"
+
+    def names(self) -> list[str]:
+        return list(_registry())
+
+    def declared(self, name: str) -> type[ReflexStrategy]:
+        check(name)
+        return _registry()[name]
+
+
+KIND = Strategies()
 
 
 def build(cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> ReflexStrategy:

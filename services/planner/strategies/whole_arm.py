@@ -59,17 +59,23 @@ from __future__ import annotations
 
 import copy
 import logging
+from typing import TYPE_CHECKING, Annotated
 
+import msgspec
 import numpy as np
 import pinocchio as pin
 import quadprog
 
 from nwr.common import messages as m
-from nwr.common.config import PlannerSection
+from nwr.common.config import Guard, PlannerSection
 from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.section import Section
 from nwr.services.planner.reflexes import smooth_profile
-from nwr.services.planner.strategies import Onset, ReflexStrategy
+from nwr.services.planner.strategies import KIND, Onset, ReflexStrategy
+
+if TYPE_CHECKING:
+    from nwr.common.config import Profile
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +112,29 @@ SLACK = 1e-7
 CORRECTED_SHARE = 0.9
 
 
+class WholeArmSettings(Section):
+    """``[planner.whole-arm]``."""
+
+    # The whole-arm withdrawal ("whole-arm"): every control cycle a small QP
+    # finds the joint velocity that moves the touched pad away from the
+    # contact while no other sampled point of the arm comes closer to it
+    # (docs/reflexes.md). Its stream lasts duration_s, ramped in and out
+    # (raised cosine, ramp_s each, at most half of duration_s).
+    duration_s: Annotated[float, msgspec.Meta(gt=0, le=2.0)] = 1.0
+    ramp_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.3
+    # How far the touched pad withdraws at G(p) = 1 when nothing limits it, m
+    # (in proportion to the gain below; the Cartesian reflex's 0.125 m).
+    distance_m: Annotated[float, msgspec.Meta(gt=0, le=0.3)] = 0.125
+    # No sampled point of the arm (pads, joints, points along the links,
+    # flange) faster than this, m/s: the whole motion is scaled down to it.
+    point_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.5
+    # Weight of the arm's mean squared point speed beside the pad's squared
+    # speed error: the rest of the arm as still as the withdrawal lets it.
+    motion_weight: Annotated[float, msgspec.Meta(ge=0, le=1.0)] = 0.02
+    # Weight of |q_dot|^2 (m^2/rad^2): makes the solution unique.
+    regularization: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 1e-4
+
+
 class WholeArm(ReflexStrategy):
     """The touched pad away from the contact, no other point of the arm toward it: a QP each cycle."""
 
@@ -113,13 +142,21 @@ class WholeArm(ReflexStrategy):
     rank = 50
     mode = "velocity"
     retraces = True
+    Settings = WholeArmSettings
+    GUARDS = {"duration_s": Guard("below", "s"), "distance_m": Guard("above", "m"),
+              "point_speed_m_s": Guard("above", "m/s")}
+
+    @staticmethod
+    def check_settings(p: WholeArmSettings, profile: Profile | None = None,
+                       desc: RobotDescription | None = None) -> None:
+        if p.ramp_s > p.duration_s / 2:
+            raise ConfigError(f"planner.whole-arm.ramp_s = {p.ramp_s} s is more than half of "
+                              f"planner.whole-arm.duration_s = {p.duration_s} s: the ramps in and out would overlap")
 
     def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
         super().__init__(cfg, desc, model, v_limit)
-        p = cfg.whole_arm
-        if p.ramp_s > p.duration_s / 2:
-            raise ConfigError(f"planner.whole_arm.ramp_s = {p.ramp_s} s is more than half of "
-                              f"planner.whole_arm.duration_s = {p.duration_s} s: the ramps in and out would overlap")
+        p = KIND.settings(cfg, self.name, WholeArmSettings)
+        self.check_settings(p)
         self.duration_s = p.duration_s
         self.ramp_s = p.ramp_s
         self.distance_m = p.distance_m

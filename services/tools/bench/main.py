@@ -56,7 +56,8 @@ import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import BridgeSection, Profile, load_profile
+from nwr.common.config import BridgeSection, Profile
+from nwr.services.profile import load_profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.recordings import read_recording, session_metadata
 from nwr.common.robot import load_description

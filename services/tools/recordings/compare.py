@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 
 from nwr.common import keys
-from nwr.common.launch import profile_for
 from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
+from nwr.services.profile import profile_for
 from nwr.services.tools.recordings import analysis
 
 

@@ -43,16 +43,17 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, loosened_safety
+from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
-from nwr.common.launch import load_script, profile_for
+from nwr.common.launch import load_script
 from nwr.common.node import Node
 from nwr.common.recordings import McapRecorder, Recorded, new_file, read_recording, session_metadata
 from nwr.common.robot import RobotModel, load_description
-from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator
+from nwr.services.gateway.core import NO_GROUND_TRUTH, Resimulator, sim_settings
 from nwr.services.pipeline.graph import Layout, process_name, recorder_args, units
 from nwr.services.pipeline.supervisor import failed, spawn, stop_all
 from nwr.services.planner import strategies
+from nwr.services.profile import loosened_safety, profile_for
 
 if TYPE_CHECKING:
     from nwr.services.gateway.stepped import ResimulatedSkin, SkinSource
@@ -202,7 +203,7 @@ def simulate(profile: Profile, script_name: str, strategy: str, output: Path) ->
     desc = load_description(profile.robot.description or None)
     source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))
     labels = {"simulated": "lockstep", "script": script_name,
-              "closed_loop": str(profile.gateway.sim.closed_loop).lower()}
+              "closed_loop": str(sim_settings(profile.gateway).closed_loop).lower()}
     # The monotonic stamps are simulated (from SimulatedSkin's origin); the
     # wall-clock start is when the simulation ran.
     return record_lockstep(profile, source, strategy, output, labels=labels,

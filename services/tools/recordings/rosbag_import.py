@@ -47,10 +47,11 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
-from nwr.common.launch import profile_for
 from nwr.common.recordings import McapRecorder, new_file, session_metadata
 from nwr.common.robot import RobotDescription, load_description
 from nwr.common.skinmap import PadMap, map_values, pad_map
+from nwr.services.gateway.sources.ros1 import settings_of
+from nwr.services.profile import profile_for
 
 log = logging.getLogger(__name__)
 
@@ -283,7 +284,7 @@ def robot_state(msg: Any, desc: RobotDescription, seq: int, stamp_ns: int
 
 def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
-    ros1 = profile.gateway.ros1
+    ros1 = settings_of(profile)
     desc = load_description(profile.robot.description or None)
     mapping = ros1.pads
     if args.mapping:

@@ -6,8 +6,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from nwr.common.config import Profile, load_profile
-from nwr.common.launch import load_script, profile_for
+from nwr.common.config import Profile
+from nwr.common.launch import load_script
+from nwr.services.profile import load_profile, profile_for
 
 
 def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:

@@ -48,7 +48,7 @@ import msgspec
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import Profile, decode_profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
 from nwr.common.recordings import Recorded, read_recording, recording_robot
@@ -193,7 +193,7 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
         return result
     try:
         config = json.loads(batches[0].config)
-        profile = msgspec.convert(config["profile"], Profile)
+        profile = decode_profile(config["profile"], "the journal's profile")
         params = config.get("params", {})
         factory = wiring_for(run.service)
     except (ValueError, KeyError, TypeError, msgspec.ValidationError, ConfigError) as exc:

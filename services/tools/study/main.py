@@ -42,11 +42,11 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
-from nwr.common.launch import profile_for
 from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
 from nwr.services.planner import strategies
+from nwr.services.profile import profile_for
 from nwr.services.tools.study.store import STORE_NAME, Store, recording_name
 
 if TYPE_CHECKING:
