@@ -73,7 +73,9 @@ class Plugged(_Section):
 class RobotSection(_Section):
     # Robot name: the key prefix is nwr/<name>/, so two arms can share a LAN.
     name: Name = "ur10e"
-    # Path of a robot.toml (URDF + skin + limits); empty = the packaged UR10e.
+    # The robot description (URDF + skin + limits): a packaged robot's name (a
+    # folder of common/robots/, e.g. "ur10e") or a robot.toml's path; empty =
+    # the packaged UR10e.
     description: str = ""
 
 

@@ -51,7 +51,30 @@ log = logging.getLogger(__name__)
 REGIONS: tuple[str, ...] = ("shoulder", "upper_arm", "elbow", "forearm", "wrist")
 
 #: The description shipped with the package.
-DEFAULT_DESCRIPTION: Path = Path(__file__).resolve().parent / "robots" / "ur10e" / "robot.toml"
+# The packaged robots, one folder each (robots/<name>/robot.toml, its URDF and its skin file): a profile names one
+# by its folder's name (robot.description = "ur10e"), or any robot.toml by its path. Adding a robot is adding a
+# folder.
+ROBOTS_DIR: Path = Path(__file__).resolve().parent / "robots"
+DEFAULT_DESCRIPTION: Path = ROBOTS_DIR / "ur10e" / "robot.toml"
+
+
+def packaged_robots() -> list[str]:
+    """The names of the packaged robots (the folders of robots/ with a robot.toml)."""
+    return sorted(folder.name for folder in ROBOTS_DIR.iterdir() if (folder / "robot.toml").is_file())
+
+
+def resolve_description(name_or_path: str | Path | None) -> Path:
+    """The robot.toml a profile's ``robot.description`` names: empty, the packaged UR10e; a packaged robot's
+    name (a folder of robots/); else a path. ConfigError for a name that is no packaged robot."""
+    if not name_or_path:
+        return DEFAULT_DESCRIPTION
+    text = str(name_or_path)
+    if "/" in text or text.endswith(".toml") or Path(text).exists():
+        return Path(text)
+    if text not in packaged_robots():
+        raise ConfigError(f"robot.description = {text!r} is no packaged robot ({', '.join(packaged_robots())}) "
+                          "and no path: give a robot's name or the path of its robot.toml")
+    return ROBOTS_DIR / text / "robot.toml"
 
 # A normal whose length is off by more than this is a typo, not rounding.
 _UNIT_TOLERANCE = 1e-6
@@ -135,12 +158,12 @@ class RobotDescription:
 def load_description(path: str | Path | None = None) -> RobotDescription:
     """Read and validate ``robot.toml``, its URDF and its skin file.
 
-    ``path`` is the robot.toml file; ``None`` selects the packaged UR10e.  The
-    ``urdf`` and ``skin`` entries are resolved relative to robot.toml's folder.
+    ``path`` is the robot.toml file, or a packaged robot's name (:func:`resolve_description`); ``None`` selects
+    the packaged UR10e.  The ``urdf`` and ``skin`` entries are resolved relative to robot.toml's folder.
     Any inconsistency raises :class:`ConfigError` naming the file, the field, the
     offending value and what was expected.
     """
-    robot_path = Path(path) if path is not None else DEFAULT_DESCRIPTION
+    robot_path = resolve_description(path)
     doc = _read_toml(robot_path)
     _check_keys(doc, _ROBOT_KEYS, _ROBOT_KEYS | _OPTIONAL_ROBOT_KEYS, robot_path, "robot description")
 

@@ -470,3 +470,13 @@ def test_nearly_unit_normal_is_normalised(tmp_path: Path) -> None:
 def test_missing_description_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="not found"):
         load_description(tmp_path / "robot.toml")
+
+
+def test_a_packaged_robot_is_named_by_its_folder() -> None:
+    from nwr.common.robot import ROBOTS_DIR, packaged_robots, resolve_description
+
+    assert "ur10e" in packaged_robots()
+    assert resolve_description("ur10e") == resolve_description(None) == ROBOTS_DIR / "ur10e" / "robot.toml"
+    assert load_description("ur10e").name == load_description().name == "ur10e"
+    with pytest.raises(ConfigError, match=r"robot.description = 'ur11' is no packaged robot \(ur10e"):
+        load_description("ur11")

@@ -52,7 +52,7 @@ from nwr.common.config import Profile, decode_profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.journal import Divergence, Playback
 from nwr.common.recordings import Recorded, read_recording, recording_robot
-from nwr.common.robot import DEFAULT_DESCRIPTION
+from nwr.common.robot import ROBOTS_DIR, resolve_description
 from nwr.services.pipeline.graph import wiring_for
 from nwr.services.wiring import no_diag
 
@@ -61,7 +61,7 @@ NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded b
 
 
 # The project's packaged robot descriptions (robots/<name>/robot.toml, its URDF and skin file).
-PACKAGED_ROBOTS = DEFAULT_DESCRIPTION.parent.parent
+PACKAGED_ROBOTS = ROBOTS_DIR
 # The largest file a re-run reads (the packaged UR10e's URDF is 8 kB).
 MAX_FILE_BYTES = 4 * 1024 * 1024
 
@@ -94,7 +94,7 @@ def check_files(profile: Profile, roots: Sequence[Path]) -> None:
     name = profile.robot.description
     if not name:
         return  # the packaged UR10e
-    robot = _allowed_file(name, "robot.description", roots)
+    robot = _allowed_file(str(resolve_description(name)), "robot.description", roots)
     try:
         with robot.open("rb") as stream:
             data = stream.read(MAX_FILE_BYTES + 1)
