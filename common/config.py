@@ -227,6 +227,12 @@ class PlannerSection(Plugged):
     sustained_contact: Literal["hold", "paper"] = "hold"
     release_s: Annotated[float, msgspec.Meta(ge=0, le=5)] = 0.3
     max_hold_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
+    # Hold: a touch stays *recent* this long after it was last felt; the
+    # return waits while it would take any pad more than contact_margin_m past
+    # where a recent touch met it (toward the person: along that pad's normal
+    # then), rather than sweep it through the place a person was a moment ago.
+    recent_contact_s: Annotated[float, msgspec.Meta(ge=0, le=60)] = 3.0
+    contact_margin_m: Annotated[float, msgspec.Meta(ge=0, le=0.1)] = 0.01
     # Returns and approaches (to the saved pose, to the task's start): no point
     # of the arm faster than return_speed_m_s (at most bridge.limits.speed_m_s),
     # and the touched pad no faster than approach_speed_m_s within
@@ -748,6 +754,8 @@ GUARDS: dict[str, Guard] = {
     "planner.sustained_contact": Guard("other"),
     "planner.release_s": Guard("below", "s"),
     "planner.max_hold_s": Guard("below", "s"),
+    "planner.recent_contact_s": Guard("below", "s"),
+    "planner.contact_margin_m": Guard("above", "m"),
     "planner.return_speed_m_s": Guard("above", "m/s"),
     "planner.approach_speed_m_s": Guard("above", "m/s"),
     "planner.approach_distance_m": Guard("below", "m"),

@@ -109,6 +109,8 @@ LOOSENED: dict[str, Any] = {
     "planner.sustained_contact": "paper",
     "planner.release_s": 0.1,
     "planner.max_hold_s": 10.0,
+    "planner.recent_contact_s": 1.0,
+    "planner.contact_margin_m": 0.03,
     "planner.return_speed_m_s": 0.22,
     "planner.approach_speed_m_s": 0.1,
     "planner.approach_distance_m": 0.02,

@@ -129,6 +129,8 @@ class Planner(Standby):
             self.target_index += 1  # the study's target was touched: the next pad lights up
             self.changed = True
         self.last_level = list(pain.level)
+        if len(pain.level) == len(self.last_gain):
+            self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns)
         if len(pain.level) == len(self.felt_ns):
             self.felt_ns[np.asarray(pain.level) >= FELT_LEVEL] = now_ns
         contact = pain.strongest
@@ -137,7 +139,21 @@ class Planner(Standby):
             return None
         if not self.initialized:
             return None
-        if contact is None or not contact.gain > 0 or not self._reacts_to(contact, new, now_ns):
+        if contact is None or not contact.gain > 0 or not (self._reacts_to(contact, new, now_ns)
+                                                           or self._new_elsewhere(contact, new, now_ns)):
+            if self.mode == "REFLEX" and self.reflex is not None:
+                self.strategy.set_contacts(self.q, self.contacts.recent(now_ns), self.reflex.contact.pad)
+            if self.holds and self.mode == "TASK" and self.initialized:
+                pressed = self._task_presses()
+                if pressed:  # the task would push into a touch the skin feels below a reflex's level
+                    names = ", ".join(self.desc.pads[i].name for i in pressed)
+                    log.info("the task would press into a touch felt on %s (below a reflex's level): pausing it "
+                             "there until the touch is gone", names)
+                    self.saved = self.q.copy()
+                    self._planned_ahead = 0
+                    self._begin_hold(now_ns)
+                    self._advanced_early = True
+                    return self._hold_step(now_ns)
             if self.holds and self.mode == "RETURNING" and not self.partial:
                 ahead = self._felt_ahead(now_ns)
                 if ahead:

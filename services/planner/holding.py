@@ -30,6 +30,7 @@ from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner import retreat
+from nwr.services.planner.contacts import Contacts, passes_through, straight
 from nwr.services.planner.returning import Returning
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,8 @@ log = logging.getLogger(__name__)
 FELT_LEVEL = 2
 # How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
 HOLD_CHECK_NS = 20_000_000
+# How far ahead the task is checked for a touch felt in its way (PL 2, no reflex yet), s.
+TASK_AHEAD_S = 1.0
 
 
 class Holding(Returning):
@@ -55,6 +58,9 @@ class Holding(Returning):
         self.partial = False  # the return under way is a partial one after max_hold_s: hold again on arrival
         self.braking = False  # HOLDING: still braking to rest
         self._hold_check_ns = 0
+        # Every touch felt now and in the last recent_contact_s, where it met its pad (:mod:`.contacts`).
+        self.contacts = Contacts(model, cfg.recent_contact_s, cfg.restarts.gap_s, FELT_LEVEL)
+        self._waiting: set[int] = set()  # the recent touches this hold's return waits for (said once each)
         # The hold's brake: from the commanded state to rest, jerk-limited.
         self._brake = Ruckig(n, self.dt)
         self._brake_in = InputParameter(n)
@@ -80,6 +86,7 @@ class Holding(Returning):
         if not keep_since or self.mode != "HOLDING":
             self.hold_since_ns = now_ns
             self.held_max = False
+            self._waiting = set()
         self._hold_check_ns = now_ns + HOLD_CHECK_NS
         inp = self._brake_in
         inp.current_position = self.q.tolist()
@@ -148,7 +155,33 @@ class Holding(Returning):
             if pad == touched or retreat.toward_along_path(self.model, self.q, target - self.q, pad)[0] > \
                     retreat.TOLERANCE_M:
                 out.append(pad)
-        return out
+        # A touch no longer felt but recent: neither the way back nor the task after it, while the touch is
+        # recent, may take its pad through where it met it.
+        for contact in self.contacts.recent(now_ns):
+            if contact.pad in out:
+                continue
+            poses = straight(self.q, target)
+            left_s = (contact.felt_ns + self.contacts.recent_ns - now_ns) / 1e9
+            if target is self.saved and left_s > 0.0:
+                poses += [self.task.position(self.clock.s + s) for s in np.linspace(0.0, left_s, 21)[1:]]
+            depth = passes_through(self.model, poses, contact, self.cfg.contact_margin_m)
+            if depth > 0.0:
+                out.append(contact.pad)
+                if contact.pad not in self._waiting:
+                    self._waiting.add(contact.pad)
+                    log.info("the return (or the task after it) would take pad %s %.0f mm past where a touch met it "
+                             "%.1f s ago: waiting "
+                             "until that touch is %g s old (planner.recent_contact_s)",
+                             self.desc.pads[contact.pad].name, 1e3 * (depth + self.cfg.contact_margin_m),
+                             (now_ns - contact.felt_ns) / 1e9, self.cfg.recent_contact_s)
+        return sorted(out)
+
+    def _task_presses(self) -> list[int]:
+        """The pads feeling a touch without a gain (PL 2: no reflex) that the task, within TASK_AHEAD_S, would
+        take more than contact_margin_m past where the touch met them: a slow press the task would push into."""
+        poses = [self.task.position(self.clock.s + s) for s in np.linspace(0.0, TASK_AHEAD_S, 11)[1:]]
+        return [c.pad for c in self.contacts.active()
+                if c.gain <= 0.0 and passes_through(self.model, poses, c, self.cfg.contact_margin_m) > 0.0]
 
     def _felt_ahead(self, now_ns: int) -> list[int]:
         """The pads feeling a touch now that the rest of the return brings closer to it."""

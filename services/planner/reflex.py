@@ -120,6 +120,19 @@ class ReflexControl(Holding):
             return False
         return self.restarts.admit(pad, contact.gain, current, now_ns, new=fresh)
 
+    def _new_elsewhere(self, strongest: m.Contact, new: np.ndarray, now_ns: int) -> bool:
+        """Whether a new touch on a pad other than the strongest one's (re)starts the reflex, within the restarts'
+        rate limits: every contact counts, not only the strongest (the reflex then takes the strongest)."""
+        if self.mode == "TASK":
+            return False  # a start from the task takes the strongest at once (_reacts_to)
+        current = self.reflex.contact.gain if self.reflex is not None else 0.0
+        for pad in np.flatnonzero(self.last_gain > 0.0).tolist():
+            if pad == strongest.pad or not (new[pad] or self.restarts.pending[pad]):
+                continue
+            if self.restarts.admit(pad, float(self.last_gain[pad]), current, now_ns, new=True):
+                return True
+        return False
+
     def _start_reflex(self, contact: m.Contact, trace: m.Trace, now_ns: int) -> None:
         self.braking = self.partial = self.held_max = False
         self._legs = []
@@ -133,7 +146,9 @@ class ReflexControl(Holding):
         self.changed = True
 
     def _onset(self, reflex: Reflex) -> None:
-        """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction."""
+        """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction; every
+        other active contact given first (:meth:`ReflexStrategy.set_contacts`)."""
+        self.strategy.set_contacts(self.q, self.contacts.recent(reflex.started_ns), reflex.contact.pad)
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
         reflex.reason = onset.reason

@@ -27,7 +27,7 @@ import sys
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import ClassVar, Literal
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from nwr.common.errors import ConfigError
 from nwr.common.plugins import NoSettings, Plugins
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.section import Section
+
+if TYPE_CHECKING:
+    from nwr.services.planner.contacts import ContactPoint
 
 CommandMode = Literal["position", "velocity"]
 
@@ -83,6 +86,12 @@ class ReflexStrategy(ABC):
         self.corrections = 0
         # Diagnostics for the planner to publish (level, code, message); live cycles only.
         self.notes: list[tuple[str, str, str]] = []
+
+    def set_contacts(self, q: np.ndarray, contacts: list[ContactPoint], main: int) -> None:
+        """The recent contacts (:mod:`nwr.services.planner.contacts`) at the commanded pose ``q``, the reflex's
+        own on pad ``main``: a strategy that keeps the arm away from every contact takes them (the whole-arm
+        withdrawal); the paper's strategies react to the strongest contact only, as published."""
+        return None
 
     @abstractmethod
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:

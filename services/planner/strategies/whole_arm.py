@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Annotated
 
 import msgspec
@@ -76,6 +77,7 @@ from nwr.services.planner.strategies import KIND, Onset, ReflexStrategy
 
 if TYPE_CHECKING:
     from nwr.common.config import Profile
+    from nwr.services.planner.contacts import ContactPoint
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +112,18 @@ SLACK = 1e-7
 # A cycle whose pad withdraws at under this share of its speed because of the no-approach constraints counts
 # as a correction.
 CORRECTED_SHARE = 0.9
+
+
+@dataclass(frozen=True)
+class Other:
+    """Another active contact the withdrawal keeps the arm away from (besides the reflex's own)."""
+
+    pad: int
+    point: np.ndarray  # where its pad was touched (base frame), m
+    normal: np.ndarray  # its pad's outward normal there
+    gain: float
+    d0: np.ndarray  # each sampled point's distance from it when it began to count, m
+    free: np.ndarray  # sampled points not constrained by it (its pad's own surface)
 
 
 class WholeArmSettings(Section):
@@ -191,12 +205,41 @@ class WholeArm(ReflexStrategy):
         self._said: set[str] = set()  # what this reflex has reported (once each)
         self._d0 = np.zeros(0)  # each sampled point's distance from the contact point at the onset, m
         self._free = np.zeros(0, dtype=bool)  # sampled points not constrained (the touched pad's own surface)
+        self.others: list[Other] = []  # the other active contacts (set_contacts), replaced, never changed in place
+
+    # -- every active contact -----------------------------------------------------------------
+    def set_contacts(self, q: np.ndarray, contacts: list[ContactPoint], main: int) -> None:
+        """The recent contacts at the commanded pose ``q``: each besides the reflex's own (on pad ``main``) is
+        kept away from from now on (its pad never toward it, no other point closer to it than when it began to
+        count), and the pad of each still felt withdrawn in proportion to its gain."""
+        known = {o.pad: o for o in self.others}
+        others: list[Other] = []
+        points: np.ndarray | None = None
+        for contact in contacts:
+            if contact.pad == main:
+                continue
+            other = known.get(contact.pad)
+            if other is not None and np.array_equal(other.point, contact.point):
+                others.append(replace(other, gain=contact.gain))
+                continue
+            if points is None:
+                points = self._samples(q)[0]
+            d0 = np.linalg.norm(points - contact.point, axis=1)
+            free = d0 <= NEAR_M
+            free[contact.pad] = True
+            others.append(Other(contact.pad, contact.point, contact.normal, contact.gain, d0, free))
+        if [o.pad for o in others] != [o.pad for o in self.others]:
+            names = ", ".join(self.pad_names[o.pad] for o in others) or "none"
+            log.info("whole-arm withdrawal: besides pad %s, kept away from the contacts on %s",
+                     self.pad_names[main], names)
+        self.others = others
 
     # -- the reflex's onset -------------------------------------------------------------------
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
         """Begin (or update) a reflex: the contact point and normal at ``q``, and the withdrawal direction."""
         model = self.model
         self.pad = contact.pad
+        self.others = [o for o in self.others if o.pad != contact.pad]  # the reflex's own pad is no other
         self.gain = max(0.0, float(contact.gain)) if np.isfinite(contact.gain) else 0.0
         self.corrections = self.failures = self.stalled = 0
         self._said = set()
@@ -317,6 +360,25 @@ class WholeArm(ReflexStrategy):
         toward = float(self.normal @ (points[self.pad] - self.contact))
         h = np.concatenate([[max(0.0, TOWARD_BUDGET_M - toward)],
                             np.maximum(0.0, dist[keep] - self._d0[keep] + APPROACH_BUDGET_M)]) / TAU_S
+        # Every other active contact: the same two kinds of constraint, and its pad withdrawn in proportion to
+        # its gain (at the reflex's own profile).
+        hessian_others = np.zeros((len(a), len(a)))
+        linear_others = np.zeros(len(a))
+        share = speed / self.speed_m_s if self.speed_m_s > 0.0 else 0.0
+        for other in self.others:
+            o_offset = points - other.point
+            o_dist = np.linalg.norm(o_offset, axis=1)
+            o_keep = ~other.free
+            o_units = o_offset[o_keep] / o_dist[o_keep, None]
+            o_toward = float(other.normal @ (points[other.pad] - other.point))
+            rows = np.vstack([rows, other.normal @ jacs[other.pad],
+                              -np.matmul(o_units[:, None, :], jacs[o_keep])[:, 0, :]])
+            h = np.concatenate([h, [max(0.0, TOWARD_BUDGET_M - o_toward) / TAU_S],
+                                np.maximum(0.0, o_dist[o_keep] - other.d0[o_keep] + APPROACH_BUDGET_M) / TAU_S])
+            if other.gain > 0.0:  # still felt: its pad withdraws too
+                o_a = jacs[other.pad].T @ -other.normal
+                hessian_others += np.outer(o_a, o_a)
+                linear_others += share * other.gain * self.distance_m / self.duration_s * o_a
         norms = np.linalg.norm(rows, axis=1)
         used = norms > ZERO_ROW
         rows = rows[used] / norms[used, None]
@@ -328,11 +390,11 @@ class WholeArm(ReflexStrategy):
         lo = -np.minimum(self.v_limit, np.sqrt(2.0 * self.a_limit * room_lo))
         flat = jacs.reshape(-1, jacs.shape[2])
         motion = flat.T @ flat / len(jacs)  # the sampled points' mean squared speed
-        hessian = np.outer(a, a) + self.motion_weight * motion + self.regularization * self._eye
+        hessian = np.outer(a, a) + hessian_others + self.motion_weight * motion + self.regularization * self._eye
         # quadprog: minimise 1/2 x'Gx - a'x subject to C'x >= b (rows x <= h, lo <= x <= hi).
         constraints = np.vstack([-rows, self._box]).T
         bounds = np.concatenate([-h, -hi - SLACK, lo - SLACK])
-        dq = np.asarray(quadprog.solve_qp(hessian, speed * a, constraints, bounds)[0], dtype=float)
+        dq = np.asarray(quadprog.solve_qp(hessian, speed * a + linear_others, constraints, bounds)[0], dtype=float)
         if dq.shape != a.shape or not np.all(np.isfinite(dq)):
             raise RuntimeError(f"quadprog returned {dq!r}")
         # No sampled point faster than point_speed_m_s.

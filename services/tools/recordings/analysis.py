@@ -22,10 +22,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from nwr.common import messages as m
+from nwr.common.config import PlannerSection
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.services.planner.contacts import CONTACT_RADIUS_M
 
 RETURN_WINDOW_NS = 300_000_000
+# A touch stays recent this long after it ends (planner.recent_contact_s's default), s; the place a person was:
+# within CONTACT_RADIUS_M of the contact point across the pad's normal (the planner's own measure).
+CONTACT_RECENT_S = PlannerSection().recent_contact_s
 
 
 @dataclass
@@ -63,6 +68,12 @@ class TouchSummary:
     # The closest the touched pad came back to the contact point, along its normal at the onset, after its
     # withdrawal and while the touch lasted, mm (negative: pressed past it).
     back_mm: float | None = None
+    # Every touch, whichever reflex ran (a second hand's as well as the strongest's): its pad's furthest move
+    # toward where the touch met it (along its normal there) while the touch lasted, mm; and, after the touch
+    # ended, while it was recent (CONTACT_RECENT_S), the furthest the arm took the pad back past that place
+    # (within CONTACT_RADIUS_M of it across the normal: where the person was), mm (0: never past it).
+    pressed_toward_mm: float | None = None
+    past_after_mm: float | None = None
     # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
     return_speed_m_s: float | None = None
     # The touched pad's peak jerk during the withdrawal, m/s^3 (from the robot states: at their rate).
@@ -109,6 +120,9 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
 
     def pad_gain(pad: int) -> list[tuple[int, float]]:
         return [(p.stamp_ns, p.gain[pad]) for p in pain if len(p.gain) > pad]
+
+    for touch in touches:
+        _contact_figures(touch, model, state_t, state_q)
 
     for touch in touches:
         reflex = next(
@@ -249,6 +263,26 @@ def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:
     return float(np.linalg.norm(jerk, axis=1).max()) if len(jerk) else None
 
 
+def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray) -> None:
+    """A touch's ``pressed_toward_mm`` and ``past_after_mm`` from the robot states (TouchSummary)."""
+    first = int(np.searchsorted(state_t, touch.start_ns))
+    if first >= len(state_t):
+        return
+    q0 = state_q[first]
+    p0, n0 = model.pad_point(q0, touch.pad), model.pad_normal(q0, touch.pad)
+    pressed = (state_t >= touch.start_ns) & (state_t <= touch.end_ns)
+    along = [float((model.pad_point(q, touch.pad) - p0) @ n0) for q in state_q[pressed]]
+    touch.pressed_toward_mm = 1e3 * max([0.0, *along])
+    after = (state_t > touch.end_ns) & (state_t <= touch.end_ns + round(CONTACT_RECENT_S * 1e9))
+    past = 0.0
+    for q in state_q[after]:
+        offset = model.pad_point(q, touch.pad) - p0
+        depth = float(offset @ n0)
+        if np.linalg.norm(offset - depth * n0) <= CONTACT_RADIUS_M:
+            past = max(past, depth)
+    touch.past_after_mm = 1e3 * past
+
+
 @dataclass
 class Quality:
     """How one strategy's reflexes did over a session's touches (those that started a reflex)."""
@@ -264,9 +298,14 @@ class Quality:
     repeat_diff_mm: float | None = None  # median |withdrawal difference| over those pairs
     gain_rank_corr: float | None = None  # Spearman's rho of withdrawal with gain, per pad, median over pads
     peak_jerk_m_s3: float | None = None  # the touched pads' largest jerk (median over touches)
+    # Every touch with a gain, whichever reflex ran: those whose pad moved more than APPROACH_MM toward where the
+    # touch met it while it lasted, and those the arm took back more than PAST_MM past that place while recent.
+    any_toward: int = 0
+    back_past: int = 0
 
 
 APPROACH_MM = 5.0  # a touched pad moving more than this toward the contact approached it
+PAST_MM = 10.0  # the arm taking a pad more than this back past a recent touch's place went through it
 REPEAT_HPA = 1.0  # touches of one pad this close in peak pressure count as the same touch repeated
 
 
@@ -276,6 +315,9 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
 
     done = [t for t in touches if t.reflex_seq and t.withdrawal_mm is not None]
     q = Quality(strategy or next((t.strategy for t in done if t.strategy), ""), len(done))
+    felt = [t for t in touches if t.gain > 0.0]
+    q.any_toward = sum((t.pressed_toward_mm or 0.0) > APPROACH_MM for t in felt)
+    q.back_past = sum((t.past_after_mm or 0.0) > PAST_MM for t in felt)
     if not done:
         return q
     toward = [t.toward_mm or 0.0 for t in done]
@@ -306,19 +348,24 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
 
 QUALITY_HEADER = ["strategy", "reflexes", f"pad toward >{APPROACH_MM:g} mm", "worst toward (mm)",
                   "worst other pad (mm)", "withdrawal p50 (mm)", "withdrawal min (mm)", "repeats",
-                  "repeat diff (mm)", "rho(gain, withdrawal)", "peak jerk (m/s^3)"]
+                  "repeat diff (mm)", "rho(gain, withdrawal)", "peak jerk (m/s^3)",
+                  f"any touched pad toward >{APPROACH_MM:g} mm", f"back past a recent touch >{PAST_MM:g} mm"]
 # pad toward: touches whose touched pad moved more than 5 mm toward the contact; worst other pad: any other
 # pad's largest approach to the contact point; withdrawal min: of the pads that can withdraw; repeats: pairs of
 # touches of one pad within 1 hPa of each other, repeat diff: their median withdrawal difference; rho: Spearman's
 # rank correlation of withdrawal with gain per pad (pads touched at three or more gains), the median over pads;
-# peak jerk: the touched pad's, median over the touches (at the state rate).
+# peak jerk: the touched pad's, median over the touches (at the state rate); any touched pad toward: every touch
+# with a gain (a second hand's too, not only the reflex's), its pad moving toward where it was touched while the
+# touch lasted; back past a recent touch: the arm taking a touched pad back through where the touch had been, within
+# 3 s of its end.
 
 
 def quality_rows(rows: list[Quality]) -> list[list[str]]:
     f = cell
     return [[q.strategy, str(q.reflexes), str(q.approached), f(q.worst_toward_mm, ".1f"), f(q.worst_other_mm, ".1f"),
              f(q.withdrawal_median_mm, ".1f"), f(q.withdrawal_min_mm, ".1f"), str(q.repeat_pairs),
-             f(q.repeat_diff_mm, ".1f"), f(q.gain_rank_corr, ".2f"), f(q.peak_jerk_m_s3, ".1f")] for q in rows]
+             f(q.repeat_diff_mm, ".1f"), f(q.gain_rank_corr, ".2f"), f(q.peak_jerk_m_s3, ".1f"), str(q.any_toward),
+             str(q.back_past)] for q in rows]
 
 
 def cell(x: float | None, fmt: str) -> str:

@@ -1,0 +1,242 @@
+"""Every contact counts (services/planner/contacts.py): two hands at once, a touch during a reflex or a return.
+
+The touches the planner keeps (where each met its pad, active or recent);
+the whole-arm withdrawal kept away from every one of them, not only the
+strongest; a weaker new touch during a reflex restarts it; the task pausing
+for a touch felt in its way; and, over a session of such touches in
+lockstep, the figures of the per-touch analysis: no touched pad toward its
+contact, no return through where a touch had just been.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nwr.common import messages as m
+from nwr.common.config import PlannerSection, Profile
+from nwr.common.recordings import read_recording
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.planner import strategies
+from nwr.services.planner.contacts import CONTACT_RADIUS_M, ContactPoint, Contacts, passes_through, past, straight
+from nwr.services.planner.core import Planner
+from nwr.services.planner.strategies.whole_arm import WholeArm
+from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings.replay import simulate
+
+DESC = load_description()
+MODEL = RobotModel(DESC)
+NAMES = [pad.name for pad in DESC.pads]
+N = len(NAMES)
+DT = 0.004
+
+
+def pad(name: str) -> int:
+    return NAMES.index(name)
+
+
+def levels(**felt: int) -> list[int]:
+    out = [1] * N
+    for name, level in felt.items():
+        out[pad(name)] = level
+    return out
+
+
+def gains(**given: float) -> np.ndarray:
+    out = np.zeros(N)
+    for name, gain in given.items():
+        out[pad(name)] = gain
+    return out
+
+
+# -- the touches kept -----------------------------------------------------------------------------------------
+
+def test_a_touch_is_kept_where_it_met_its_pad_active_then_recent_then_forgotten() -> None:
+    contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
+    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    contacts.observe(q0, levels(wrist_2=2), gains(), 0)  # felt (PL 2): a touch begins, no gain yet
+    touch = contacts.active()[0]
+    assert touch.pad == pad("wrist_2") and touch.gain == 0.0
+    assert np.allclose(touch.point, MODEL.pad_point(q0, pad("wrist_2")))
+    contacts.observe(q1, levels(wrist_2=4), gains(wrist_2=0.8), 40_000_000)  # the same touch, stronger, elsewhere
+    touch = contacts.active()[0]
+    assert touch.gain == 0.8 and np.allclose(touch.point, MODEL.pad_point(q0, pad("wrist_2")))  # where it met it
+    contacts.observe(q1, levels(), gains(), 80_000_000)  # released: recent, no longer active, no gain
+    assert contacts.active() == [] and [t.pad for t in contacts.recent(80_000_000)] == [pad("wrist_2")]
+    assert contacts.recent(80_000_000)[0].gain == 0.0
+    contacts.observe(q1, levels(wrist_2=2), gains(), 120_000_000)  # pressed again within gap_s: one touch
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(q0, pad("wrist_2")))
+    contacts.observe(q1, levels(), gains(), 160_000_000)
+    contacts.observe(q1, levels(wrist_2=2), gains(), 400_000_000)  # after the gap: a new touch, where it is now
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(q1, pad("wrist_2")))
+    contacts.observe(q1, levels(), gains(), 440_000_000)
+    assert contacts.recent(400_000_000 + 2_999_000_000) != []
+    contacts.observe(q1, levels(), gains(), 400_000_000 + 3_000_000_000)
+    assert contacts.recent(400_000_000 + 3_000_000_000) == [] and contacts.touches == {}
+
+
+def test_a_way_through_where_a_touch_was_is_measured_there_only() -> None:
+    q0 = DESC.home.copy()
+    i = pad("forearm_top")
+    contact = ContactPoint(i, MODEL.pad_point(q0, i), MODEL.pad_normal(q0, i), 0.0, 0, 0)
+    jac = MODEL.pad_jacobian(q0, i)[:3]
+    toward = np.linalg.pinv(jac) @ (0.03 * contact.normal)  # 30 mm along the normal, toward the person
+    assert past(MODEL, q0 + toward, contact) == pytest.approx(0.03, abs=2e-3)
+    assert passes_through(MODEL, straight(q0, q0 + toward), contact, 0.01) == pytest.approx(0.02, abs=2e-3)
+    assert passes_through(MODEL, straight(q0, q0 - toward), contact, 0.01) == 0.0  # away from it
+    side = np.cross(contact.normal, [0.0, 0.0, 1.0])
+    aside = np.linalg.pinv(jac) @ (3 * CONTACT_RADIUS_M * side / np.linalg.norm(side) + 0.03 * contact.normal)
+    assert past(MODEL, q0 + aside, contact) == -np.inf  # beside where the person was, not through it
+
+
+# -- the whole-arm withdrawal, every contact --------------------------------------------------------------------
+
+def withdraw(main: str, other: str, *, others: bool, gain: float = 0.6) -> tuple[float, float, float]:
+    """The whole-arm reflex on ``main`` at home, with the touch on ``other`` given to it (``others``) or not: how
+    far ``other``'s pad moved toward its contact and away from it, and the most any pad came closer to it, m."""
+    cfg = PlannerSection(strategy="whole-arm")
+    strategy = strategies.build(cfg, DESC, MODEL, cfg.speed_fraction * DESC.v_max)
+    assert isinstance(strategy, WholeArm)
+    q = DESC.home.copy()
+    b = pad(other)
+    touch = ContactPoint(b, MODEL.pad_point(q, b), MODEL.pad_normal(q, b), gain, 0, 0)
+    if others:
+        strategy.set_contacts(q, [touch], pad(main))
+    a = pad(main)
+    strategy.start(q, m.Contact(pad=a, name=main, region=DESC.pads[a].region, change_hpa=20.0, level=4, gain=1.0))
+    d0 = np.linalg.norm(MODEL.pad_points(q) - touch.point, axis=1)
+    toward, away, closer = 0.0, 0.0, 0.0
+    for k in range(round(strategy.duration_s / DT)):
+        q = q + strategy.velocity(q, k * DT) * DT
+        along = float((MODEL.pad_point(q, b) - touch.point) @ touch.normal)
+        toward, away = max(toward, along), max(away, -along)
+        approach = d0 - np.linalg.norm(MODEL.pad_points(q) - touch.point, axis=1)
+        approach[b] = 0.0
+        closer = max(closer, float(approach.max()))
+    return toward, away, closer
+
+
+@pytest.mark.parametrize(("main", "other"), [("shoulder_outer", "wrist_3"), ("wrist_1", "forearm_top"),
+                                             ("shoulder_back", "upper_arm_top")])
+def test_the_second_hand_is_kept_away_from_and_withdrawn_from_too(main: str, other: str) -> None:
+    toward, _, closer = withdraw(main, other, others=False)
+    assert toward > 0.02 or closer > 0.02  # the strongest contact alone: the other pad is pushed into its hand
+    toward, away, closer = withdraw(main, other, others=True)
+    assert toward <= 0.001 and closer <= 0.005
+    assert away >= 0.05  # and it withdraws in proportion to its own gain
+
+
+def test_two_hands_on_opposite_sides_of_one_link_hold_the_arm_still() -> None:
+    toward, away, closer = withdraw("upper_arm_top", "upper_arm_bottom", others=True)
+    assert toward <= 0.001 and closer <= 0.005 and away <= 0.002
+
+
+# -- the planner: a weaker touch during a reflex, a touch in the task's way ---------------------------------
+
+def in_task(cfg: PlannerSection) -> tuple[Planner, int]:
+    planner = Planner(cfg, DESC, MODEL)
+    planner.on_state(DESC.home.copy(), following=True)
+    t = 0
+    while planner.mode != "TASK":
+        t += 2_000_000
+        planner.step(t)
+    return planner, t
+
+
+def pain(t: int, seq: int, lv: list[int], g: np.ndarray) -> m.SkinPain:
+    strongest = int(np.argmax(g))
+    contact = m.Contact(pad=strongest, name=NAMES[strongest], region=DESC.pads[strongest].region, change_hpa=10.0,
+                        level=lv[strongest], gain=float(g[strongest])) if g.max() > 0 else None
+    return m.SkinPain(seq=seq, stamp_ns=t, trace=m.Trace(seq, t - 1000), model="continuous", level=lv,
+                      gain=g.tolist(), strongest=contact)
+
+
+def test_a_weaker_new_touch_during_a_reflex_restarts_it_and_counts() -> None:
+    planner, t = in_task(PlannerSection(strategy="whole-arm", name="whole-arm"))
+    assert planner.on_pain(pain(t, 1, levels(shoulder_outer=4), gains(shoulder_outer=1.0)), t) is not None
+    for _ in range(20):
+        t += 2_000_000
+        planner.step(t)
+    assert planner.mode == "REFLEX" and planner.reflex_count == 1
+    both = pain(t, 2, levels(shoulder_outer=4, wrist_3=3), gains(shoulder_outer=1.0, wrist_3=0.3))
+    assert planner.on_pain(both, t) is not None  # weaker, elsewhere, new: the reflex restarts
+    assert planner.reflex_count == 2 and planner.reflex is not None
+    assert planner.reflex.contact.pad == pad("shoulder_outer")  # on the strongest, as the paper's rule
+    strategy = planner.strategy
+    assert isinstance(strategy, WholeArm) and [o.pad for o in strategy.others] == [pad("wrist_3")]
+
+
+def test_the_task_pauses_for_a_touch_felt_in_its_way_and_resumes_once_it_is_gone() -> None:
+    planner, t = in_task(PlannerSection(strategy="cartesian"))
+    for _ in range(500):  # into the figure-eight: the task moves
+        t += 2_000_000
+        planner.step(t)
+    ahead = [planner.task.position(planner.clock.s + s) for s in np.linspace(0.0, 1.0, 11)[1:]]
+    moving = []
+    for i in range(N):  # the pads the task moves more than 20 mm along their normals within 1 s
+        normal, x0 = MODEL.pad_normal(planner.q, i), MODEL.pad_point(planner.q, i)
+        if max(float(normal @ (MODEL.pad_point(q, i) - x0)) for q in ahead) > 0.02:
+            moving.append(i)
+    assert moving, "the task moves some pad into whatever touches it"
+    name = NAMES[moving[0]]
+    command = planner.on_pain(pain(t, 1, levels(**{name: 2}), gains()), t)  # PL 2: felt, no gain, no reflex
+    assert command is not None and planner.mode == "HOLDING" and planner.reflex is None
+    held = planner.q.copy()
+    for k in range(100):  # felt on: it stays (braked to rest)
+        t += 2_000_000
+        planner.step(t)
+        if k % 20 == 0:
+            planner.on_pain(pain(t, 2 + k, levels(**{name: 2}), gains()), t)
+    assert planner.mode == "HOLDING" and np.max(np.abs(planner.q - held)) < 0.01
+    planner.on_pain(pain(t, 500, levels(), gains()), t)  # gone; after recent_contact_s, back to the task
+    for _ in range(3000):
+        t += 2_000_000
+        planner.step(t)
+        if planner.mode == "TASK":
+            break
+    assert planner.mode == "TASK"
+
+
+def test_the_paper_mode_keeps_the_papers_task_through_a_felt_touch() -> None:
+    planner, t = in_task(PlannerSection(strategy="cartesian", sustained_contact="paper"))
+    for _ in range(500):
+        t += 2_000_000
+        planner.step(t)
+    for i, name in enumerate(NAMES):
+        planner.on_pain(pain(t + i, 1 + i, levels(**{name: 2}), gains()), t + i)
+        assert planner.mode == "TASK"
+
+
+# -- a session of such touches, in lockstep ------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_a_session_of_two_hands_and_touches_on_the_way_back(tmp_path: Path) -> None:
+    path = simulate(Profile(), "contacts", "whole-arm", tmp_path / "whole-arm.mcap")[0]
+    records, _ = read_recording(path)
+    touches = [t for t in analysis.summarize(records, DESC, MODEL) if t.gain > 0.0]
+    assert len(touches) == 10
+    quality = analysis.quality(touches)
+    # No touched pad toward its contact beyond the pain thresholds' dead band (a touch is felt from PL 2, 2 hPa:
+    # the arm's own motion carries a pad a few millimetres into a slowly rising press before then).
+    assert max(t.pressed_toward_mm or 0.0 for t in touches) <= 8.0
+    assert quality.back_past == 0 and max(t.past_after_mm or 0.0 for t in touches) <= 6.0
+    # Each withdrawal (a reflex's own states) brought no other pad more than 5 mm closer to any touch, from when
+    # the skin felt it (PL 2: what the planner can know); 15 mm for a touch felt during another withdrawal, whose
+    # motion at up to 0.5 m/s takes about 12 mm to brake at the joints' acceleration limits (the second hand at
+    # 18.2 s: wrist_3 11.8 mm closer within 0.16 s, then away).
+    states = [r.message for r in records if r.key == "robot/state"]
+    pains = [r.message for r in records if r.key == "skin/pain"]
+    for touch in touches:
+        felt = next(p.stamp_ns for p in pains if p.stamp_ns >= touch.start_ns and p.level[touch.pad] >= 2)
+        first = next(s for s in states if s.stamp_ns >= felt)
+        point = MODEL.pad_point(np.asarray(first.q), touch.pad)
+        d0 = np.linalg.norm(MODEL.pad_points(np.asarray(first.q)) - point, axis=1)
+        during = [s for s in states if felt <= s.stamp_ns <= touch.end_ns and s.phase == "REFLEX"]
+        for s in during:
+            approach = d0 - np.linalg.norm(MODEL.pad_points(np.asarray(s.q)) - point, axis=1)
+            approach[touch.pad] = 0.0
+            # A touch felt while another withdrawal moves the arm at speed: that motion brakes first.
+            allowed = 0.015 if first.phase == "REFLEX" else 0.005
+            assert approach.max() <= allowed, (touch.name, approach.max())
