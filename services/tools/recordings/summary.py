@@ -10,10 +10,16 @@ from nwr.common.config import Profile, load_profile
 from nwr.common.launch import load_script, profile_for
 
 
-def print_summary(path: Path, script_name: str | None, profile: Profile | None = None) -> int:
+def print_summary(path: Path, script_name: str | None, profile: Profile | None = None, *, wide: bool = False,
+                  columns: str | None = None) -> int:
+    """Print the per-touch table of the recording ``path`` (the essential columns, or every one: ``wide``, or
+    ``columns``: names, comma-separated) and write every column to ``<recording>.touches.csv``."""
     from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
-    from nwr.services.tools.recordings import analysis
+    from nwr.services.tools.recordings import analysis, table
+
+    chosen = table.columns(wide, columns)  # an unknown column is refused before the recording is read
+    width = table.width(wide)
 
     records, metadata = read_recording(path)
     profile = profile or load_profile(None)
@@ -26,10 +32,9 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
         for t in touches:
             t.onset_latency_ms = None
     print(f"\nRecording {path}: {len(records)} messages")
-    print(analysis.format_table(analysis.HEADER, analysis.table_rows(touches, first)))
+    print(table.render([c.header for c in chosen], table.touch_rows(touches, first, chosen), width))
     if any(t.reflex_seq for t in touches):
-        print("\n" + analysis.format_table(analysis.QUALITY_HEADER,
-                                            analysis.quality_rows([analysis.quality(touches)])))
+        print("\n" + table.render(analysis.QUALITY_HEADER, analysis.quality_rows([analysis.quality(touches)]), width))
     if lockstep and latencies:
         print(f"\n{len(latencies)} reflexes on simulated time (lockstep): each began within the control cycle of "
               "its skin sample, by construction; no latency is measured here (`nwr demo` or `nwr bench` live)")
@@ -38,6 +43,11 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
 
         print(f"\nreflex onset latency over {len(latencies)} reflexes: median {np.median(latencies):.2f} ms, "
               f"worst {max(latencies):.2f} ms")
+    try:
+        written = table.write_csv(table.csv_path(path), touches, first)
+        print(f"\nevery column of every touch: {written}")
+    except OSError as e:
+        print(f"\nthe touches' CSV was not written ({e})")
     if script_name:
         return _compare_with_script(touches, script_name, desc, first, profile)
     return 0
@@ -73,4 +83,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("summary", help="print the per-touch table of a recording")
     p.add_argument("file", help="MCAP recording")
     p.add_argument("--script", help="touch script to compare the recording with")
-    p.set_defaults(handler=lambda args: print_summary(Path(args.file), args.script, profile_for(args)))
+    add_table_arguments(p)
+    p.set_defaults(handler=lambda args: print_summary(Path(args.file), args.script, profile_for(args),
+                                                      wide=args.wide, columns=args.columns))
+
+
+def add_table_arguments(p: argparse.ArgumentParser) -> None:
+    from nwr.services.tools.recordings.table import NAMES
+
+    p.add_argument("--wide", action="store_true",
+                   help="print every column of the per-touch table (default: the essential ones, which fit 120 "
+                        "columns; every column is written to <recording>.touches.csv either way)")
+    p.add_argument("--columns", metavar="C1,C2,...",
+                   help=f"print these columns of the per-touch table, in this order: {', '.join(NAMES)}")
