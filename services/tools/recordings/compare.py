@@ -22,17 +22,18 @@ joint's displacement from the onset pose in a panel of its own.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nwr.common import keys
+from nwr.common.config import Profile, load_profile
 from nwr.common.launch import profile_for
 from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
-from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings import analysis, summary
 
 
 @dataclass
@@ -43,14 +44,21 @@ class Session:
     t0_ns: int
     touches: list[analysis.TouchSummary]
     strategy: str = ""  # the recording's reflex strategy (session metadata), if it says
+    notes: list[str] = field(default_factory=list)  # what the recording cannot tell (summary.complete)
 
 
-def load_session(path: Path, desc: RobotDescription, model: RobotModel) -> Session:
+def load_session(path: Path, desc: RobotDescription, model: RobotModel, profile: Profile | None = None) -> Session:
+    """A recording's touches; on simulated time (lockstep) without onsets, which are no latencies there."""
     records, metadata = read_recording(path)
     t0 = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     strategy = metadata.get("session", {}).get("strategy", "")
     label = f"{path.stem} ({strategy})" if strategy else path.stem
-    return Session(path, label, records, t0, analysis.summarize(records, desc, model), strategy)
+    touches = analysis.summarize(records, desc, model)
+    notes = summary.complete(touches, records, metadata, profile or load_profile(None), desc)
+    if summary.is_lockstep(metadata):
+        notes.insert(0, "on simulated time (lockstep): each reflex began within its skin sample's control cycle by "
+                        "construction; no onset latency is measured (onset \"-\")")
+    return Session(path, label, records, t0, touches, strategy, notes)
 
 
 def line_up(sessions: list[Session], window_s: float) -> list[list[analysis.TouchSummary | None]]:
@@ -341,8 +349,11 @@ def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
     desc = load_description(profile.robot.description or None)
     model = RobotModel(desc)
-    sessions = [load_session(Path(p), desc, model) for p in args.files]
+    sessions = [load_session(Path(p), desc, model, profile) for p in args.files]
     rows = line_up(sessions, args.window)
+    for session in sessions:
+        for note in session.notes:
+            print(f"{session.label}: {note}")
     print(table(sessions, rows))
     print("\nreflex quality per file (every touch of the file that started a reflex):")
     quality = [analysis.quality(session.touches, session.label) for session in sessions]

@@ -48,7 +48,7 @@ COLUMNS = [
     Column("peak", "peak (hPa)", lambda t, _: f"{t.peak_hpa:.1f}", True),
     Column("pl", "PL", lambda t, _: str(t.level), True),
     Column("gain", "gain", lambda t, _: f"{t.gain:.3f}", True),
-    Column("reflex", "reflex", lambda t, _: "yes" if t.reflex_seq else "no", True),
+    Column("reflex", "reflex", lambda t, _: "yes" if t.reflex_seq else "no" if t.reflex_known else "?", True),
     Column("onset", "onset (ms)", lambda t, _: cell(t.onset_latency_ms, ".2f"), True),
     Column("withdrawal", "withdrawal (mm)",
            lambda t, _: cell(t.withdrawal_mm, ".1f") + ("" if t.withdraws else " cannot"), True),
