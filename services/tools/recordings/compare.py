@@ -243,7 +243,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
     the onset pose; one colour per file throughout, time from the touch's
     first skin sample.
     """
-    from nwr.services.tools.figures import _pyplot
+    from nwr.services.tools.figures import _pyplot, fit_scale
 
     plt = _pyplot()
     joints = model.desc.joints
@@ -288,6 +288,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
         ax_n.xaxis.set_major_locator(plt.MaxNLocator(5))  # shared by the block's panels: few enough for the joints'
         for ax in (ax_n, ax_o):
             ax.axhline(0.0, color="0.3", lw=0.8)
+            fit_scale([ax], "mm")
             low, high = ax.get_ylim()
             ax.set_ylim(min(low, -0.1 * (high - low)), high)
             ax.axhspan(ax.get_ylim()[0], 0.0, color=TOWARD_COLOR, alpha=0.07, lw=0)
@@ -296,6 +297,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
                        fontsize=9)
         ax_o.set_ylabel("closest other pad: change in\nits distance to the contact (mm)", fontsize=8)
         ax_o.set_title("other pads: the closest approach to the contact point", fontsize=9)
+        fit_scale(ax_j, "rad")
         for j, ax in enumerate(ax_j):
             ax.set_title(joints[j], fontsize=8)
             ax.axhline(0.0, color="0.6", lw=0.6)
