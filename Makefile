@@ -36,7 +36,7 @@ test-fast: $(BIN)/nwr  ## the fast tests only
 bench: $(BIN)/nwr  ## measure the reflex path of the real pipeline (several minutes); writes bench/<time>/
 	$(BIN)/nwr bench
 
-bench-quick: $(BIN)/nwr  ## the benchmark's smoke run (under a minute)
+bench-quick: $(BIN)/nwr  ## the benchmark's smoke run (81-132 s on the shared 2-core machine, load 2.7-4.3)
 	$(BIN)/nwr bench --quick
 
 lock:              ## re-pin requirements.lock (runtime and tests) and requirements-dev.lock (tools) from .venv

@@ -207,6 +207,39 @@ def _secure_client_config(conf: zenoh.Config, cfg: ZenohSection) -> zenoh.Config
     return conf
 
 
+class RepeatedLog:
+    """A diagnostic's warnings and errors in the log: the first of a code at once, its repeats within
+    ``window_ns`` counted into the next line of that code (or one line at :meth:`flush`): a repeated fault
+    prints a line a minute with its count, never one per event. The diag key still carries every report."""
+
+    def __init__(self, window_ns: int = 60_000_000_000) -> None:
+        self.window_ns = window_ns
+        self._codes: dict[str, tuple[int, int, str, str]] = {}  # code -> (logged at ns, not logged, level, message)
+
+    def log(self, level: str, code: str, message: str, count: int, now_ns: int) -> None:
+        logged, unlogged, _, _ = self._codes.get(code, (0, 0, level, message))
+        if logged and now_ns - logged < self.window_ns:
+            self._codes[code] = (logged, unlogged + count, level, message)
+            return
+        self._codes[code] = (now_ns, 0, level, message)
+        repeats = unlogged + count - 1
+        self._emit(level, code, message, repeats, now_ns - logged if logged else 0)
+
+    def flush(self, now_ns: int) -> None:
+        """A line for each code with repeats not yet logged (at the end of the run)."""
+        for code, (logged, unlogged, level, message) in list(self._codes.items()):
+            if unlogged:
+                self._codes[code] = (now_ns, 0, level, message)
+                log.log(logging.ERROR if level == "error" else logging.WARNING,
+                        "[%s] %d more like it in the last %.0f s, the last: %s", code, unlogged,
+                        (now_ns - logged) / 1e9, message)
+
+    @staticmethod
+    def _emit(level: str, code: str, message: str, repeats: int, since_ns: int) -> None:
+        tail = f" ({repeats} more like it in the last {since_ns / 1e9:.0f} s)" if repeats else ""
+        log.log(logging.ERROR if level == "error" else logging.WARNING, "[%s] %s%s", code, message, tail)
+
+
 class Node:
     """One service's Zenoh session and its plumbing."""
 
@@ -254,6 +287,7 @@ class Node:
         self._subscribers: list[Any] = []
         self._diag_seq = 0
         self._diag_last: dict[str, tuple[int, int]] = {}  # code -> (last sent ns, suppressed)
+        self._diag_log = RepeatedLog()
         self.decode_errors = 0
         self._diag_pub = self.session.declare_publisher(
             keys.key(robot, keys.diag(service)),
@@ -419,9 +453,10 @@ class Node:
             return
         self._diag_last[code] = (now, 0)
         text = message if not suppressed else f"{message} ({suppressed} more like it suppressed)"
-        getattr(log, "error" if level == "error" else "warning" if level == "warning" else "info")(
-            "[%s] %s", code, text
-        )
+        if level in ("warning", "error"):
+            self._diag_log.log(level, code, message, suppressed + 1, now)
+        else:
+            log.info("[%s] %s", code, text)
         msg = m.Diagnostic(
             seq=self._diag_seq, stamp_ns=now, service=self.service, level=level,  # type: ignore[arg-type]
             code=code, message=text, count=suppressed + 1,
@@ -464,6 +499,7 @@ class Node:
         return missing
 
     def close(self) -> None:
+        self._diag_log.flush(self.clock.now_ns())
         for sub in self._subscribers:
             sub.undeclare()
         self._subscribers.clear()

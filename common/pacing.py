@@ -1,7 +1,10 @@
 """The one pacing helper for every fixed-rate loop.
 
-Sleeps to absolute deadlines (no drift), counts overruns, warns about them
-at a bounded rate, and summarises the loop's timing at the end. While the
+Sleeps to absolute deadlines (no drift), counts overruns, and summarises the
+loop's timing at the end. An overrun by a few cycles is what an ordinary OS
+does on a busy machine: counted, and summed up in one INFO line a minute. A
+loop later than ``LATE_PERIODS`` cycles is warned about: the first at once,
+those after it within the minute in one line with their count. While the
 loop's service is still ``starting`` (it sets that off once its inputs flow:
 the pipeline's other processes start meanwhile, and load the machine), an
 overrun is counted apart and not warned about.
@@ -17,6 +20,11 @@ import time
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+# A loop later than this many cycles is warned about (the bridge's: 20 ms at 500 Hz, its command timeout); a loop
+# late by fewer is what an ordinary OS does on a busy machine, counted and summed up at INFO.
+LATE_PERIODS = 10
+WINDOW_NS = 60_000_000_000  # overruns not warned about one by one are summed up once a minute
 
 
 def realtime(priority: int, name: str) -> bool:
@@ -56,7 +64,12 @@ class Rate:
         self.start_overruns = 0
         self._periods = np.zeros(keep)
         self._samples = 0  # periods recorded (one per wake: a wake may take several ticks)
-        self._last_warning = 0
+        self._last_warning = -WINDOW_NS
+        # Overruns since _window_start not reported one by one: how many, how many late, the worst (ns late).
+        self._window_start = 0
+        self._window_count = 0
+        self._window_late = 0
+        self._window_worst_ns = 0
 
     def sleep(self, stop: threading.Event | None = None) -> bool:
         """Sleep until the next deadline; False when ``stop`` is set."""
@@ -135,16 +148,44 @@ class Rate:
         self.overruns += 1
         if self.starting:
             self.start_overruns += 1
-        elif worth_saying and now_ns - self._last_warning > 5_000_000_000:
+            return
+        # A loop late by a few cycles is an ordinary OS's scheduling on a busy machine: counted, and summed up
+        # once a minute at INFO. Later than LATE_PERIODS cycles it is a fault: the first warned about at once,
+        # the rest of the minute summed up in one line.
+        late = late_ns > LATE_PERIODS * self.period_ns
+        if late and not self._window_late and now_ns - self._last_warning > WINDOW_NS:
             self._last_warning = now_ns
             log.warning("%s loop overran by %.1f ms (%d overruns so far)", self.name, late_ns / 1e6,
                         self.overruns - self.start_overruns)
+        else:
+            self._window_count += 1 if worth_saying or late else 0
+            self._window_late += late
+            self._window_worst_ns = max(self._window_worst_ns, late_ns)
+        if not self._window_start:
+            self._window_start = now_ns
+        elif now_ns - self._window_start >= WINDOW_NS:
+            self._report_window(now_ns)
+
+    def _report_window(self, now_ns: int) -> None:
+        """One line for the overruns not reported one by one since the window began: WARNING if any was late by
+        more than LATE_PERIODS cycles, else INFO."""
+        if self._window_count:
+            log.log(logging.WARNING if self._window_late else logging.INFO,
+                    "%s loop overran %d %s in the last %.0f s (%d by more than %d cycles), the worst by %.1f ms "
+                    "(%d overruns so far)", self.name, self._window_count,
+                    "time" if self._window_count == 1 else "times", (now_ns - self._window_start) / 1e9,
+                    self._window_late, LATE_PERIODS, self._window_worst_ns / 1e6,
+                    self.overruns - self.start_overruns)
+        self._window_start, self._window_count, self._window_late, self._window_worst_ns = now_ns, 0, 0, 0
 
     def _record(self, period_ms: float) -> None:
         self._periods[self._samples % len(self._periods)] = period_ms
         self._samples += 1
 
     def summary(self) -> str:
+        """The loop's timing (and a last line for the overruns not yet reported)."""
+        if self._window_count:
+            self._report_window(time.monotonic_ns())
         n = min(self._samples, len(self._periods))
         if n == 0:
             return f"{self.name}: no ticks"

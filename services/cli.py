@@ -12,6 +12,7 @@ import argparse
 import gc
 import logging
 import os
+import re
 import sys
 from importlib import import_module
 from typing import Any
@@ -73,6 +74,7 @@ def build_parser(service: str | None = None) -> argparse.ArgumentParser:
 
     for name in COMMAND_MODULES if service is None else ():
         import_module(name).register(sub)
+    _plain_help(parser)
     return parser
 
 
@@ -83,6 +85,32 @@ def _run_service(args: argparse.Namespace) -> Any:
     # value, the plug-ins' included, in the session's metadata.
     sections = PACKAGES if args.service == "recorder" else [s for s in PACKAGES if s == args.service]
     return _service_module(args.service).run(profile_for(args, sections), args)
+
+
+# Many descriptions are their module's docstring, written for Sphinx: ``literal``, :role:`target` (:func:`~a.b`
+# shows as b), which `--help` would print as they are.
+_LITERAL = re.compile(r"``(.+?)``", re.S)
+_ROLE = re.compile(r":(?:mod|func|class|meth|attr|data|exc|obj):`(~?)([^`]+)`")
+
+
+def plain_text(text: str) -> str:
+    """reStructuredText's inline markup taken out of ``text``: ``x`` -> x, :func:`~a.b` -> b, :mod:`a.b` -> a.b."""
+    text = _ROLE.sub(lambda mt: mt[2].rsplit(".", 1)[-1] if mt[1] else mt[2], text)
+    return _LITERAL.sub(r"\1", text)
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Every description, epilog and option help of ``parser`` and its subcommands in plain text."""
+    parser.description = parser.description and plain_text(parser.description)
+    parser.epilog = parser.epilog and plain_text(parser.epilog)
+    for action in parser._actions:
+        if isinstance(action.help, str):
+            action.help = plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                choice.help = choice.help and plain_text(choice.help)
+            for sub in set(action.choices.values()):
+                _plain_help(sub)
 
 
 def _service_run(argv: list[str]) -> str | None:

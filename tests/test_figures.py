@@ -176,6 +176,50 @@ def test_compare_figure_names_the_joints_and_the_files(short_sessions):
         plt.close(fig)
 
 
+def visible(ax) -> list[float]:
+    """Each curve's extent on ``ax`` as drawn, a fraction of the panel's height (lines, not marks or rules)."""
+    out = []
+    for line in ax.get_lines():
+        x, y = np.asarray(line.get_xdata(), dtype=float), np.asarray(line.get_ydata(), dtype=float)
+        if len(y) > 1 and np.nanmax(y) > np.nanmin(y) and np.nanmax(x) > np.nanmin(x):  # no rule
+            shown = ax.transData.transform(np.c_[x, y])[:, 1]
+            out.append(float((np.nanmax(shown) - np.nanmin(shown)) / ax.bbox.height))
+    return out
+
+
+def test_the_reflexes_figure_shares_its_scales_and_shows_every_curve():
+    """Strategies compare by eye: one scale per row; UR's 900 mm beside CR's 20 mm on it still shows both."""
+    plt = figures._pyplot()
+    fig = figures.draw_reflexes(("uniform", "cartesian"))
+    try:
+        fig.canvas.draw()
+        for title in ("touched pad", "its speed"):
+            row = [ax for ax in fig.axes if ax.get_title().startswith(title)]
+            assert len(row) == 2
+            assert row[0].get_ylim() == row[1].get_ylim() and row[0].get_xlim() == row[1].get_xlim(), title
+            assert [ax.get_yscale() for ax in row] == ["symlog", "symlog"], title
+            for ax in row:
+                assert len(visible(ax)) == 3 and min(visible(ax)) > 0.1, (title, visible(ax))
+    finally:
+        plt.close(fig)
+
+
+def test_compare_s_figure_shows_every_file_s_curve(short_sessions):
+    plt = figures._pyplot()
+    fig = compare.draw(short_sessions, compare.line_up(short_sessions, 0.3), MODEL)
+    try:
+        fig.canvas.draw()
+        forearm = next(ax for ax in fig.findobj(lambda a: hasattr(a, "get_title") and hasattr(a, "get_yscale"))
+                       if ax.get_title().startswith("forearm_top: the touched pad"))
+        assert forearm.get_yscale() == "symlog"  # UR's ~300 mm beside CR's few
+        assert len(visible(forearm)) == 2 and min(visible(forearm)) > 0.2, visible(forearm)
+        wrist = next(ax for ax in fig.findobj(lambda a: hasattr(a, "get_title") and hasattr(a, "get_yscale"))
+                     if ax.get_title().startswith("wrist_2: the touched pad"))
+        assert wrist.get_yscale() == "linear"  # 75 and 120 mm: one linear scale shows both
+    finally:
+        plt.close(fig)
+
+
 # --------------------------------------------------------------------------- the reflex quality table
 
 def _touch(pad, peak, gain, withdrawal, toward=0.0, other=0.0, jerk=None, withdraws=True):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -64,4 +66,40 @@ def _recover(args: argparse.Namespace) -> int:
     if result.written == 0:
         log.error("no message of %s could be saved", path)
         return 1
+    for reserve in stale_reserves(path):
+        reserve.unlink(missing_ok=True)
+        print(f"removed {reserve}: the dead recorder's space reserve")
     return 0
+
+
+PART = re.compile(r"(?P<session>.+)-\d{3}")
+
+
+def stale_reserves(path: Path) -> list[Path]:
+    """The space reserve a recorder left beside ``path`` (``.<session>.mcap.reserve``, :class:`PartFiles`) when it
+    died, if no process still writes the session (then the reserve is its, and stays)."""
+    part = PART.fullmatch(path.stem)
+    base = path.with_name(f"{part['session']}{path.suffix}") if part else path
+    reserve = base.with_name(f".{base.name}.reserve")
+    if not reserve.exists():
+        return []
+    session = {base.resolve(), *(p.resolve() for p in base.parent.glob(f"{base.stem}-[0-9][0-9][0-9]{base.suffix}"))}
+    return [] if open_anywhere(session) else [reserve]
+
+
+def open_anywhere(files: set[Path]) -> bool:
+    """Whether a process of this user holds one of ``files`` open (Linux's /proc; elsewhere: assume so)."""
+    proc = Path("/proc")
+    if not (proc / "self" / "fd").is_dir():
+        return True
+    for fd_dir in proc.glob("[0-9]*/fd"):
+        try:
+            for fd in fd_dir.iterdir():
+                try:
+                    if Path(os.readlink(fd)) in files:
+                        return True
+                except OSError:
+                    continue
+        except OSError:
+            continue  # another user's process, or one that ended meanwhile
+    return False

@@ -21,7 +21,7 @@ from nwr.services.pipeline.graph import Layout, recorder_args
 from nwr.services.planner import strategies
 from nwr.services.profile import profile_for
 from nwr.services.recorder.main import session_name
-from nwr.services.tools.recordings.summary import print_summary
+from nwr.services.tools.recordings.summary import add_table_arguments, print_summary
 
 
 def add_launch_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,7 +103,7 @@ def run_demo(args: argparse.Namespace) -> int:
                              restart=not args.stop_on_exit)
     if code or recording is None:
         return code or 1
-    return print_summary(recording[1], args.script, profile)
+    return print_summary(recording[1], args.script, profile, wide=args.wide, columns=args.columns)
 
 
 def run_demo_fast(args: argparse.Namespace) -> int:
@@ -126,7 +126,7 @@ def run_demo_fast(args: argparse.Namespace) -> int:
     path, simulated, wall = simulate(profile, args.script, strategy, output)
     print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
           f"{wall:.2f} s{' (closed loop)' if sim_settings(profile.gateway).closed_loop else ''}: {path}")
-    return print_summary(path, args.script, profile)
+    return print_summary(path, args.script, profile, wide=args.wide, columns=args.columns)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -143,4 +143,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--fast", action="store_true",
                       help="no processes: the simulated skin, the cores and the simulated arm chained in this process "
                            "on simulated time (lockstep), as fast as they go; deterministic")
+    add_table_arguments(demo)
     demo.set_defaults(script="demo", handler=run_demo)

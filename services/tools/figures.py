@@ -165,6 +165,25 @@ def reflex_runs(strategies: tuple[str, ...], desc: RobotDescription, model: Robo
     return runs
 
 
+SPREAD = 8.0  # curves whose extents differ more than this share a symmetric log scale
+
+
+def fit_scale(axes: list[Any], unit: str) -> None:
+    """One y scale for ``axes`` (which share it) on which every curve shows: linear, unless one curve spans more
+    than SPREAD times another (a uniform reflex's 900 mm beside a Cartesian 20 mm), then linear up to the smallest
+    curve's extent and logarithmic beyond it (symlog), which each panel says."""
+    extents = [float(np.nanmax(np.abs(line.get_ydata()))) for ax in axes for line in ax.get_lines()
+               if len(line.get_ydata()) > 1 and np.isfinite(line.get_ydata()).any()]
+    extents = [e for e in extents if e > 0.01 * max(extents, default=0.0)]  # flat on any scale: not counted
+    if len(extents) < 2 or max(extents) <= SPREAD * min(extents):
+        return
+    linear = min(extents)
+    for ax in axes:
+        ax.set_yscale("symlog", linthresh=linear, linscale=1.5)
+        ax.text(0.99, 0.03, f"log scale beyond \u00b1{linear:.2g} {unit}", transform=ax.transAxes, ha="right",
+                va="bottom", fontsize=7, color="0.35")
+
+
 def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSection | None = None,
                   limits: CartesianLimits | None = None) -> Any:
     """The reflexes figure (a matplotlib Figure): per strategy, the end poses in 3-D, then the touched pad's
@@ -175,6 +194,7 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
     plt = _pyplot()
     fig = plt.figure(figsize=(4.0 * len(strategies), 9.4), dpi=130, layout="constrained")
     grid = fig.add_gridspec(3, len(strategies), height_ratios=(2.3, 1, 1))
+    rows: tuple[list[Any], list[Any]] = ([], [])  # the withdrawal and the speed panels, left to right
     for i, strategy in enumerate(strategies):
         ax = fig.add_subplot(grid[0, i], projection="3d")
         start = runs[(strategy, TOUCHES[0])].poses[0]
@@ -210,7 +230,12 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
         ax.set_zlabel("z (m)", fontsize=8)
         ax.tick_params(labelsize=7)
 
-        ax_d, ax_v = fig.add_subplot(grid[1, i]), fig.add_subplot(grid[2, i])
+        # One scale per row across the strategies: their withdrawals and speeds compare by eye.
+        ax_d = fig.add_subplot(grid[1, i], sharex=rows[0][0] if rows[0] else None,
+                               sharey=rows[0][0] if rows[0] else None)
+        ax_v = fig.add_subplot(grid[2, i], sharex=ax_d, sharey=rows[1][0] if rows[1] else None)
+        rows[0].append(ax_d)
+        rows[1].append(ax_v)
         reference = REFERENCE.get(strategy)
         if reference in strategies:
             for pad, color in zip(TOUCHES, TOUCH_COLORS):
@@ -223,9 +248,6 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
             ax_v.plot(run.t, run.speed_m_s, color=color, lw=1.8)
         for axis in (ax_d, ax_v):
             axis.axhline(0.0, color="0.3", lw=0.8)
-            low, high = axis.get_ylim()
-            axis.set_ylim(min(low, -0.08 * (high - low)), high)
-            axis.axhspan(axis.get_ylim()[0], 0.0, color="#d62728", alpha=0.07, lw=0)
             axis.grid(alpha=0.3)
             axis.tick_params(labelsize=7)
         compared = f" (dashed: {TITLES.get(reference, reference)})" if reference in strategies else ""
@@ -235,6 +257,12 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
         if i == 0:
             ax_d.set_ylabel("withdrawal (mm)\n(shaded: toward the contact)", fontsize=8)
             ax_v.set_ylabel("speed (m/s)\n+ away from the contact", fontsize=8)
+    for row, unit in zip(rows, ("mm", "m/s")):  # a shared scale that shows every curve, room toward the contact
+        fit_scale(row, unit)
+        low, high = row[0].get_ylim()
+        row[0].set_ylim(min(low, -0.08 * (high - low)), high)
+        for axis in row:
+            axis.axhspan(axis.get_ylim()[0], 0.0, color="#d62728", alpha=0.07, lw=0)
     handles = [plt.Line2D([], [], color="0.55", lw=3.5, label="initial pose")]
     handles += [plt.Line2D([], [], color=c, lw=2, label=f"touch on {p}") for p, c in zip(TOUCHES, TOUCH_COLORS)]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=9)

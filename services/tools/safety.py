@@ -25,7 +25,7 @@ def _run(args: argparse.Namespace) -> int:
             return None  # only say which mode is in force
         return m.SafetyModeRequest(seq=0, stamp_ns=node.clock.now_ns(), mode=args.mode, requested_by=requested_by())
 
-    ok, state = ask_the_bridge(args, "safety", keys.CONTROL_SAFETY, request, lambda s: s.safety_mode == args.mode)
+    ok, state, _ = ask_the_bridge(args, "safety", keys.CONTROL_SAFETY, request, lambda s: s.safety_mode == args.mode)
     if args.mode is None:
         if state is None:
             print("no robot state seen: is the bridge running? (`nwr status`)")

@@ -35,9 +35,9 @@ import zenoh
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile
+from nwr.common.config import Profile, ZenohSection
 from nwr.common.errors import DecodeError, NwrError
-from nwr.common.node import zenoh_config
+from nwr.common.node import tls_endpoints, zenoh_config
 from nwr.services.pipeline.graph import NOT_WAITED_FOR, SERVICES, START_ORDER, process_name
 
 log = logging.getLogger(__name__)
@@ -222,6 +222,11 @@ def alive_services(session: zenoh.Session, robot: str, timeout_s: float) -> list
     return sorted(found)
 
 
+def dialled(zcfg: ZenohSection) -> list[str]:
+    """The router endpoints as the session dials them: in secure mode tcp/ ones as tls/ (common.node.zenoh_config)."""
+    return tls_endpoints(zcfg.router, "[zenoh] router") if zcfg.secure else list(zcfg.router)
+
+
 def collect(profile: Profile, window_s: float, timeout_s: float) -> StatusReport:
     robot = profile.robot.name
     collector = StatusCollector(robot)
@@ -240,7 +245,7 @@ def collect(profile: Profile, window_s: float, timeout_s: float) -> StatusReport
         elapsed_s = (time.monotonic_ns() - start) / 1e9
         sub.undeclare()
         alive = sorted(set(alive) | set(alive_services(session, robot, timeout_s)))
-        return collector.report(alive, elapsed_s, time.monotonic_ns(), list(profile.zenoh.router))
+        return collector.report(alive, elapsed_s, time.monotonic_ns(), dialled(profile.zenoh))
 
 
 def check(profile: Profile, service: str, timeout_s: float) -> int:

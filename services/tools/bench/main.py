@@ -726,7 +726,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--quick", action="store_true", help="a smoke run of under a minute (one repetition, short scripts)")
+    p.add_argument("--quick", action="store_true", help="a smoke run: one repetition, short scripts (81-132 s on a loaded 2-core machine)")
     p.add_argument("--reps", type=int, default=0, help="repetitions of each configuration (default 3; --quick 1)")
     p.add_argument("--onsets", type=int, default=30, help="reflex-causing touches per run (default 30)")
     p.add_argument("--only", metavar="NAMES", help="comma-separated substrings of the configurations to run")

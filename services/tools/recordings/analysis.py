@@ -78,6 +78,11 @@ class TouchSummary:
     return_speed_m_s: float | None = None
     # The touched pad's peak jerk during the withdrawal, m/s^3 (from the robot states: at their rate).
     peak_jerk_m_s3: float | None = None
+    # True: the recording has no pain data (skin/pain) and level and gain were computed from peak_hpa through the
+    # profile's gain model (a real skin's imported recording).
+    pain_computed: bool = False
+    # False: the recording has no planner (no reflex statuses): whether the touch caused a reflex is unknown.
+    reflex_known: bool = True
 
 
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,

@@ -22,17 +22,18 @@ joint's displacement from the onset pose in a panel of its own.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nwr.common import keys
+from nwr.common.config import Profile
 from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
-from nwr.services.profile import profile_for
-from nwr.services.tools.recordings import analysis
+from nwr.services.profile import load_profile, profile_for
+from nwr.services.tools.recordings import analysis, summary
 
 
 @dataclass
@@ -43,14 +44,21 @@ class Session:
     t0_ns: int
     touches: list[analysis.TouchSummary]
     strategy: str = ""  # the recording's reflex strategy (session metadata), if it says
+    notes: list[str] = field(default_factory=list)  # what the recording cannot tell (summary.complete)
 
 
-def load_session(path: Path, desc: RobotDescription, model: RobotModel) -> Session:
+def load_session(path: Path, desc: RobotDescription, model: RobotModel, profile: Profile | None = None) -> Session:
+    """A recording's touches; on simulated time (lockstep) without onsets, which are no latencies there."""
     records, metadata = read_recording(path)
     t0 = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     strategy = metadata.get("session", {}).get("strategy", "")
     label = f"{path.stem} ({strategy})" if strategy else path.stem
-    return Session(path, label, records, t0, analysis.summarize(records, desc, model), strategy)
+    touches = analysis.summarize(records, desc, model)
+    notes = summary.complete(touches, records, metadata, profile or load_profile(None), desc)
+    if summary.is_lockstep(metadata):
+        notes.insert(0, "on simulated time (lockstep): each reflex began within its skin sample's control cycle by "
+                        "construction; no onset latency is measured (onset \"-\")")
+    return Session(path, label, records, t0, touches, strategy, notes)
 
 
 def line_up(sessions: list[Session], window_s: float) -> list[list[analysis.TouchSummary | None]]:
@@ -235,7 +243,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
     the onset pose; one colour per file throughout, time from the touch's
     first skin sample.
     """
-    from nwr.services.tools.figures import _pyplot
+    from nwr.services.tools.figures import _pyplot, fit_scale
 
     plt = _pyplot()
     joints = model.desc.joints
@@ -280,6 +288,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
         ax_n.xaxis.set_major_locator(plt.MaxNLocator(5))  # shared by the block's panels: few enough for the joints'
         for ax in (ax_n, ax_o):
             ax.axhline(0.0, color="0.3", lw=0.8)
+            fit_scale([ax], "mm")
             low, high = ax.get_ylim()
             ax.set_ylim(min(low, -0.1 * (high - low)), high)
             ax.axhspan(ax.get_ylim()[0], 0.0, color=TOWARD_COLOR, alpha=0.07, lw=0)
@@ -288,6 +297,7 @@ def draw(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]
                        fontsize=9)
         ax_o.set_ylabel("closest other pad: change in\nits distance to the contact (mm)", fontsize=8)
         ax_o.set_title("other pads: the closest approach to the contact point", fontsize=9)
+        fit_scale(ax_j, "rad")
         for j, ax in enumerate(ax_j):
             ax.set_title(joints[j], fontsize=8)
             ax.axhline(0.0, color="0.6", lw=0.6)
@@ -341,8 +351,11 @@ def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
     desc = load_description(profile.robot.description or None)
     model = RobotModel(desc)
-    sessions = [load_session(Path(p), desc, model) for p in args.files]
+    sessions = [load_session(Path(p), desc, model, profile) for p in args.files]
     rows = line_up(sessions, args.window)
+    for session in sessions:
+        for note in session.notes:
+            print(f"{session.label}: {note}")
     print(table(sessions, rows))
     print("\nreflex quality per file (every touch of the file that started a reflex):")
     quality = [analysis.quality(session.touches, session.label) for session in sessions]

@@ -36,10 +36,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import stat
 import tomllib
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -176,6 +178,18 @@ def _from_service(key: str, message: Any, wiring: Any) -> bool:
     return True
 
 
+@contextmanager
+def recorded_run_quiet() -> Iterator[None]:
+    """No log lines while a service re-runs: they would be the recorded run's (its loop overruns on the recorded
+    clock, its reflexes), printed as if they were verify's findings; the comparison reports what differs."""
+    previous = logging.root.manager.disable
+    logging.disable(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logging.disable(previous)
+
+
 def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[str, list[Any]], *,
                number: int, runs: int, until_ns: int | None, roots: Sequence[Path] = (PACKAGED_ROBOTS,),
                reported_gaps: dict[str, int] | None = None) -> RunResult:
@@ -213,17 +227,18 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
 
     journal = Playback(entries)
     try:
-        wiring = factory.rebuild(profile, params, journal=journal, out=out, diag=no_diag)
-        while (entry := journal.peek()) is not None:
-            message = None
-            if entry.key:
-                message = index.get((entry.key, entry.seq, entry.stamp_ns))
-                if message is None:
-                    result.detail = (f"entry {journal.index + 1} ({entry.input}): its input, {entry.key} seq "
-                                     f"{entry.seq} stamped {entry.stamp_ns}, is not in the recording")
-                    return result
-            wiring.replay(entry, message)
-        journal.finish_entry()
+        with recorded_run_quiet():
+            wiring = factory.rebuild(profile, params, journal=journal, out=out, diag=no_diag)
+            while (entry := journal.peek()) is not None:
+                message = None
+                if entry.key:
+                    message = index.get((entry.key, entry.seq, entry.stamp_ns))
+                    if message is None:
+                        result.detail = (f"entry {journal.index + 1} ({entry.input}): its input, {entry.key} seq "
+                                         f"{entry.seq} stamped {entry.stamp_ns}, is not in the recording")
+                        return result
+                wiring.replay(entry, message)
+            journal.finish_entry()
     except Divergence as exc:
         result.verdict, result.detail = "differs", str(exc)
         return result
