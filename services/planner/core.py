@@ -238,9 +238,8 @@ class Planner(Standby):
         if self.mode == "RETURNING":
             if not self._ruckig_step():
                 return self._position_command(now_ns)
-            if self._legs:  # on to the next leg, at the speed this leg arrived with
-                self._next_leg()
-                self._ruckig_step()
+            if self._legs:  # on to the next leg, at the speed this leg arrived with (from the next cycle: this
+                self._next_leg()  # cycle's setpoint is this leg's end, which the step above reached)
                 return self._position_command(now_ns)
             if self.partial:
                 self._begin_hold(now_ns, keep_since=True)

@@ -174,7 +174,7 @@ def fit_scale(axes: list[Any], unit: str) -> None:
     curve's extent and logarithmic beyond it (symlog), which each panel says."""
     extents = [float(np.nanmax(np.abs(line.get_ydata()))) for ax in axes for line in ax.get_lines()
                if len(line.get_ydata()) > 1 and np.isfinite(line.get_ydata()).any()]
-    extents = [e for e in extents if e > 0.01 * max(extents, default=0.0)]  # flat on any scale: not counted
+    extents = [e for e in extents if e > 0.001 * max(extents, default=0.0)]  # flat on any scale: not counted
     if len(extents) < 2 or max(extents) <= SPREAD * min(extents):
         return
     linear = min(extents)
