@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pipeline import Pipeline
 
 
 @pytest.fixture
@@ -30,3 +31,11 @@ def tmpfs(tmp_path: Path) -> Iterator[Any]:
     finally:
         for path in mounted:
             subprocess.run(["umount", "-l", str(path)], check=False)  # lazily: a process may still hold it
+
+
+@pytest.fixture
+def pipeline(tmp_path: Path) -> Iterator[Pipeline]:
+    """A :class:`~pipeline.Pipeline` in tmp_path on a mesh of its own, nothing started yet; whatever it started is
+    stopped at the end (SIGINT, then SIGKILL to what is left)."""
+    with Pipeline(tmp_path) as p:
+        yield p

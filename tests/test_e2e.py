@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import msgspec
 import pytest
 import zenoh
+from pipeline import SHORT_SCRIPT, Pipeline
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -25,19 +23,8 @@ from nwr.services.tools.recordings.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-SCRIPT = Path(__file__).parent / "data" / "short.toml"
-BASE_PORT = 17450  # away from the default mesh, so a running demo does not interfere
-
-
-def write_profile(tmp_path: Path, port: int) -> Path:
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {port}\n[recorder]\ndirectory = "{tmp_path}"\n')
-    return profile
-
-
-def intruder(stop: threading.Event, counts: dict[str, int], port: int, owner: str) -> None:
+def intruder(stop: threading.Event, counts: dict[str, int], cfg: ZenohSection, owner: str) -> None:
     """Publishes garbage and a foreign planner's commands into the running pipeline."""
-    cfg = ZenohSection(base_port=port)
     with zenoh.open(zenoh_config(cfg)) as session:
         pressure = session.declare_publisher(keys.key("ur10e", keys.SKIN_PRESSURE))
         command = session.declare_publisher(keys.key("ur10e", keys.robot_command("intruder")))
@@ -53,21 +40,17 @@ def intruder(stop: threading.Event, counts: dict[str, int], port: int, owner: st
             counts["sent"] += 1
 
 
-@pytest.mark.parametrize(("reflex", "port"), [("cartesian", BASE_PORT), ("uniform", BASE_PORT + 10),
-                                              ("location", BASE_PORT + 20), ("cartesian-smooth", BASE_PORT + 30)])
-def test_scripted_session_end_to_end(tmp_path, reflex, port):
-    profile = write_profile(tmp_path, port)
+@pytest.mark.parametrize("reflex", ["cartesian", "uniform", "location", "cartesian-smooth"])
+def test_scripted_session_end_to_end(tmp_path, pipeline: Pipeline, reflex):
+    port = pipeline.port
     output = tmp_path / "session.mcap"
     stop = threading.Event()
     counts = {"sent": 0}
-    thread = threading.Thread(target=intruder, args=(stop, counts, port, reflex), daemon=True)
+    thread = threading.Thread(target=intruder, args=(stop, counts, pipeline.zenoh, reflex), daemon=True)
     thread.start()
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo",
-             "--script", str(SCRIPT), "--output", str(output), "--reflex", reflex],
-            capture_output=True, text=True, timeout=120,
-        )
+        proc = pipeline.run("demo", "--script", str(SHORT_SCRIPT), "--output", str(output), "--reflex", reflex,
+                            timeout_s=120)
     finally:
         stop.set()
         thread.join(5)
@@ -81,7 +64,7 @@ def test_scripted_session_end_to_end(tmp_path, reflex, port):
     assert f'"base_port":{port}' in metadata["session"]["profile"]
     desc = load_description()
     touches = analysis.summarize(records, desc)
-    script = load_script(str(SCRIPT))
+    script = load_script(str(SHORT_SCRIPT))
     estimator = GainEstimator(GainSection(), desc.pads)
     assert len(touches) == len(script.touch)
     for touch, scripted in zip(touches, script.touch):

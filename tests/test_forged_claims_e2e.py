@@ -12,8 +12,6 @@ incoming planner must report the refused claim, naming the claimant.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -23,12 +21,13 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from test_secure import Lab, Pipeline, lab, pipeline_factory  # noqa: F401  (fixtures)
+from pipeline import Pipeline
+from test_secure import Lab, RoutedPipeline, lab, pipeline_factory  # noqa: F401  (fixtures)
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import Profile, ZenohSection
-from nwr.common.node import Node, zenoh_config
+from nwr.common.config import Profile
+from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight
@@ -38,8 +37,6 @@ from nwr.services.bridge.wiring import task_peak_speed
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 MODEL = RobotModel(load_description())
-PORT = 17950
-SECURE_PORT = 18170
 ACTIVE, STANDBY = "cartesian", "uniform"
 ATTACK_S = 2.5  # the forged statuses start (s from the first skin sample)
 SWITCHES = ((5.0, STANDBY), (8.5, ACTIVE))
@@ -131,14 +128,13 @@ def check(records: list[Any], capsys: pytest.CaptureFixture[str], where: str) ->
     assert refused
 
 
-def test_forged_status_on_the_embedded_network(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_forged_status_on_the_embedded_network(tmp_path: Path, pipeline: Pipeline,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
     output = tmp_path / "forged.mcap"
     stop, done, first = threading.Event(), [], []
 
     def attacker() -> None:
-        with Node("test", "ur10e", ZenohSection(base_port=PORT), token=False) as node:
+        with pipeline.node() as node:
             node.subscribe(keys.SKIN_PRESSURE, lambda s: first.append(s.stamp_ns) if not first else None)
             forger(node.publisher(keys.planner_status(STANDBY)), node.publisher(keys.CONTROL_ACTIVE), first, stop,
                    done)
@@ -146,11 +142,8 @@ def test_forged_status_on_the_embedded_network(tmp_path: Path, capsys: pytest.Ca
     thread = threading.Thread(target=attacker, daemon=True)
     thread.start()
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo", "--script",
-             str(_script(tmp_path)), "--planners", f"{ACTIVE},{STANDBY}", "--output", str(output)],
-            capture_output=True, text=True, timeout=150,
-        )
+        proc = pipeline.run("demo", "--script", str(_script(tmp_path)), "--planners", f"{ACTIVE},{STANDBY}",
+                            "--output", str(output), timeout_s=150)
     finally:
         stop.set()
         thread.join(5)
@@ -161,9 +154,9 @@ def test_forged_status_on_the_embedded_network(tmp_path: Path, capsys: pytest.Ca
 
 
 def test_forged_status_in_the_secure_deployment(lab: Lab, tmp_path: Path,  # noqa: F811
-                                                pipeline_factory: list[Pipeline],  # noqa: F811
+                                                pipeline_factory: list[RoutedPipeline],  # noqa: F811
                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    pipeline = Pipeline(tmp_path, SECURE_PORT, lab)
+    pipeline = RoutedPipeline(tmp_path, lab)
     pipeline_factory.append(pipeline)
     pipeline.start_router()
     pipeline.spawn("bridge", ["run", "bridge", "--active", ACTIVE], "bridge")
@@ -176,8 +169,8 @@ def test_forged_status_in_the_secure_deployment(lab: Lab, tmp_path: Path,  # noq
 
     def attacker() -> None:
         # The standby planner's own certificate puts its forged statuses; the operator's switches.
-        with zenoh.open(zenoh_config(lab.zenoh(SECURE_PORT, STANDBY))) as own, \
-                zenoh.open(zenoh_config(lab.zenoh(SECURE_PORT, "operator"))) as operator:
+        with zenoh.open(zenoh_config(lab.zenoh(pipeline.port, STANDBY))) as own, \
+                zenoh.open(zenoh_config(lab.zenoh(pipeline.port, "operator"))) as operator:
             status = keys.codec(keys.planner_status(STANDBY))
             switch = keys.codec(keys.CONTROL_ACTIVE)
             operator.declare_subscriber(keys.key("ur10e", keys.SKIN_PRESSURE),
@@ -190,13 +183,13 @@ def test_forged_status_in_the_secure_deployment(lab: Lab, tmp_path: Path,  # noq
     thread.start()
     pipeline.spawn("gateway", ["run", "gateway", "--wait-for",
                                f"bridge,gain,recorder,planner-{ACTIVE},planner-{STANDBY}",
-                               "--script", str(_script(tmp_path)), "--exit-at-end"], "gateway")
+                               "--script", str(_script(tmp_path)), "--exit-at-end"], "gateway", ends=True)
     try:
         pipeline.wait_gateway(timeout_s=90)
     finally:
         stop.set()
         thread.join(10)
-    pipeline.stop()
+    pipeline.stop_all()
     assert done == [STANDBY, ACTIVE]
     records, _ = read_recording(pipeline.output)
     check(records, capsys, "secure")

@@ -18,25 +18,21 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
+from pipeline import Pipeline, free_base_port
 from test_recorder_disk import remount
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import ZenohSection
 from nwr.common.errors import DecodeError
-from nwr.common.node import zenoh_config
 from nwr.services.recorder.disk import NOT_WRITING, RECORDING_RESUMED, WRITE_FAILED
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 ROBOT = "ur10e"
-FULL_PORT = 18450  # meshes of their own, away from the other end-to-end tests
-READ_ONLY_PORT = 18470
 # Free space left to the recording on the "full" disk: at about 50 kB/s it is full within seconds.
 ROOM = 200 * 1024
 # Guards, not measurements: how long to wait for something that must happen before calling the test failed.
@@ -76,22 +72,13 @@ class Watch:
         with self.lock:
             return next(((t, d) for t, d in self.diags if d.code == code and t >= after), None)
 
-    def wait_diag(self, code: str, up: subprocess.Popen[bytes], log: Path, after: float = 0.0
-                  ) -> tuple[float, m.Diagnostic]:
-        deadline = time.monotonic() + WAIT_S
-        while (found := self.diag(code, after)) is None:
-            assert up.poll() is None, f"nwr up exited ({up.returncode}):\n{log.read_text()[-4000:]}"
-            assert time.monotonic() < deadline, f"no {code} on diag/recorder:\n{log.read_text()[-4000:]}"
-            time.sleep(0.1)
-        return found
+    def wait_diag(self, code: str, pipeline: Pipeline, after: float = 0.0) -> tuple[float, m.Diagnostic]:
+        return pipeline.wait_until(lambda: self.diag(code, after), WAIT_S, f"{code} on diag/recorder")
 
-    def wait_moving(self, up: subprocess.Popen[bytes], log: Path) -> None:
+    def wait_moving(self, pipeline: Pipeline) -> None:
         """Until the bridge follows the planner's commands (``ok``; ``idle`` before the first one)."""
-        deadline = time.monotonic() + WAIT_S
-        while not any(s.status == "ok" for s in self.since(time.monotonic() - 1.0)[0]):
-            assert up.poll() is None, f"nwr up exited ({up.returncode}):\n{log.read_text()[-4000:]}"
-            assert time.monotonic() < deadline, f"no robot/state:\n{log.read_text()[-4000:]}"
-            time.sleep(0.1)
+        pipeline.wait_until(lambda: any(s.status == "ok" for s in self.since(time.monotonic() - 1.0)[0]),
+                            WAIT_S, "robot/state ok")
 
     def since(self, t0: float) -> tuple[list[m.RobotState], list[m.PlannerStatus]]:
         with self.lock:
@@ -113,49 +100,26 @@ def assert_arm_keeps_its_task(states: list[m.RobotState], statuses: list[m.Plann
     assert statuses[-1].task_time_s > statuses[0].task_time_s  # its task's clock runs
 
 
-def nwr(profile: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), *args],
-                          capture_output=True, text=True, timeout=120)
-
-
-def nwr_status(profile: Path) -> str:
-    proc = subprocess.run([sys.executable, "-m", "nwr.services.tools.status", "--profile", str(profile),
+def nwr_status(pipeline: Pipeline) -> str:
+    proc = subprocess.run([sys.executable, "-m", "nwr.services.tools.status", "--profile", str(pipeline.profile),
                            "--window", "2.5"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return proc.stdout
 
 
-def start_up(profile: Path, output: Path, log: Path) -> subprocess.Popen[bytes]:
-    with log.open("wb") as out:
-        return subprocess.Popen([sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "up",
-                                 "--output", str(output)], stdout=out, stderr=subprocess.STDOUT)
-
-
-def stop_up(up: subprocess.Popen[bytes]) -> int:
-    up.send_signal(signal.SIGTERM)
-    try:
-        return up.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        up.kill()
-        return up.wait()
-
-
-def test_a_full_disk_stops_neither_the_arm_nor_the_services_and_recording_resumes(tmp_path: Path, tmpfs: Any
+def test_a_full_disk_stops_neither_the_arm_nor_the_services_and_recording_resumes(tmpfs: Any, pipeline: Pipeline
                                                                                   ) -> None:
     disk = tmpfs("size=4m")
     st = os.statvfs(disk)
     filler = disk / "filler"
     filler.write_bytes(b"\0" * (st.f_bavail * st.f_frsize - ROOM))  # what a lab PC's other files leave
     output = disk / "s.mcap"
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f"[zenoh]\nbase_port = {FULL_PORT}\n")
-    log = tmp_path / "up.log"
     watch = Watch()
-    with zenoh.open(zenoh_config(ZenohSection(base_port=FULL_PORT))) as session:
+    with pipeline.session() as session:
         sub = session.declare_subscriber(f"{keys.prefix(ROBOT)}/**", watch)
-        up = start_up(profile, output, log)
+        pipeline.start("up", "up", "--output", str(output))
         try:
-            t_fail, failed = watch.wait_diag(WRITE_FAILED, up, log)
+            t_fail, failed = watch.wait_diag(WRITE_FAILED, pipeline)
             assert "disk full (No space left on device, ENOSPC)" in failed.message
             assert "finished it in the space held in reserve" in failed.message
             time.sleep(WATCH_S)
@@ -165,31 +129,31 @@ def test_a_full_disk_stops_neither_the_arm_nor_the_services_and_recording_resume
             not_writing = [d for d in reports if d.code == NOT_WRITING]
             assert 2 <= len(not_writing) <= len(reports) <= 2 * WATCH_S + 2  # once a retry, not once a message
             assert "disk full" in not_writing[-1].message and "free space on the disk" in not_writing[-1].message
-            text = nwr_status(profile)
+            text = nwr_status(pipeline)
             print(text)
             assert "recorder: not writing" in text and "disk full" in text
             assert "not alive" not in text  # every service is there, the recorder too
 
-            info = nwr(profile, "info", str(output))  # finished, valid: exit 0
+            info = pipeline.run("info", str(output))  # finished, valid: exit 0
             assert info.returncode == 0 and "intact" in info.stdout, info.stdout + info.stderr
 
             filler.unlink()  # space is freed
             t_free = time.monotonic()
-            t_resumed, resumed = watch.wait_diag(RECORDING_RESUMED, up, log, after=t_free)
+            t_resumed, resumed = watch.wait_diag(RECORDING_RESUMED, pipeline, after=t_free)
             assert f"recording resumed in {disk / 's-001.mcap'} after" in resumed.message
             dropped = int(re.search(r": (\d+) messages not recorded", resumed.message).group(1))  # type: ignore[union-attr]
             assert dropped > 0
             time.sleep(2.0)
             assert_arm_keeps_its_task(*watch.since(t_resumed))
         finally:
-            code = stop_up(up)
+            code = pipeline.stop("up", sig=signal.SIGTERM)
             sub.undeclare()
-    out = log.read_text()
+    out = pipeline.log("up")
     assert code == 0, out[-4000:]
     assert "Traceback" not in out
     assert "exited unexpectedly" not in out  # no service exited, the recorder neither
     assert f"NOT RECORDED: {dropped} messages over" in out
-    part1 = nwr(profile, "info", str(disk / "s-001.mcap"))
+    part1 = pipeline.run("info", str(disk / "s-001.mcap"))
     assert part1.returncode == 0 and "intact" in part1.stdout, part1.stdout + part1.stderr
     assert sorted(p.name for p in disk.iterdir()) == ["s-001.mcap", "s.mcap"]  # no reserve left behind
     print(f"\nfull disk: {failed.message}\nresumed {t_resumed - t_free:.2f} s after the space was freed: "
@@ -197,40 +161,37 @@ def test_a_full_disk_stops_neither_the_arm_nor_the_services_and_recording_resume
 
 
 def test_a_read_only_directory_at_the_start_is_reported_and_recording_starts_once_writable(
-        tmp_path: Path, tmpfs: Any) -> None:
+        tmpfs: Any, pipeline: Pipeline) -> None:
     disk = tmpfs("size=4m,ro")
     output = disk / "sessions" / "s.mcap"
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f"[zenoh]\nbase_port = {READ_ONLY_PORT}\n")
-    log = tmp_path / "up.log"
     watch = Watch()
-    with zenoh.open(zenoh_config(ZenohSection(base_port=READ_ONLY_PORT))) as session:
+    with pipeline.session() as session:
         sub = session.declare_subscriber(f"{keys.prefix(ROBOT)}/**", watch)
-        up = start_up(profile, output, log)
+        pipeline.start("up", "up", "--output", str(output))
         try:
-            watch.wait_moving(up, log)  # the pipeline started: the recorder did not hold it back
+            watch.wait_moving(pipeline)  # the pipeline started: the recorder did not hold it back
             t_start = time.monotonic()
-            _, not_writing = watch.wait_diag(NOT_WRITING, up, log)
+            _, not_writing = watch.wait_diag(NOT_WRITING, pipeline)
             assert "read-only file system (Read-only file system, EROFS)" in not_writing.message
             assert f"remount {disk / 'sessions'}/ read-write" in not_writing.message
             time.sleep(WATCH_S)
             assert_arm_keeps_its_task(*watch.since(t_start))
-            text = nwr_status(profile)
+            text = nwr_status(pipeline)
             print(text)
             assert "recorder: not writing" in text and "read-only file system" in text
 
             remount(disk, "rw")
             t_rw = time.monotonic()
-            t_resumed, resumed = watch.wait_diag(RECORDING_RESUMED, up, log, after=t_rw)
+            t_resumed, resumed = watch.wait_diag(RECORDING_RESUMED, pipeline, after=t_rw)
             assert f"recording resumed in {output} after" in resumed.message  # the session's first file
             time.sleep(2.0)
         finally:
-            code = stop_up(up)
+            code = pipeline.stop("up", sig=signal.SIGTERM)
             sub.undeclare()
-    out = log.read_text()
+    out = pipeline.log("up")
     assert code == 0, out[-4000:]
     assert "Traceback" not in out and "exited unexpectedly" not in out
-    info = nwr(profile, "info", str(output))
+    info = pipeline.run("info", str(output))
     assert info.returncode == 0 and "intact" in info.stdout, info.stdout + info.stderr
     print(f"\nread-only at the start: {not_writing.message}\nresumed {t_resumed - t_rw:.2f} s after the "
           f"remount: {resumed.message}")
@@ -242,7 +203,7 @@ def test_the_launcher_does_not_wait_for_a_recorder_that_exited_at_its_start(capl
     from nwr.services.pipeline import supervisor
 
     profile = Profile()
-    profile.zenoh.base_port = READ_ONLY_PORT + 10  # nobody there
+    profile.zenoh.base_port = free_base_port()  # nobody there
     gone = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
     gone.wait()
     with caplog.at_level("WARNING", logger="nwr"):

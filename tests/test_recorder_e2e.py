@@ -5,25 +5,20 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import zenoh
+from pipeline import SHORT_SCRIPT, Pipeline
 
 from nwr.common import keys
-from nwr.common.config import ZenohSection
 from nwr.common.errors import DecodeError
-from nwr.common.node import zenoh_config
 from nwr.common.recordings import publisher_of, read_recording
 from nwr.services.recorder import salvage
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-SCRIPT = Path(__file__).parent / "data" / "short.toml"
-BASE_PORT = 17650  # away from the default mesh and from the other end-to-end tests
 ROBOT = "ur10e"
 RUN_BEFORE_KILL_S = 5.0
 # What a kill -9 may cost: the chunk in memory (recorder.chunk_interval_s =
@@ -47,9 +42,7 @@ def _children(pid: int) -> dict[int, str]:
     return found
 
 
-def test_recorder_killed_mid_session_is_recovered(tmp_path: Path) -> None:
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {BASE_PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_recorder_killed_mid_session_is_recovered(tmp_path: Path, pipeline: Pipeline) -> None:
     output = tmp_path / "killed.mcap"
 
     # A reference subscriber: what the pipeline published, and when it arrived.
@@ -63,18 +56,12 @@ def test_recorder_killed_mid_session_is_recovered(tmp_path: Path) -> None:
             return
         seen.append((relative, publisher_of(message), message.seq, time.monotonic_ns()))
 
-    with zenoh.open(zenoh_config(ZenohSection(base_port=BASE_PORT))) as session:
+    with pipeline.session() as session:
         sub = session.declare_subscriber(f"{keys.prefix(ROBOT)}/**", on_sample)
-        up = subprocess.Popen(
-            [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "up", "--script", str(SCRIPT),
-             "--output", str(output)],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )
+        up = pipeline.start("up", "up", "--script", str(SHORT_SCRIPT), "--output", str(output))
         try:
-            deadline = time.monotonic() + 30.0
-            while not any(key == keys.SKIN_PRESSURE for key, *_ in seen):  # every service is up
-                assert up.poll() is None and time.monotonic() < deadline, up.communicate()[0]
-                time.sleep(0.1)
+            pipeline.wait_until(lambda: any(key == keys.SKIN_PRESSURE for key, *_ in seen), 30.0,
+                                "the first skin sample (every service is up)")
             time.sleep(RUN_BEFORE_KILL_S)
             recorders = [pid for pid, cmd in _children(up.pid).items() if " run recorder" in cmd]
             assert len(recorders) == 1, _children(up.pid)
@@ -82,19 +69,15 @@ def test_recorder_killed_mid_session_is_recovered(tmp_path: Path) -> None:
             os.kill(recorders[0], signal.SIGKILL)
             time.sleep(0.3)
         finally:
-            up.send_signal(signal.SIGTERM)  # the launcher stops the rest
-            log = up.communicate(timeout=30)[0]
+            pipeline.stop("up", sig=signal.SIGTERM, grace_s=30.0)  # the launcher stops the rest
+            log = pipeline.log("up")
         sub.undeclare()
 
     assert output.exists(), log
     assert not salvage.info_file(output).footer  # the killed recorder left no summary or footer
 
     recovered = tmp_path / "recovered.mcap"
-    proc = subprocess.run(
-        [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "recover", str(output),
-         "-o", str(recovered)],
-        capture_output=True, text=True, timeout=60,
-    )
+    proc = pipeline.run("recover", str(output), "-o", str(recovered), timeout_s=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     print(proc.stdout)
     assert "NOT finished" in proc.stdout and "lost:" in proc.stdout

@@ -4,9 +4,7 @@ checked: the fastest point of the arm while the skin lies, the time to detection
 
 from __future__ import annotations
 
-import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -15,16 +13,14 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop, wait_for
+from pipeline import Pipeline
+from ros_support import AIRSKIN_DEFINITION, AIRSKIN_TYPE, SCRIPTS, SYSTEM_PYTHON, require, rosmaster, stop
 
 from nwr.common import keys
-from nwr.common.config import ZenohSection
-from nwr.common.node import zenoh_config
 from nwr.common.robot import RobotModel, load_description
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-PORT = 18850  # a mesh of its own, away from the other end-to-end tests
 N_VALUES = 11
 HOSTILE_S = 2.0  # how long each hostile skin lasts
 MODEL = RobotModel(load_description())
@@ -37,10 +33,10 @@ def peak_speed(state: Any) -> float:
     return float(np.linalg.norm(MODEL.speed_jacobians(np.asarray(state.q)) @ np.asarray(state.dq), axis=1).max())
 
 
-def test_a_hostile_ros1_skin_never_keeps_the_arm_running_on_what_it_cannot_read(tmp_path: Path) -> None:
+def test_a_hostile_ros1_skin_never_keeps_the_arm_running_on_what_it_cannot_read(tmp_path: Path, pipeline: Pipeline
+                                                                                ) -> None:
     require("rospy", "genpy", rosmaster=True)
-    profile_path = tmp_path / "profile.toml"
-    profile_path.write_text(f'[zenoh]\nbase_port = {PORT}\n[gateway]\nsource = "ros1"\nrate_hz = 30.0\n')
+    pipeline.configure('[gateway]\nsource = "ros1"\nrate_hz = 30.0\n')
     states: list[tuple[float, Any]] = []  # (arrival, monotonic s; state)
     diags: list[tuple[float, Any]] = []
     lock = threading.Lock()
@@ -61,12 +57,9 @@ def test_a_hostile_ros1_skin_never_keeps_the_arm_running_on_what_it_cannot_read(
             [SYSTEM_PYTHON, str(SCRIPTS / "airskin_publisher.py"), "/bullet_ros/airskin_status", AIRSKIN_TYPE,
              AIRSKIN_DEFINITION, str(N_VALUES), "0", "0.0", str(tmp_path / "no-press"), "30.0", str(mode)],
             env=env, stdout=pub_log, stderr=subprocess.STDOUT)
-        up_log_path = tmp_path / "up.log"
-        up_log = up_log_path.open("wb")
-        up = subprocess.Popen([sys.executable, "-m", "nwr.services.cli", "--profile", str(profile_path), "up",
-                               "--no-record"], env=env, stdout=up_log, stderr=subprocess.STDOUT)
+        pipeline.start("up", "up", "--no-record", env=env)
         try:
-            with zenoh.open(zenoh_config(ZenohSection(base_port=PORT))) as session:
+            with pipeline.session() as session:
                 subs = [session.declare_subscriber(keys.key("ur10e", keys.ROBOT_STATE), on_state),
                         session.declare_subscriber(keys.key("ur10e", "diag/*"), on_diag)]
 
@@ -76,7 +69,7 @@ def test_a_hostile_ros1_skin_never_keeps_the_arm_running_on_what_it_cannot_read(
                     return len(recent) == 25 and all(s.status == "ok" for s in recent) \
                         and max(peak_speed(s) for s in recent) > 0.02
 
-                assert wait_for(moving_ok, WAIT_S), up_log_path.read_text()[-5000:]
+                pipeline.wait_until(moving_ok, WAIT_S, "the task running on a good skin")
                 for name in ("nan", "pa", "short"):
                     mode.write_text(name)
                     t0 = time.monotonic()
@@ -97,18 +90,16 @@ def test_a_hostile_ros1_skin_never_keeps_the_arm_running_on_what_it_cannot_read(
                         "peak_after_detection_m_s": max(late, default=None),
                         "codes": codes,
                     }
-                    assert wait_for(moving_ok, 30.0), f"the task did not resume after {name}: {figures[name]}"
+                    pipeline.wait_until(moving_ok, 30.0, f"the task to resume after {name}: {figures[name]}")
                 for sub in subs:
                     sub.undeclare()
         finally:
-            up.send_signal(signal.SIGINT)
-            code = up.wait(60)
+            code = pipeline.stop("up")
             stop(publisher)
-            up_log.close()
             pub_log.close()
     for name, f in figures.items():
         print(f"hostile skin {name}: {f}")
-    assert code == 0, up_log_path.read_text()[-5000:]
+    assert code == 0, pipeline.log("up")[-5000:]
     for name in ("nan", "pa"):  # no valid pad: the skin is stale, the task held, the arm at rest
         f = figures[name]
         assert f["detected_s"] is not None and f["detected_s"] < 0.5, f

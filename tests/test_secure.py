@@ -2,15 +2,15 @@
 
 A lab CA and one certificate per service (``nwr certs``), ``nwr router`` in
 secure mode with ``deploy/acl.json5``, and every service started as its own
-process with its own certificate (NWR_TLS_*), all on 127.0.0.1, ports
-18150-18199. Intruders try to connect without a certificate, with another
-CA's, and, with a recorder's, a view's and an unlisted planner's
-certificate, to put on every key that moves or feeds the arm; a standby
-planner's certificate sends commands the bridge must reject. The session
-must run as if none of it happened. A standby planner's certificate
-cannot pose as the active planner, and a planner's certificate cannot
-command another arm through a router scoped to its own. A last test compares the reflex onset
-latency through the router with and without TLS.
+process with its own certificate (NWR_TLS_*), all on 127.0.0.1 (each router
+on a free port: :class:`RoutedPipeline`). Intruders try to connect without a
+certificate, with another CA's, and, with a recorder's, a view's and an
+unlisted planner's certificate, to put on every key that moves or feeds the
+arm; a standby planner's certificate sends commands the bridge must reject.
+The session must run as if none of it happened. A standby planner's
+certificate cannot pose as the active planner, and a planner's certificate
+cannot command another arm through a router scoped to its own. A last test
+compares the reflex onset latency through the router with and without TLS.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
+from pipeline import Pipeline, free_base_port
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -51,8 +52,6 @@ ACL = ROOT / "deploy" / "acl.json5"
 SCRIPT = ROOT / "tests" / "data" / "short.toml"
 ROBOT = "ur10e"
 ACTIVE = "cartesian"
-SECURE_PORT = 18150
-LATENCY_PORTS = {"tcp": 18160, "tls": 18161}
 # Every intruder message carries this seq, so it can be told apart anywhere.
 SENTINEL = 987_654_321
 # The standby planner's commands posing as the active planner: SPOOF + n.
@@ -101,14 +100,16 @@ def _wait_port(port: int, proc: subprocess.Popen[bytes], log: Path, timeout_s: f
     raise AssertionError(f"router did not listen on {port} within {timeout_s} s:\n{log.read_text()}")
 
 
-class Pipeline:
-    """A router and the services, each its own process with its own certificate (or none, with ``lab=None``)."""
+class RoutedPipeline(Pipeline):
+    """A router and the services, each its own process with its own certificate (or none, with ``lab=None``).
 
-    def __init__(self, tmp: Path, port: int, lab: Lab | None) -> None:
-        self.tmp, self.port, self.lab = tmp, port, lab
-        self.profile = tmp / "profile.toml"
-        self.profile.write_text(f'[recorder]\ndirectory = "{tmp}"\n')
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+    The router listens on the pipeline's port (a free one); NWR_ROUTER makes every other process its client (the
+    profile's mesh goes unused).
+    """
+
+    def __init__(self, tmp: Path, lab: Lab | None) -> None:
+        super().__init__(tmp, port=free_base_port(width=1))
+        self.lab = lab
         self.output = tmp / "session.mcap"
 
     def _env(self, cert: str | None) -> dict[str, str]:
@@ -118,15 +119,8 @@ class Pipeline:
             env.update(self.lab.tls(cert))
         return env
 
-    def spawn(self, label: str, args: list[str], cert: str | None) -> subprocess.Popen[bytes]:
-        with (self.tmp / f"{label}.log").open("wb") as log:  # the child keeps its own descriptor
-            proc = subprocess.Popen([sys.executable, "-m", "nwr.services.cli", "--profile", str(self.profile),
-                                     *args], env=self._env(cert), stdout=log, stderr=subprocess.STDOUT)
-        self.procs[label] = proc
-        return proc
-
-    def log(self, label: str) -> str:
-        return (self.tmp / f"{label}.log").read_text(errors="replace")
+    def spawn(self, label: str, args: list[str], cert: str | None, *, ends: bool = False) -> subprocess.Popen[bytes]:
+        return self.start(label, *args, env=self._env(cert), ends=ends)
 
     def start_router(self) -> None:
         args = ["router", "--listen", f"tcp/127.0.0.1:{self.port}"]
@@ -142,41 +136,26 @@ class Pipeline:
         self.spawn("recorder", ["run", "recorder", "--session", "secure", "--output", str(self.output),
                                 "--strategy", ACTIVE], "recorder")
         self.spawn("gateway", ["run", "gateway", "--wait-for", f"bridge,gain,recorder,planner-{ACTIVE}",
-                               "--script", str(script), "--exit-at-end"], "gateway")
+                               "--script", str(script), "--exit-at-end"], "gateway", ends=True)
 
     def wait_gateway(self, timeout_s: float) -> None:
+        """Until the gateway has ended the session (every other process still running), then the last return."""
         gateway = self.procs["gateway"]
-        deadline = time.monotonic() + timeout_s
-        while gateway.poll() is None:
-            # The gateway itself may end between the loop's check and this one: that is the session's end.
-            dead = {n: p.returncode for n, p in self.procs.items() if n != "gateway" and p.poll() is not None}
-            assert not dead, f"exited early: {dead}\n" + "\n".join(f"--- {n}\n{self.log(n)[-3000:]}" for n in dead)
-            assert time.monotonic() < deadline, f"the session did not end within {timeout_s} s\n{self.log('gateway')}"
-            time.sleep(0.2)
+        self.wait_until(lambda: gateway.poll() is not None, timeout_s, "the session's end", every_s=0.2)
         assert gateway.returncode == 0, self.log("gateway")
         time.sleep(2.0)  # the last return, and the recorder catching up
 
-    def stop(self) -> dict[str, int]:
-        codes = {}
-        for label in reversed(list(self.procs)):
-            proc = self.procs[label]
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(15)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-            codes[label] = proc.returncode
-        return codes
+    def stop_all(self, *, sig: signal.Signals = signal.SIGTERM, grace_s: float = 15.0) -> dict[str, int]:
+        """SIGTERM to every process, the last started first; every exit code."""
+        return super().stop_all(sig=sig, grace_s=grace_s)
 
 
 @pytest.fixture()
-def pipeline_factory(tmp_path: Path) -> Iterator[list[Pipeline]]:
-    started: list[Pipeline] = []
+def pipeline_factory(tmp_path: Path) -> Iterator[list[RoutedPipeline]]:
+    started: list[RoutedPipeline] = []
     yield started
     for p in started:
-        p.stop()
+        p.stop_all()
 
 
 # -- intruders ------------------------------------------------------------
@@ -351,10 +330,10 @@ def test_refuses_to_start_without_a_certificate(tmp_path: Path) -> None:
     assert "secure mode" in proc.stderr and "nwr certs issue" in proc.stderr, proc.stderr
 
 
-def test_intruders_against_the_secure_pipeline(lab: Lab, tmp_path: Path, pipeline_factory: list[Pipeline],
+def test_intruders_against_the_secure_pipeline(lab: Lab, tmp_path: Path, pipeline_factory: list[RoutedPipeline],
                                                capsys: pytest.CaptureFixture[str]) -> None:
-    port = SECURE_PORT
-    pipeline = Pipeline(tmp_path, port, lab)
+    pipeline = RoutedPipeline(tmp_path, lab)
+    port = pipeline.port
     pipeline_factory.append(pipeline)
     pipeline.start_router()
 
@@ -380,7 +359,7 @@ def test_intruders_against_the_secure_pipeline(lab: Lab, tmp_path: Path, pipelin
     time.sleep(0.5)
     stop_observer.set()
     threads[0].join(10)
-    codes = pipeline.stop()
+    codes = pipeline.stop_all()
     assert all(c in (0, -signal.SIGTERM) for c in codes.values()), codes
     for name in ("gateway", "gain", "planner", "bridge", "recorder"):
         assert "secure mode: mutual TLS" in pipeline.log(name), pipeline.log(name)
@@ -429,10 +408,11 @@ def test_intruders_against_the_secure_pipeline(lab: Lab, tmp_path: Path, pipelin
         print(f"reflex onset under attack: {', '.join(f'{x:.2f}' for x in latencies)} ms")
 
 
-def test_fake_liveliness_token_is_not_seen(lab: Lab, tmp_path: Path, pipeline_factory: list[Pipeline]) -> None:
+def test_fake_liveliness_token_is_not_seen(lab: Lab, tmp_path: Path, pipeline_factory: list[RoutedPipeline]
+                                           ) -> None:
     """A recorder certificate cannot announce itself as the bridge (or the active planner)."""
-    port = SECURE_PORT + 1
-    pipeline = Pipeline(tmp_path, port, lab)
+    pipeline = RoutedPipeline(tmp_path, lab)
+    port = pipeline.port
     pipeline_factory.append(pipeline)
     pipeline.start_router()
     with zenoh.open(zenoh_config(lab.zenoh(port, "recorder"))) as spy, \
@@ -458,20 +438,20 @@ def _latency_script(path: Path, touches: int) -> Path:
     return path
 
 
-def test_tls_latency_cost(lab: Lab, tmp_path: Path, pipeline_factory: list[Pipeline],
+def test_tls_latency_cost(lab: Lab, tmp_path: Path, pipeline_factory: list[RoutedPipeline],
                           capsys: pytest.CaptureFixture[str]) -> None:
     """Reflex onset latency through the router, plain TCP against mutual TLS with access control."""
     script = _latency_script(tmp_path / "latency.toml", touches=15)
     results = {}
-    for mode, port in LATENCY_PORTS.items():
+    for mode in ("tcp", "tls"):
         tmp = tmp_path / mode
         tmp.mkdir()
-        pipeline = Pipeline(tmp, port, lab if mode == "tls" else None)
+        pipeline = RoutedPipeline(tmp, lab if mode == "tls" else None)
         pipeline_factory.append(pipeline)
         pipeline.start_router()
         pipeline.start_services(script)
         pipeline.wait_gateway(timeout_s=120)
-        pipeline.stop()
+        pipeline.stop_all()
         records, _ = read_recording(pipeline.output)
         results[mode] = _check_session(records, script)
         assert len(results[mode]) == 15

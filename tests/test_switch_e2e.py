@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from pipeline import Pipeline
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import ZenohSection
-from nwr.common.node import Node
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.tools.recordings.verify import verify
@@ -22,14 +19,13 @@ from nwr.services.tools.recordings.verify import verify
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 SCRIPT = Path(__file__).parent / "data" / "switch.toml"
-PORT = 17850
 ORDER = ["uniform", "cartesian", "location"]  # UR -> CR -> LR
 SWITCH_AT_S = {8.0: "cartesian", 14.0: "location"}
 
 
-def switcher(stop: threading.Event, log: list[str]) -> None:
+def switcher(pipeline: Pipeline, stop: threading.Event, log: list[str]) -> None:
     """Switches the active planner at fixed times of the session (from its first skin sample)."""
-    with Node("test", "ur10e", ZenohSection(base_port=PORT), token=False) as node:
+    with pipeline.node() as node:
         first: list[int] = []
         node.subscribe(keys.SKIN_PRESSURE, lambda s: first.append(s.stamp_ns) if not first else None)
         publish = node.publisher(keys.CONTROL_ACTIVE)
@@ -41,20 +37,15 @@ def switcher(stop: threading.Event, log: list[str]) -> None:
                 log.append(name)
 
 
-def test_switch_during_a_live_session(tmp_path):
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_switch_during_a_live_session(tmp_path, pipeline: Pipeline):
     output = tmp_path / "switch.mcap"
     stop = threading.Event()
     sent: list[str] = []
-    thread = threading.Thread(target=switcher, args=(stop, sent), daemon=True)
+    thread = threading.Thread(target=switcher, args=(pipeline, stop, sent), daemon=True)
     thread.start()
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo", "--script", str(SCRIPT),
-             "--planners", ",".join(ORDER), "--output", str(output)],
-            capture_output=True, text=True, timeout=150,
-        )
+        proc = pipeline.run("demo", "--script", str(SCRIPT), "--planners", ",".join(ORDER), "--output", str(output),
+                            timeout_s=150)
     finally:
         stop.set()
         thread.join(5)

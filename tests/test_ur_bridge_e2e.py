@@ -19,13 +19,14 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
+from pipeline import SHORT_SCRIPT, Pipeline
 from ur_support import emulator_process, skip_unless_free
 
 from nwr.common import keys
@@ -36,10 +37,7 @@ from nwr.services.tools.recordings import analysis
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-SCRIPT = Path(__file__).parent / "data" / "short.toml"
 CONTROL_PORT = 29990  # the emulator's fault injection (its own option: free to choose)
-SESSION_PORT = 18650  # a Zenoh mesh of its own
-FAULT_PORT = 18670
 REFLEX = "cartesian"  # velocity reflexes: the withdrawal is the switch from servoJ to speedJ
 
 class Emulator:
@@ -78,11 +76,11 @@ def _brief(state: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in state.items() if k != "command_changes"}
 
 
-@pytest.fixture
-def emulator(tmp_path: Path) -> Iterator[Emulator]:
+@contextmanager
+def running_emulator(log: Path) -> Iterator[Emulator]:
+    """The emulator on 127.0.0.1 (the test is skipped if its ports are taken), ready, then ended."""
     skip_unless_free(CONTROL_PORT)
-    with emulator_process(tmp_path / "emulator.log", "--control-port", str(CONTROL_PORT),
-                          "--protective-unlock-delay", "0.5") as process:
+    with emulator_process(log, "--control-port", str(CONTROL_PORT), "--protective-unlock-delay", "0.5") as process:
         emu = Emulator(process)
         try:
             yield emu
@@ -90,60 +88,37 @@ def emulator(tmp_path: Path) -> Iterator[Emulator]:
             emu.close()
 
 
-def write_profile(tmp_path: Path, port: int) -> Path:
-    profile = tmp_path / "profile.toml"
-    # The controller's watchdog at 2 Hz, not 10: the test machine is shared, and a starved bridge would trip it.
-    profile.write_text(
-        f'[zenoh]\nbase_port = {port}\n[recorder]\ndirectory = "{tmp_path}"\n'
-        "[bridge]\nwatchdog_hz = 2.0\n"
-        '[safety]\nacknowledge = ["bridge.watchdog_hz"]\n'
-        'reason = "tests/test_ur_bridge_e2e.py: the UR emulator, no arm, on a shared test machine"\n')
-    return profile
+@pytest.fixture
+def emulator(tmp_path: Path) -> Iterator[Emulator]:
+    with running_emulator(tmp_path / "emulator.log") as emu:
+        yield emu
 
 
-def demo(tmp_path: Path, port: int, script: Path, output: Path, *, restart: bool = False) -> subprocess.Popen[str]:
-    """``nwr demo`` on the emulator; ``restart``: a service that exits is restarted (``nwr up``'s default),
-    else every service stops (``--stop-on-exit``)."""
-    with open(tmp_path / "demo.log", "w") as log:  # the child keeps its own descriptor
-        return subprocess.Popen(
-            [sys.executable, "-m", "nwr.services.cli", "--profile", str(write_profile(tmp_path, port)), "demo",
-             "--script", str(script), "--output", str(output), "--reflex", REFLEX,
-             *(() if restart else ("--stop-on-exit",)),
-             "--backend", "ur_rtde", "--robot-ip", "127.0.0.1", "--i-am-next-to-the-robot"],
-            stdout=log, stderr=subprocess.STDOUT, text=True)
+# The controller's watchdog at 2 Hz, not 10: the test machine is shared, and a starved bridge would trip it.
+PROFILE = ("[bridge]\nwatchdog_hz = 2.0\n"
+           '[safety]\nacknowledge = ["bridge.watchdog_hz"]\n'
+           'reason = "tests/test_ur_bridge_e2e.py: the UR emulator, no arm, on a shared test machine"\n')
 
 
-def demo_log(tmp_path: Path) -> str:
-    return (tmp_path / "demo.log").read_text()
-
-
-def interrupt(proc: subprocess.Popen[str], grace_s: float) -> None:
-    """Ctrl-C, as a person would stop it; killed if it has not ended within ``grace_s``."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(timeout=grace_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
-def finish(proc: subprocess.Popen[str], timeout: float) -> int:
-    try:
-        return proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        interrupt(proc, 30)
-        raise
+def demo(pipeline: Pipeline, script: Path, output: Path, *, restart: bool = False) -> subprocess.Popen[bytes]:
+    """``nwr demo`` on the emulator (its log: ``pipeline.log("demo")``; stopped with ``pipeline.stop("demo")``, as a
+    person would, Ctrl-C); ``restart``: a service that exits is restarted (``nwr up``'s default), else every
+    service stops (``--stop-on-exit``)."""
+    pipeline.configure(PROFILE)
+    return pipeline.start("demo", "demo", "--script", str(script), "--output", str(output), "--reflex", REFLEX,
+                          *(() if restart else ("--stop-on-exit",)),
+                          "--backend", "ur_rtde", "--robot-ip", "127.0.0.1", "--i-am-next-to-the-robot",
+                          ends=not restart)
 
 
 # --------------------------------------------------------------------------- a whole session
 
 
-def test_demo_session_through_the_emulator(tmp_path: Path, emulator: Emulator) -> None:
+def test_demo_session_through_the_emulator(tmp_path: Path, emulator: Emulator, pipeline: Pipeline) -> None:
     output = tmp_path / "session.mcap"
-    proc = demo(tmp_path, SESSION_PORT, SCRIPT, output)
-    code = finish(proc, 180)
-    log = demo_log(tmp_path)
+    demo(pipeline, SHORT_SCRIPT, output)
+    code = pipeline.wait("demo", 180)
+    log = pipeline.log("demo")
     assert code == 0, log
     assert "all 4 scripted touches as expected" in log, log
     final = emulator.state()
@@ -231,7 +206,7 @@ FAULTS: list[tuple[str, str, list[str], str]] = [
 HANG_S = 1.5
 
 
-def bridge_pid(demo: subprocess.Popen[str]) -> int:
+def bridge_pid(demo: subprocess.Popen[bytes]) -> int:
     """The bridge's process: the demo's child running `nwr run bridge` (started by this test)."""
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -247,13 +222,13 @@ def bridge_pid(demo: subprocess.Popen[str]) -> int:
     raise AssertionError("the bridge's process was not found")
 
 
-def test_faults_through_the_emulator(tmp_path: Path, emulator: Emulator) -> None:
+def test_faults_through_the_emulator(tmp_path: Path, emulator: Emulator, pipeline: Pipeline) -> None:
     script = tmp_path / "long.toml"
     script.write_text(LONG_SCRIPT)
     output = tmp_path / "faults.mcap"
     # Restarts on: ur_rtde may end the bridge's process, or hang it until the bridge's stall guard does, when
     # the connection drops at an unlucky moment (docs/bridge.md); a fresh bridge then takes over, as in a lab.
-    proc = demo(tmp_path, FAULT_PORT, script, output, restart=True)
+    proc = demo(pipeline, script, output, restart=True)
     results: list[dict[str, Any]] = []
     try:
         # the task streams, and the touch's reflex is over
@@ -293,8 +268,8 @@ def test_faults_through_the_emulator(tmp_path: Path, emulator: Emulator) -> None
             assert state["watchdog_hz"] == 2.0, "the bridge drives a script the controller does not watch"
             results.append({"inject": inject, "status": status, **fault, "injected": injected})
     finally:
-        interrupt(proc, 60)
-    log = demo_log(tmp_path)
+        pipeline.stop("demo", grace_s=60)
+    log = pipeline.log("demo")
 
     records, _ = read_recording(output)
     states = [r.message for r in records if r.key == "robot/state"]

@@ -9,18 +9,27 @@ joint and pad speeds and how far the reported joint moved, from the fault to
 (``servoStop`` / ``speedStop``) reaching the controller, to the true arm at
 rest, and to the bridge's ``state_implausible``; the statuses it reported.
 The figures are printed (``pytest -s``; docs/bridge.md has them).
+
+Both tests run on one session (the module's fixture :func:`session`): one
+emulator, one ``nwr demo``; the hostile reports first, then the silences,
+each part from the arm in its task; the recording is read once the demo
+has stopped. Each test checks its own part's cases, and fails with its own
+error if they could not be run.
 """
 
 from __future__ import annotations
 
 import time
-from pathlib import Path
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pytest
-from test_ur_bridge_e2e import Emulator, demo, demo_log, emulator, interrupt  # noqa: F401  (a fixture)
+from pipeline import Pipeline
+from test_ur_bridge_e2e import Emulator, demo, running_emulator
 
+from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
@@ -28,7 +37,6 @@ from nwr.services.tools.hardware import ur_arm, ur_controller
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-PORT = 18690  # a Zenoh mesh of its own
 ELBOW = 2
 # A reflex every 10 s (forearm_top, PL 3: the Cartesian reflex, a speedJ stream).
 SCRIPT = "duration_s = 150.0\n" + "".join(
@@ -54,37 +62,117 @@ def pad_speed(track: list[list[float]], model: RobotModel) -> float:
     return float((np.linalg.norm(np.diff(points, axis=0), axis=2) / (2 * ur_arm.DT)).max())
 
 
-def test_a_hostile_controller_is_not_believed(tmp_path: Path, emulator: Emulator) -> None:  # noqa: F811
-    script = tmp_path / "hostile.toml"
-    script.write_text(SCRIPT)
-    output = tmp_path / "hostile.mcap"
-    proc = demo(tmp_path, PORT, script, output, restart=True)
+def hostile_cases(emulator: Emulator) -> list[tuple[str, dict[str, Any]]]:
+    """The hostile reports (CASES), one after the other: each fault as the emulator recorded it."""
     faults: list[tuple[str, dict[str, Any]]] = []
-    try:
-        emulator.wait("the task", lambda s: s["motion_writes"] > 500 and s["script_running"], timeout=90)
-        time.sleep(2.0)
-        for name, command in CASES:
-            before = emulator.wait("the arm moving", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
-            answer = emulator(command)
-            assert not answer.startswith("error"), answer
-            since = before["t"]
-            state = emulator.wait(f"{name}: the fault", lambda s, since=since: _hostile(s, since) is not None, 40)
-            fault = _hostile(state, since)
-            assert fault is not None
-            end = fault["end_t"] + 1.0
-            state = emulator.wait(f"{name}: its end", lambda s, end=end: s["t"] > end + 0.1, 30)
-            fault = _hostile(state, since)
-            assert fault is not None
-            faults.append((name, {**fault, "command_changes": state["command_changes"]}))
-            # the pipeline moves the arm again (the reports believed again: at rest, where it was stopped)
-            emulator.wait(f"{name}: moving again", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
-            time.sleep(1.0)
-    finally:
-        interrupt(proc, 60)
-    log = demo_log(tmp_path)
+    for name, command in CASES:
+        before = emulator.wait("the arm moving", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
+        answer = emulator(command)
+        assert not answer.startswith("error"), answer
+        since = before["t"]
+        state = emulator.wait(f"{name}: the fault", lambda s, since=since: _hostile(s, since) is not None, 40)
+        fault = _hostile(state, since)
+        assert fault is not None
+        end = fault["end_t"] + 1.0
+        state = emulator.wait(f"{name}: its end", lambda s, end=end: s["t"] > end + 0.1, 30)
+        fault = _hostile(state, since)
+        assert fault is not None
+        faults.append((name, {**fault, "command_changes": state["command_changes"]}))
+        # the pipeline moves the arm again (the reports believed again: at rest, where it was stopped)
+        emulator.wait(f"{name}: moving again", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
+        time.sleep(1.0)
+    return faults
+
+
+SILENCES = [
+    # (name, the control port's command, the fault the emulator records, how long it lasts, s, the status expected,
+    #  the longest gap between two states allowed, s: 20 ms at 50 Hz and a loaded machine's scheduling; after a
+    #  dropped connection, ur_rtde's destructor of the lost interfaces holds the GIL for a second, docs/bridge.md)
+    ("connection dropped, refused for 2 s", "drop 2", "drop", 2.0, "disconnected", 1.5),
+    ("joint 3 reported NaN (position and speed) for 1 s", "nan 3 1", "nan", 1.0, "state_implausible", 0.25),
+]
+
+
+def silence_cases(emulator: Emulator) -> list[tuple[str, float, float, str, float]]:
+    """The silences (SILENCES), one after the other: each case's name, fault time, duration, status, longest gap."""
+    faults: list[tuple[str, float, float, str, float]] = []
+    for name, command, fault_name, seconds, status, max_gap in SILENCES:
+        before = emulator.wait("the arm moving", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
+        answer = emulator(command)
+        assert not answer.startswith("error"), answer
+        since = before["t"]
+        state = emulator.wait(f"{name}: the fault", lambda s, since=since, f=fault_name: _hostile(
+            s, since, (f,)) is not None, 40)
+        fault = _hostile(state, since, (fault_name,))
+        assert fault is not None
+        faults.append((name, fault["t"], seconds, status, max_gap))
+        emulator.wait(f"{name}: its end", lambda s, end=fault["t"] + seconds + 1.0: s["t"] > end, 30)
+        emulator.wait(f"{name}: moving again", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
+        time.sleep(1.0)
+    return faults
+
+
+PARTS: dict[str, Callable[[Emulator], list[Any]]] = {"hostile": hostile_cases, "silences": silence_cases}
+
+
+@dataclass
+class Session:
+    """The shared session: each part's faults (or the error that stopped it), when it ran, the recording, the log."""
+
+    faults: dict[str, list[Any]] = field(default_factory=dict)
+    errors: dict[str, Exception] = field(default_factory=dict)
+    spans: dict[str, tuple[float, float]] = field(default_factory=dict)  # monotonic s
+    states: list[m.RobotState] = field(default_factory=list)
+    diags: list[m.Diagnostic] = field(default_factory=list)
+    log: str = ""
+
+    def part(self, name: str) -> list[Any]:
+        """A part's faults; its error, if it could not be run."""
+        if name in self.errors:
+            raise self.errors[name]
+        return self.faults[name]
+
+    def windows(self) -> list[tuple[float, float]]:
+        """Where every case of either part may report state_implausible: from its fault to 10 s past its end
+        (its clearing included); a part that failed, from its start to 10 s past its end."""
+        windows = [(f["t"], f["end_t"] + 10.0) for _, f in self.faults.get("hostile", [])]
+        windows += [(t0, t0 + seconds + 10.0) for _, t0, seconds, _, _ in self.faults.get("silences", [])]
+        windows += [(self.spans[name][0], self.spans[name][1] + 10.0) for name in self.errors]
+        return windows
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
+    tmp = tmp_path_factory.mktemp("hostile")
+    script = tmp / "hostile.toml"
+    script.write_text(SCRIPT)
+    output = tmp / "hostile.mcap"
+    shared = Session()
+    with running_emulator(tmp / "emulator.log") as emulator, Pipeline(tmp) as pipeline:
+        demo(pipeline, script, output, restart=True)
+        try:
+            emulator.wait("the task", lambda s: s["motion_writes"] > 500 and s["script_running"], timeout=90)
+            for name, run in PARTS.items():
+                start = time.monotonic()
+                try:
+                    emulator.wait("the task", lambda s: s["script_running"], timeout=90)
+                    time.sleep(2.0)
+                    shared.faults[name] = run(emulator)
+                except Exception as exc:  # this part's test fails with it; the next part runs all the same
+                    shared.errors[name] = exc
+                shared.spans[name] = (start, time.monotonic())
+        finally:
+            pipeline.stop("demo", grace_s=60)
+        shared.log = pipeline.log("demo")
     records, _ = read_recording(output)
-    states = [r.message for r in records if r.key == "robot/state"]
-    diags = [r.message for r in records if r.key == "diag/bridge"]
+    shared.states = [r.message for r in records if r.key == "robot/state"]
+    shared.diags = [r.message for r in records if r.key == "diag/bridge"]
+    yield shared
+
+
+def test_a_hostile_controller_is_not_believed(session: Session) -> None:
+    faults = session.part("hostile")
+    log, states, diags = session.log, session.states, session.diags
     model = RobotModel(load_description())
     print()
     results = []
@@ -132,52 +220,21 @@ def test_a_hostile_controller_is_not_believed(tmp_path: Path, emulator: Emulator
         assert r["stop_ms"] is not None and r["stop_ms"] < allowed, r
         assert r["rest_ms"] is not None and r["rest_ms"] < 1000.0, r
         assert r["elbow_moved"] < 0.15, r  # the true elbow never follows the false report
-    # never a false alarm: every state_implausible lies within a case (its clearing after it included)
-    windows = [(f["t"], f["end_t"] + 10.0) for _, f in faults]
+    # never a false alarm: every state_implausible of the session lies within a case (its clearing after it
+    # included), of this part or the silences
+    windows = session.windows()
     stray = [s.stamp_ns * 1e-9 for s in [*states, *diags] if "state_implausible" in (s.status if hasattr(s, "status")
              else s.code) and not any(a <= s.stamp_ns * 1e-9 <= b for a, b in windows)]
     assert not stray, (stray, windows)
-    # after each case the pipeline followed the planner again
-    assert any(s.status == "ok" for s in states if s.stamp_ns > faults[-1][1]["end_t"] * 1e9)
+    # after each case the pipeline followed the planner again (before the silences began)
+    assert any(s.status == "ok" for s in states
+               if faults[-1][1]["end_t"] * 1e9 < s.stamp_ns <= session.spans["hostile"][1] * 1e9)
 
 
-SILENCES = [
-    # (name, the control port's command, the fault the emulator records, how long it lasts, s, the status expected,
-    #  the longest gap between two states allowed, s: 20 ms at 50 Hz and a loaded machine's scheduling; after a
-    #  dropped connection, ur_rtde's destructor of the lost interfaces holds the GIL for a second, docs/bridge.md)
-    ("connection dropped, refused for 2 s", "drop 2", "drop", 2.0, "disconnected", 1.5),
-    ("joint 3 reported NaN (position and speed) for 1 s", "nan 3 1", "nan", 1.0, "state_implausible", 0.25),
-]
-
-
-def test_the_bridge_is_never_silent(tmp_path: Path, emulator: Emulator) -> None:  # noqa: F811
+def test_the_bridge_is_never_silent(session: Session) -> None:
     """A dropped connection or a NaN report: the state goes on at its rate, says why, and carries no NaN."""
-    script = tmp_path / "silence.toml"
-    script.write_text(SCRIPT)
-    output = tmp_path / "silence.mcap"
-    proc = demo(tmp_path, PORT + 5, script, output, restart=True)
-    faults: list[tuple[str, float, float, str, float]] = []
-    try:
-        emulator.wait("the task", lambda s: s["motion_writes"] > 500 and s["script_running"], timeout=90)
-        time.sleep(2.0)
-        for name, command, fault_name, seconds, status, max_gap in SILENCES:
-            before = emulator.wait("the arm moving", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
-            answer = emulator(command)
-            assert not answer.startswith("error"), answer
-            since = before["t"]
-            state = emulator.wait(f"{name}: the fault", lambda s, since=since, f=fault_name: _hostile(
-                s, since, (f,)) is not None, 40)
-            fault = _hostile(state, since, (fault_name,))
-            assert fault is not None
-            faults.append((name, fault["t"], seconds, status, max_gap))
-            emulator.wait(f"{name}: its end", lambda s, end=fault["t"] + seconds + 1.0: s["t"] > end, 30)
-            emulator.wait(f"{name}: moving again", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
-            time.sleep(1.0)
-    finally:
-        interrupt(proc, 60)
-    log = demo_log(tmp_path)
-    records, _ = read_recording(output)
-    states = [r.message for r in records if r.key == "robot/state"]
+    faults = session.part("silences")
+    log, states = session.log, session.states
     print()
     results = []
     for name, t0, seconds, status, max_gap in faults:

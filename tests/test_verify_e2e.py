@@ -3,58 +3,37 @@
 from __future__ import annotations
 
 import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
+from pipeline import SHORT_SCRIPT, Pipeline
 
-from nwr.common.config import ZenohSection
-from nwr.common.node import Node
 from nwr.services.tools.recordings.verify import verify
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-SCRIPT = Path(__file__).parent / "data" / "short.toml"
-PORT = 17950
 
-
-def nwr(profile: Path, *args: str) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), *args],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-
-
-def test_every_strategy_and_a_killed_planner_verify_bit_for_bit(tmp_path):
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_every_strategy_and_a_killed_planner_verify_bit_for_bit(tmp_path, pipeline: Pipeline):
     output = tmp_path / "killed.mcap"
     strategies = ["cartesian-smooth", "location", "uniform", "whole-arm"]  # cartesian: tests/test_e2e.py
-    procs: dict[str, subprocess.Popen[bytes]] = {}
-    try:
-        procs["recorder"] = nwr(profile, "run", "recorder", "--output", str(output))
-        with Node("test", "ur10e", ZenohSection(base_port=PORT), token=False) as node:
-            assert not node.wait_for(["recorder"], 30.0)
-            procs["bridge"] = nwr(profile, "run", "bridge", "--active", strategies[0])
-            for name in strategies:
-                procs[name] = nwr(profile, "run", "planner", "--name", name, "--reflex", name)
-            procs["gain"] = nwr(profile, "run", "gain")
-            assert not node.wait_for(["bridge", "gain", *(f"planner-{s}" for s in strategies)], 30.0)
-            procs["gateway"] = nwr(profile, "run", "gateway", "--script", str(SCRIPT), "--exit-at-end")
-            time.sleep(5.0)  # past the first reflex (2.0 s of the script is the first touch)
-            active = strategies[0]
-            procs[active].send_signal(signal.SIGKILL)  # the active planner dies without a word
-            procs[active].wait(10)
-            time.sleep(1.0)  # the bridge holds the arm; then the planner is back and takes over
-            procs[active] = nwr(profile, "run", "planner", "--name", active, "--reflex", active)
-            assert not node.wait_for([f"planner-{active}"], 30.0)
-        assert procs["gateway"].wait(60) == 0
-        time.sleep(2.0)  # the last return
-    finally:
-        for name in [n for n in procs if n != "recorder"] + ["recorder"]:
-            if procs[name].poll() is None:
-                procs[name].send_signal(signal.SIGTERM)
-                procs[name].wait(20)
+    pipeline.start("recorder", "run", "recorder", "--output", str(output))
+    with pipeline.node() as node:
+        assert not node.wait_for(["recorder"], 30.0)
+        pipeline.start("bridge", "run", "bridge", "--active", strategies[0])
+        for name in strategies:
+            pipeline.start(name, "run", "planner", "--name", name, "--reflex", name)
+        pipeline.start("gain", "run", "gain")
+        assert not node.wait_for(["bridge", "gain", *(f"planner-{s}" for s in strategies)], 30.0)
+        pipeline.start("gateway", "run", "gateway", "--script", str(SHORT_SCRIPT), "--exit-at-end", ends=True)
+        time.sleep(5.0)  # past the first reflex (2.0 s of the script is the first touch)
+        active = strategies[0]
+        pipeline.stop(active, sig=signal.SIGKILL, grace_s=10)  # the active planner dies without a word
+        time.sleep(1.0)  # the bridge holds the arm; then the planner is back and takes over
+        pipeline.start(active, "run", "planner", "--name", active, "--reflex", active)
+        assert not node.wait_for([f"planner-{active}"], 30.0)
+    assert pipeline.wait("gateway", 60) == 0
+    time.sleep(2.0)  # the last return
+    pipeline.stop_all(sig=signal.SIGTERM, grace_s=20)  # the recorder last: it was started first
 
     results = verify(output)
     lines = [r.format() for r in results]

@@ -14,18 +14,17 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import signal
 import socket
 import struct
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import websockets
+from pipeline import SHORT_SCRIPT, Pipeline
 from test_view import CHANNELS, DESC, MODEL, arrow_length, protobuf_decoder, rgba, transforms_of
 
 from nwr.common import keys
@@ -35,8 +34,6 @@ from nwr.services.view.export import export_foxglove
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-SCRIPT = Path(__file__).parent / "data" / "short.toml"
-BASE_PORT = 17750  # a mesh of its own: other e2e tests and a running demo do not interfere
 SUBPROTOCOL = "foxglove.sdk.v1"
 
 
@@ -131,25 +128,16 @@ def run_client(port: int, until: Any, timeout_s: float, script: Any = None) -> C
     return capture
 
 
-def test_live_view_and_recording_playback(tmp_path):
-    profile = tmp_path / "profile.toml"
-    profile.write_text(f'[zenoh]\nbase_port = {BASE_PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_live_view_and_recording_playback(tmp_path, pipeline: Pipeline):
     recording = tmp_path / "session.mcap"
     port = free_port()
-    demo = subprocess.Popen(
-        [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "demo", "--script", str(SCRIPT),
-         "--output", str(recording), "--view", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
-        live = run_client(port, until=lambda: demo.poll() is not None, timeout_s=60.0)
-        out, err = demo.communicate(timeout=30)
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.communicate()
-    assert demo.returncode == 0, out + err
-    assert "all 4 scripted touches as expected" in out, out + err
+    demo = pipeline.start("demo", "demo", "--script", str(SHORT_SCRIPT), "--output", str(recording), "--view",
+                          str(port), ends=True)
+    live = run_client(port, until=lambda: demo.poll() is not None, timeout_s=60.0)
+    code = pipeline.wait("demo", 30)
+    log = pipeline.log("demo")
+    assert code == 0, log
+    assert "all 4 scripted touches as expected" in log, log
 
     # -- advertised channels and their schemas -------------------------------------------
     for spec in CHANNELS:
@@ -232,7 +220,7 @@ def test_live_view_and_recording_playback(tmp_path):
           f"commanded {command_rate:.0f} setpoints/s; view CPU {np.median(cpu):.1f} % median, {max(cpu):.1f} % worst "
           f"(of one core, whole process); " + "; ".join(
               f"{topic} {len(msgs) / ((times[-1] - times[0]) / 1e9):.1f}/s" for topic, msgs in live.messages.items()))
-    for line in err.splitlines():
+    for line in log.splitlines():
         if "view:" in line and "CPU" in line:
             print(line)
 
@@ -241,10 +229,7 @@ def test_live_view_and_recording_playback(tmp_path):
     report = export_foxglove(recording, exported)
     assert report.added["/tf"] > 100
     port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "view", str(exported),
-         "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+    pipeline.start("view", "view", str(exported), "--port", str(port))
     try:
         async def script(client: Client, capture: Capture) -> None:
             await client.pump(lambda: "/tf" in capture.channels and capture.states == [] and len(
@@ -266,9 +251,8 @@ def test_live_view_and_recording_playback(tmp_path):
 
         playback = run_client(port, until=None, timeout_s=30.0, script=script)
     finally:
-        server.terminate()
-        out, err = server.communicate(timeout=15)
-    assert server.returncode in (0, -15), err
+        code = pipeline.stop("view", sig=signal.SIGTERM, grace_s=15.0)
+    assert code in (0, -15), pipeline.log("view")
     start = records[0].log_time_ns
     status, current, speed = playback.states[0]
     assert status == 0 and speed == pytest.approx(2.0) and current == pytest.approx(start + 5e9, abs=1e8)  # playing

@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -21,54 +20,30 @@ import msgspec
 import numpy as np
 import pytest
 import zenoh
+from pipeline import Pipeline, alive
 from wrong_messages import catalogue
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.config import ZenohSection, load_profile
-from nwr.common.node import zenoh_config
+from nwr.common.config import load_profile
 from nwr.common.recordings import read_recording
 from nwr.common.robot import RobotModel, load_description
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-PORT = 17650
 FORGED_SEQ = 10**6  # the peer's messages count from here: the pipeline's own never get there in a test
 TOLERANCE = 0.01
 
 
-def alive(session: zenoh.Session) -> set[str]:
-    names = set()
-    for reply in session.liveliness().get(keys.key("ur10e", "alive/*"), timeout=1.0):
-        if reply.ok is not None:
-            names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-    return names
-
-
-def wait_alive(session: zenoh.Session, wanted: set[str], timeout_s: float) -> set[str]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        seen = alive(session)
-        if wanted <= seen:
-            return seen
-        time.sleep(0.3)
-    return alive(session)
-
-
-def test_wrong_messages_on_every_key_and_a_killed_service(tmp_path: Path) -> None:
-    profile_path = tmp_path / "profile.toml"
-    profile_path.write_text(f'[zenoh]\nbase_port = {PORT}\n[recorder]\ndirectory = "{tmp_path}"\n')
+def test_wrong_messages_on_every_key_and_a_killed_service(tmp_path: Path, pipeline: Pipeline) -> None:
     output = tmp_path / "session.mcap"
-    log_path = tmp_path / "up.log"
     desc = load_description()
     active = load_profile().bridge.active_planner
     wanted = {"bridge", f"planner-{active}", "gain", "gateway"}
-    with log_path.open("wb") as log_file:
-        up = subprocess.Popen([sys.executable, "-m", "nwr.services.cli", "--profile", str(profile_path), "up",
-                               "--output", str(output)], stdout=log_file, stderr=subprocess.STDOUT)
+    pipeline.start("up", "up", "--output", str(output))
     try:
-        with zenoh.open(zenoh_config(ZenohSection(base_port=PORT))) as session:
-            assert wanted <= wait_alive(session, wanted, 60.0), log_path.read_text()
+        with pipeline.session() as session:
+            pipeline.wait_alive(session, wanted, 60.0)
             time.sleep(2.0)  # the arm on its task
             wrong = catalogue(desc, active=active, seq=FORGED_SEQ, stamp_ns=time.monotonic_ns())
             publishers: dict[str, zenoh.Publisher] = {}
@@ -85,19 +60,18 @@ def test_wrong_messages_on_every_key_and_a_killed_service(tmp_path: Path) -> Non
             time.sleep(1.0)
             assert wanted <= alive(session), "a service died of a wrong message"
             # Kill the gain estimator: nwr up restarts it, the others keep running.
-            gain = subprocess.run(["pgrep", "-f", f"{profile_path} .*run gain"], capture_output=True,
+            gain = subprocess.run(["pgrep", "-f", f"{pipeline.profile} .*run gain"], capture_output=True,
                                   text=True)
             pids = [int(p) for p in gain.stdout.split()]
             assert len(pids) == 1, gain
             os.kill(pids[0], signal.SIGKILL)
             time.sleep(0.5)
             assert "gain" not in alive(session)
-            assert wanted <= wait_alive(session, wanted, 30.0), "the killed service was not restarted"
+            pipeline.wait_alive(session, wanted, 30.0, "the killed service restarted")
             time.sleep(2.0)
     finally:
-        up.send_signal(signal.SIGINT)
-        code = up.wait(60)
-    log = log_path.read_text()
+        code = pipeline.stop("up")
+    log = pipeline.log("up")
     assert code == 0, log
     assert "Traceback" not in log, log
     assert "gain exited unexpectedly" in log and "restarted gain" in log, log
