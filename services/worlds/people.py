@@ -10,8 +10,8 @@ Sizes (adult anthropometry, rounded): an index fingertip is about 18 mm
 wide (a sphere of 9 mm radius); a palm about 9 cm x 10 cm and 3 cm thick; a
 forearm about 7 cm across and, where it can lean on an arm, 24 cm long.
 Masses are ISO/TS 15066's effective masses of the body regions (its Table
-A.3: hands and fingers 0.6 kg, lower arms and wrist joints 2 kg): the mass
-that takes part in a transient contact.
+A.3, from memory like the limits below: hands and fingers 0.6 kg, lower arms
+and wrist joints 2 kg): the mass that takes part in a transient contact.
 
 Plausible pushes: an index finger presses at most about 40-50 N (maximum
 voluntary fingertip force); one hand or forearm pushes an obstacle with a
@@ -23,8 +23,8 @@ maximum permissible quasi-static force and, per specific body area, the
 maximum permissible quasi-static pressure; transient contact (the body part
 can recoil) may reach twice both, except on the skull, forehead and face,
 where transient contact is not permitted. :data:`ISO_TS_15066` holds the
-table's values as reproduced in the guidance that cites it (they were not
-read from a licensed copy of the standard here): check them against the
+table's values as widely reproduced from it, written down from memory: they
+were not checked against the standard's text here. Check them against the
 standard before quoting them in a risk assessment. The energy figure
 ``energy_j = F_T**2 / (2 k)`` is derived from the transient force limit and
 the region's effective spring constant (Table A.3), as ISO/TS 15066's
