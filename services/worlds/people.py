@@ -1,0 +1,165 @@
+"""People's body parts in a physics world: their shapes, masses, how hard they can push, and ISO/TS 15066's limits.
+
+A body part is a rigid shape (a finger's tip, a palm, a forearm) that a
+person moves: a spring-damper pulls it toward a target, and its pull
+saturates at the part's push force (a person pushes no harder than their
+muscles let them). The world refuses a push beyond what a person can
+plausibly make with that part (:data:`KINDS`' ``plausible_push_n``).
+
+Sizes (adult anthropometry, rounded): an index fingertip is about 18 mm
+wide (a sphere of 9 mm radius); a palm about 9 cm x 10 cm and 3 cm thick; a
+forearm about 7 cm across and, where it can lean on an arm, 24 cm long.
+Masses are ISO/TS 15066's effective masses of the body regions (its Table
+A.3, from memory like the limits below: hands and fingers 0.6 kg, lower arms
+and wrist joints 2 kg): the mass that takes part in a transient contact.
+
+Plausible pushes: an index finger presses at most about 40-50 N (maximum
+voluntary fingertip force); one hand or forearm pushes an obstacle with a
+few hundred newtons at most. These are chosen bounds, not measurements: a
+push beyond them is a script error, not a strong person.
+
+ISO/TS 15066 (2016), Annex A, Table A.2 gives, per body region, the
+maximum permissible quasi-static force and, per specific body area, the
+maximum permissible quasi-static pressure; transient contact (the body part
+can recoil) may reach twice both, except on the skull, forehead and face,
+where transient contact is not permitted. :data:`ISO_TS_15066` holds the
+table's values as widely reproduced from it, written down from memory: they
+were not checked against the standard's text here. Check them against the
+standard before quoting them in a risk assessment. The energy figure
+``energy_j = F_T**2 / (2 k)`` is derived from the transient force limit and
+the region's effective spring constant (Table A.3), as ISO/TS 15066's
+transfer-energy relation does; it is not a quoted value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+Kind = Literal["finger", "palm", "forearm"]
+
+
+@dataclass(frozen=True)
+class Region:
+    """ISO/TS 15066 Table A.2 limits for one specific body area (and its body region's force).
+
+    Pressures in N/cm^2, forces in N. ``transient_factor`` multiplies both for
+    transient contact (0: transient contact not permitted). ``spring_n_mm``
+    and ``mass_kg`` are the region's effective spring constant and mass
+    (Table A.3), where a body part of this world uses them.
+    """
+
+    region: str
+    area: str
+    pressure_n_cm2: float
+    force_n: float
+    transient_factor: float = 2.0
+    spring_n_mm: float = 0.0
+    mass_kg: float = 0.0
+
+    @property
+    def transient_pressure_n_cm2(self) -> float:
+        return self.pressure_n_cm2 * self.transient_factor
+
+    @property
+    def transient_force_n(self) -> float:
+        return self.force_n * self.transient_factor
+
+    @property
+    def transient_energy_j(self) -> float:
+        """``F_T**2 / (2 k)``: the energy a transient contact at the transient force limit stores in the region's
+        effective spring (derived, see the module docstring); 0 without a spring constant."""
+        if self.spring_n_mm <= 0.0:
+            return 0.0
+        return self.transient_force_n ** 2 / (2.0 * self.spring_n_mm * 1000.0)
+
+
+#: ISO/TS 15066:2016 Table A.2 (and A.3 where a body part uses it), one row per specific body area, keyed by a
+#: short name. D / ND: dominant / non-dominant hand.
+ISO_TS_15066: dict[str, Region] = {
+    r.area: r
+    for r in (
+        Region("skull and forehead", "forehead", 130.0, 130.0, transient_factor=0.0),
+        Region("skull and forehead", "temple", 110.0, 130.0, transient_factor=0.0),
+        Region("face", "masticatory_muscle", 110.0, 65.0, transient_factor=0.0),
+        Region("neck", "neck_muscle", 140.0, 150.0),
+        Region("neck", "seventh_neck_muscle", 210.0, 150.0),
+        Region("back and shoulders", "shoulder_joint", 160.0, 210.0),
+        Region("back and shoulders", "fifth_lumbar_vertebra", 210.0, 210.0),
+        Region("chest", "sternum", 120.0, 140.0),
+        Region("chest", "pectoral_muscle", 170.0, 140.0),
+        Region("abdomen", "abdominal_muscle", 140.0, 110.0),
+        Region("pelvis", "pelvic_bone", 210.0, 180.0),
+        Region("upper arms and elbow joints", "deltoid_muscle", 190.0, 150.0, spring_n_mm=30.0, mass_kg=3.0),
+        Region("upper arms and elbow joints", "humerus", 220.0, 150.0, spring_n_mm=30.0, mass_kg=3.0),
+        Region("lower arms and wrist joints", "radial_bone", 190.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
+        Region("lower arms and wrist joints", "forearm_muscle", 180.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
+        Region("lower arms and wrist joints", "arm_nerve", 180.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
+        Region("hands and fingers", "forefinger_pad_d", 300.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "forefinger_pad_nd", 270.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "forefinger_end_joint_d", 280.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "forefinger_end_joint_nd", 220.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "thenar_eminence", 200.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "palm_d", 260.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "palm_nd", 260.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "back_of_hand_d", 200.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("hands and fingers", "back_of_hand_nd", 190.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
+        Region("thighs and knees", "thigh_muscle", 250.0, 220.0),
+        Region("thighs and knees", "kneecap", 220.0, 220.0),
+        Region("lower legs", "middle_of_shin", 220.0, 130.0),
+        Region("lower legs", "calf_muscle", 210.0, 130.0),
+    )
+}
+
+
+@dataclass(frozen=True)
+class KindSpec:
+    """One kind of body part: its shape (a MuJoCo geom), mass, the most a person pushes with it, and the
+    ISO/TS 15066 body area it is judged by.
+
+    ``size`` is MuJoCo's: a sphere's radius; a box's half sizes (x, y, z; its
+    contact face is the -z face, so +z points away from what it presses); a
+    capsule's radius and half length (its axis along z).
+    """
+
+    geom: Literal["sphere", "box", "capsule"]
+    size: tuple[float, ...]
+    mass_kg: float
+    plausible_push_n: float
+    area: str
+
+    @property
+    def extent_m(self) -> float:
+        """How far the shape reaches from its centre toward what it presses (along its contact direction)."""
+        if self.geom == "box":
+            return self.size[2]
+        return self.size[0]
+
+    def contact_area_cm2(self, depth_m: float) -> float:
+        """The area (cm^2) over which the part meets a surface it is pressed ``depth_m`` into (its geometric cut
+        at that depth), at least a square millimetre: a sphere's cap ``pi (2 R d - d^2)``, a capsule's side
+        ``2 sqrt(2 R d - d^2) x its length``, a box's whole face."""
+        if self.geom == "box":
+            area_m2 = 4.0 * self.size[0] * self.size[1]
+        else:
+            radius = self.size[0]
+            d = min(max(depth_m, 0.0), radius)
+            chord2 = 2.0 * radius * d - d * d
+            if self.geom == "sphere":
+                area_m2 = 3.141592653589793 * chord2
+            else:
+                area_m2 = 2.0 * chord2 ** 0.5 * 2.0 * self.size[1]
+        return max(area_m2 * 1e4, 0.01)
+
+
+#: The kinds of body part, their shapes and masses (see the module docstring for the sources).
+KINDS: dict[str, KindSpec] = {
+    "finger": KindSpec("sphere", (0.009,), 0.6, 50.0, "forefinger_pad_d"),
+    "palm": KindSpec("box", (0.045, 0.05, 0.015), 0.6, 250.0, "palm_d"),
+    "forearm": KindSpec("capsule", (0.035, 0.12), 2.0, 250.0, "forearm_muscle"),
+}
+
+
+def region_of(kind: str) -> Region:
+    """The ISO/TS 15066 body area a kind of body part is judged by."""
+    return ISO_TS_15066[KINDS[kind].area]
