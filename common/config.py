@@ -512,18 +512,22 @@ def _decode(path: Path, kind: type) -> object:
         raise ConfigError(f"{path}: {exc}") from exc
 
 
-def resolve_profile(name_or_path: str | None) -> Path:
-    """A profile given by packaged name ("default") or by path."""
-    if not name_or_path:
-        name_or_path = "default"
+def packaged_or_path(name_or_path: str, folder: Path, what: str) -> Path:
+    """A TOML file given by path, or by the name of one packaged in ``folder``; ConfigError naming the packaged
+    ones (``what``: "profile", "touch script")."""
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
         return path
-    packaged = PROFILES_DIR / f"{name_or_path}.toml"
+    packaged = folder / f"{name_or_path}.toml"
     if not packaged.exists():
-        known = sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
-        raise ConfigError(f"no profile {name_or_path!r}: give a path to a .toml file or one of {known}")
+        known = sorted(p.stem for p in folder.glob("*.toml"))
+        raise ConfigError(f"no {what} {name_or_path!r}: give a path to a .toml file or one of {known}")
     return packaged
+
+
+def resolve_profile(name_or_path: str | None) -> Path:
+    """A profile given by packaged name ("default") or by path."""
+    return packaged_or_path(name_or_path or "default", PROFILES_DIR, "profile")
 
 
 # What checks a profile's plug-in tables against the robot, giving their safety-relevant fields

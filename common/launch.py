@@ -22,6 +22,7 @@ from nwr.common.config import (
     Profile,
     _decode,
     _Section,
+    packaged_or_path,
 )
 from nwr.common.errors import ConfigError
 
@@ -47,14 +48,8 @@ class TouchScript(_Section):
 
 
 def resolve_script(name_or_path: str) -> Path:
-    path = Path(name_or_path)
-    if path.suffix == ".toml" or path.exists():
-        return path
-    packaged = SCRIPTS_DIR / f"{name_or_path}.toml"
-    if not packaged.exists():
-        known = sorted(p.stem for p in SCRIPTS_DIR.glob("*.toml"))
-        raise ConfigError(f"no touch script {name_or_path!r}: give a path to a .toml file or one of {known}")
-    return packaged
+    """A touch script given by packaged name ("demo") or by path."""
+    return packaged_or_path(name_or_path, SCRIPTS_DIR, "touch script")
 
 
 def load_script(name_or_path: str) -> TouchScript:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from planner_support import running
 
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection, Profile
@@ -136,13 +137,8 @@ def test_two_hands_on_opposite_sides_of_one_link_hold_the_arm_still() -> None:
 # -- the planner: a weaker touch during a reflex, a touch in the task's way ---------------------------------
 
 def in_task(cfg: PlannerSection) -> tuple[Planner, int]:
-    planner = Planner(cfg, DESC, MODEL)
-    planner.on_state(DESC.home.copy(), following=True)
-    t = 0
-    while planner.mode != "TASK":
-        t += 2_000_000
-        planner.step(t)
-    return planner, t
+    """A planner of ``cfg`` that has reached its task from home, and the time (ns)."""
+    return running(cfg, DESC, MODEL)
 
 
 def pain(t: int, seq: int, lv: list[int], g: np.ndarray) -> m.SkinPain:

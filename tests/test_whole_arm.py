@@ -16,6 +16,7 @@ import logging
 
 import numpy as np
 import pytest
+from planner_support import running
 
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
@@ -184,12 +185,7 @@ def test_a_ramp_longer_than_half_the_withdrawal_is_refused() -> None:
 def touched(cfg: PlannerSection, pad: str, gain: float) -> tuple[Planner, int, m.Command | None]:
     """A planner of ``cfg`` in its task, the touch on ``pad`` at ``gain`` given to it: the planner, the time (ns)
     and its answer."""
-    planner = Planner(cfg, DESC, MODEL)
-    planner.on_state(DESC.home.copy(), following=True)
-    t = 0
-    while planner.mode != "TASK":
-        t += 2_000_000
-        planner.step(t)
+    planner, t = running(cfg, DESC, MODEL)
     index = NAMES.index(pad)
     gains = [0.0] * len(NAMES)
     gains[index] = gain
