@@ -76,6 +76,9 @@ class StatusReport:
     undecodable: int = 0
     now_ns: int = 0
     recorder: m.Diagnostic | None = None  # the recorder's last disk diagnostic in the window
+    # The other robots whose services are alive on the same mesh (a lab's router shared by several arms): robot
+    # name -> its live services.
+    others: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def active_planner(self) -> str | None:
@@ -199,6 +202,9 @@ def format_report(report: StatusReport) -> str:
         lines.append(f"recorder: {report.recorder.message}")
     if report.undecodable:
         lines.append(f"warning: {report.undecodable} samples did not decode (see diag/*)")
+    if report.others:
+        lines.append("other robots on this mesh: " + "; ".join(
+            f"{robot} ({len(services)} alive: {', '.join(services)})" for robot, services in report.others.items()))
     return "\n".join(lines)
 
 
@@ -220,6 +226,17 @@ def alive_services(session: zenoh.Session, robot: str, timeout_s: float) -> list
         if reply.ok is not None:
             found.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
     return sorted(found)
+
+
+def robots_alive(session: zenoh.Session, timeout_s: float) -> dict[str, list[str]]:
+    """Every robot with a live service on the mesh (tokens ``nwr/<robot>/alive/<name>``): robot -> its services."""
+    found: dict[str, set[str]] = {}
+    for reply in session.liveliness().get(f"{keys.PREFIX_ROOT}/*/{keys.alive('*')}", timeout=timeout_s):
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) == 4:
+                found.setdefault(parts[1], set()).add(parts[3])
+    return {robot: sorted(services) for robot, services in sorted(found.items())}
 
 
 def dialled(zcfg: ZenohSection) -> list[str]:
@@ -245,7 +262,9 @@ def collect(profile: Profile, window_s: float, timeout_s: float) -> StatusReport
         elapsed_s = (time.monotonic_ns() - start) / 1e9
         sub.undeclare()
         alive = sorted(set(alive) | set(alive_services(session, robot, timeout_s)))
-        return collector.report(alive, elapsed_s, time.monotonic_ns(), dialled(profile.zenoh))
+        report = collector.report(alive, elapsed_s, time.monotonic_ns(), dialled(profile.zenoh))
+        report.others = {r: s for r, s in robots_alive(session, timeout_s).items() if r != robot}
+        return report
 
 
 def check(profile: Profile, service: str, timeout_s: float) -> int:
