@@ -20,6 +20,11 @@ missing a joint, or with a position or velocity that is not finite or beyond
 the robot description's limits) are counted and reported at the end (for
 joint states: by topic, with the joint and the value of the first); a bad
 value makes its pad invalid in that sample, such a joint state is skipped.
+The exit code says what was lost: 0, every message imported (a bad value
+only marks its pad invalid in its sample, as the live gateway does); 3,
+imported, but joint states were left out (the lines above say which, how
+many, the first): the recording lacks part of the arm's motion; 1, nothing
+to import; 2, unusable input.
 
 The recording replays like any other (``nwr replay --fast --reflex NAME``; a
 real skin's recording has no touch ground truth: open loop only) and compares
@@ -303,7 +308,14 @@ def _run(args: argparse.Namespace) -> int:
     if report.skin_problems or report.state_problems:
         log.warning("some messages had problems (above); the recording marks the bad pads invalid and leaves out "
                     "the joint states skipped")
-    return 0 if report.skin else 1
+    if not report.skin:
+        return 1
+    return PARTIAL if report.state_problems else 0
+
+
+# The exit code of an import that wrote its recording but left joint states out: a script that imports a lab's
+# bags can tell a recording of the whole motion from a partial one.
+PARTIAL = 3
 
 
 def register(sub: argparse._SubParsersAction) -> None:
