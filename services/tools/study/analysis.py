@@ -6,8 +6,10 @@ the participants who answered every condition (the others are listed, with
 what they miss, and kept in the descriptive statistics only): the Friedman
 test (``scipy.stats.friedmanchisquare``, effect size Kendall's W =
 chi2 / (N (k - 1))), and where its p < 0.05 the pairwise Wilcoxon signed-rank
-tests (``scipy.stats.wilcoxon``, two-sided, zero differences dropped; exact
-without ties, else the normal approximation with the tie correction), their
+tests (two-sided, zero differences dropped; with up to 20 non-zero
+differences the exact p, every sign pattern counted with tied differences at
+their mid-ranks, ``signed_rank_exact_p``; beyond, ``scipy.stats.wilcoxon``'s
+normal approximation with the tie correction), their
 p-values Holm-corrected within each subscale (the family: its k (k - 1) / 2
 pairs), effect size the matched-pairs rank-biserial correlation. With two
 conditions the one Wilcoxon test is the test. Cronbach's alpha per subscale
@@ -70,10 +72,16 @@ def cronbach_alpha(items: np.ndarray) -> float | None:
     return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
 
 
+def _differences(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b, rounded so that equal scores (means of integer ratings) differ by exactly 0 and equal differences
+    tie: floating-point noise would otherwise break a tie or turn a zero difference into a rank."""
+    return np.round(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), 9)
+
+
 def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
     """Matched-pairs rank-biserial correlation of a - b (zero differences dropped): +1 every participant rated
     ``a`` higher, -1 every one ``b``."""
-    d = a - b
+    d = _differences(a, b)
     d = d[d != 0]
     if d.size == 0:
         return 0.0
@@ -81,13 +89,42 @@ def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
     return float((ranks[d > 0].sum() - ranks[d < 0].sum()) / ranks.sum())
 
 
+EXACT_MAX_N = 20  # up to this many non-zero differences, every one of the 2^n sign patterns is counted
+
+
+def signed_rank_exact_p(d: np.ndarray) -> float:
+    """Two-sided exact p of the Wilcoxon signed-rank test on the non-zero differences ``d``, ties given their
+    mid-ranks: under the null hypothesis each difference's sign is + or - with probability 1/2, so the
+    statistic T+ (the sum of the positive differences' ranks) takes each of the 2^n sign patterns' values with
+    probability 2^-n. p is the probability of a T+ at least as far from its mean as the one observed. The
+    distribution is built by convolution over the doubled ranks (mid-ranks are multiples of 1/2), so it is
+    exact in integers and takes n^3 steps, not 2^n."""
+    d = np.asarray(d, dtype=float)
+    if d.size == 0 or np.any(d == 0):
+        raise ValueError(f"signed_rank_exact_p needs non-zero differences, got {d.tolist()}")
+    doubled = np.rint(2 * stats.rankdata(np.abs(d))).astype(np.int64)
+    total = int(doubled.sum())
+    counts = np.zeros(total + 1, dtype=np.float64)  # counts[s]: sign patterns with 2 T+ = s (exact below 2^53)
+    counts[0] = 1.0
+    for r in doubled:
+        shifted = np.zeros_like(counts)
+        shifted[r:] = counts[:-r]
+        counts = counts + shifted
+    observed = int(doubled[d > 0].sum())
+    # |2 T+ - total| >= |2 t - total|, in integers: the two tails at once, no double counting at the centre.
+    far = np.abs(2 * np.arange(total + 1) - total) >= abs(2 * observed - total)
+    return float(counts[far].sum() / counts.sum())
+
+
 @dataclass
 class PairTest:
     a: str
     b: str
-    n: int  # complete participants (zero differences included; the test drops them)
-    statistic: float  # scipy's: the smaller of the signed-rank sums
+    n: int  # pairs in the test: complete participants whose scores differ (zero differences dropped)
+    statistic: float  # the smaller of the signed-rank sums
     p: float
+    zeros: int = 0  # complete participants who gave both conditions the same score (dropped)
+    method: str = "exact"  # "exact" (every sign pattern counted) or "normal" (the tie-corrected approximation)
     p_holm: float = 1.0
     r: float = 0.0  # rank-biserial, > 0: a rated higher
 
@@ -178,7 +215,8 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
     if n < 3:
         result.note = f"{n} participant(s) answered every condition: too few for the tests (3 or more)"
         return
-    data = np.array([[result.scores[c][p] for c in conditions] for p in complete])  # participants x conditions
+    raw = np.array([[result.scores[c][p] for c in conditions] for p in complete])  # participants x conditions
+    data = np.round(raw, 9)  # equal means of integer ratings tie exactly in the Friedman ranks
     if k >= 3:
         if np.all(data == data[:, :1]):  # every participant rated every condition alike: no ranks differ
             result.chi2, result.p, result.kendall_w = 0.0, 1.0, 0.0
@@ -191,18 +229,21 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
     pairs = []
     for i in range(k):
         for j in range(i + 1, k):
-            a, b = data[:, i], data[:, j]
-            if np.all(a == b):
-                pairs.append(PairTest(conditions[i], conditions[j], n, 0.0, 1.0))
+            a, b = raw[:, i], raw[:, j]  # rounded after the subtraction (two roundings could break a tie)
+            d = _differences(a, b)
+            nonzero = d[d != 0]
+            zeros = int(d.size - nonzero.size)
+            if nonzero.size == 0:
+                pairs.append(PairTest(conditions[i], conditions[j], 0, 0.0, 1.0, zeros=zeros))
                 continue
-            d = a - b
-            nonzero = np.abs(d[d != 0])
-            # Exact without zeros or ties; else the normal approximation with the tie correction (scipy's
-            # permutation method would take seconds a test and, on subscale means, gives the same answer).
-            exact = nonzero.size == d.size and np.unique(nonzero).size == nonzero.size
-            res = stats.wilcoxon(a, b, method="exact" if exact else "approx")
-            pairs.append(PairTest(conditions[i], conditions[j], n, float(res.statistic), float(res.pvalue),
-                                  r=rank_biserial(a, b)))
+            ranks = stats.rankdata(np.abs(nonzero))
+            statistic = float(min(ranks[nonzero > 0].sum(), ranks[nonzero < 0].sum()))
+            if nonzero.size <= EXACT_MAX_N:
+                p, method = signed_rank_exact_p(nonzero), "exact"
+            else:  # beyond 2^20 sign patterns: the normal approximation with the tie correction
+                p, method = float(stats.wilcoxon(nonzero, method="approx").pvalue), "normal"
+            pairs.append(PairTest(conditions[i], conditions[j], int(nonzero.size), statistic, p, zeros=zeros,
+                                  method=method, r=rank_biserial(a, b)))
     for pair, adjusted in zip(pairs, holm([pt.p for pt in pairs])):
         pair.p_holm = adjusted
     result.pairs = pairs
@@ -375,9 +416,15 @@ def _f(x: float | None, fmt: str = ".2f") -> str:
 
 
 def _p(p: float | None) -> str:
-    if p is None:
+    """p to 3 significant digits, more where rounding would cross a star's threshold (0.0498 stays below 0.05:
+    "0.0498", and 0.049996 is "0.049996", never "0.0500" beside a star)."""
+    if p is None or not np.isfinite(p):
         return "-"
-    return "< 0.001" if p < 0.001 else f"{p:.3f}"
+    for digits in range(3, 10):
+        text = f"{p:.{digits}g}"
+        if stars(float(text)) == stars(p):
+            return text
+    return repr(p)
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -400,8 +447,10 @@ def report(result: Analysis, store: str, pictures: list[Path],
               "Each subscale's score is the mean of its items per participant and condition, reversed items "
               f"flipped ({q.points + 1} - x). Across conditions, over the participants who answered every "
               "condition: the Friedman test (effect size Kendall's W); where its p < 0.05, pairwise Wilcoxon "
-              "signed-rank tests (two-sided, zero differences dropped; exact p without ties, else the normal "
-              "approximation with the tie correction) with the Holm correction over the "
+              "signed-rank tests (two-sided, zero differences dropped; with up to "
+              f"{EXACT_MAX_N} non-zero differences the exact p of the signed-rank statistic, every sign pattern "
+              "counted with ties at their mid-ranks, else the normal approximation with the tie correction; the "
+              "table says which) with the Holm correction over the "
               "subscale's pairs (p Holm), effect size the matched-pairs rank-biserial correlation r (> 0: the "
               "first condition rated higher). The Friedman p-values are not corrected across subscales. Stars: "
               "*, **, *** for p Holm < 0.05, 0.01, 0.001. Cronbach's alpha per subscale and condition over "
@@ -424,11 +473,16 @@ def report(result: Analysis, store: str, pictures: list[Path],
     lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "Kendall's W", "note"],
                     [[s.scale.name, str(s.n), _f(s.chi2), _p(s.p) + (" " + stars(s.p) if stars(s.p) else ""),
                       _f(s.kendall_w), s.note] for s in result.scales])
-    post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), _f(pt.statistic, ".1f"), _p(pt.p),
-             _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
+    post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), str(pt.zeros), _f(pt.statistic, ".1f"),
+             _p(pt.p), pt.method, _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
     lines += ["## Pairwise Wilcoxon signed-rank tests", ""]
     if post:
-        lines += _table(["subscale", "pair", "N", "T (smaller rank sum)", "p", "p Holm", "r (rank-biserial)", ""], post)
+        lines += ["N: the pairs tested (participants whose two scores differ); zeros: participants who gave both "
+                  "conditions the same score, dropped from the test. p method: exact (every sign pattern of the "
+                  f"N differences counted, ties at their mid-ranks; N <= {EXACT_MAX_N}) or normal (the "
+                  f"tie-corrected normal approximation, N > {EXACT_MAX_N}).", ""]
+        lines += _table(["subscale", "pair", "N", "zeros", "T (smaller rank sum)", "p", "p method", "p Holm",
+                         "r (rank-biserial)", ""], post)
     else:
         lines += ["None: no Friedman test had p < 0.05.", ""]
     lines += ["## Forced choice", ""]

@@ -1,0 +1,136 @@
+"""The study's statistics at small N, with ties and zero differences, against independent computations."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy import stats
+from study_synthetic import condition_forms, ratings_of
+
+from nwr.common.questionnaire import load_questionnaire
+from nwr.services.tools.study import analysis as sa
+from nwr.services.tools.study.store import ConditionForm, Rating
+
+Q, _ = load_questionnaire()
+CONDITIONS = ("uniform", "location", "cartesian")
+
+
+def _brute_force_p(d: np.ndarray) -> float:
+    """Every sign pattern of the non-zero differences, one by one."""
+    ranks = stats.rankdata(np.abs(d))
+    centre = ranks.sum() / 2
+    observed = abs(ranks[d > 0].sum() - centre)
+    far = sum(1 for signs in itertools.product((False, True), repeat=d.size)
+              if abs(ranks[np.array(signs)].sum() - centre) >= observed - 1e-9)
+    return far / 2 ** d.size
+
+
+def _permutation_p(d: np.ndarray) -> float:
+    """scipy's permutation test of T+ on the differences (one sample: each one's sign flipped)."""
+    ranks = stats.rankdata(np.abs(d))
+
+    def t_plus(x: np.ndarray, axis: int) -> np.ndarray:
+        return np.sum(np.where(x > 0, ranks, 0.0), axis=axis)
+
+    return float(stats.permutation_test((d,), t_plus, permutation_type="samples", n_resamples=np.inf,
+                                        vectorized=True, alternative="two-sided").pvalue)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 12, 16, 20])
+def test_the_exact_p_without_ties_is_scipys_exact_wilcoxon(n):
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        d = rng.permutation(np.arange(1, n + 1)) * rng.choice([-1.0, 1.0], n) + rng.normal(0, 0.01, n)
+        expected = stats.wilcoxon(d, method="exact").pvalue
+        assert sa.signed_rank_exact_p(d) == pytest.approx(expected, rel=1e-12, abs=1e-15), d
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_exact_p_with_ties_counts_every_sign_pattern(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 12))
+    d = rng.choice([-1.0, -2 / 3, -1 / 3, 1 / 3, 2 / 3, 1.0, 4 / 3], n)  # subscale means' differences: ties
+    p = sa.signed_rank_exact_p(d)
+    assert p == pytest.approx(_brute_force_p(d), rel=1e-12)
+    assert p == pytest.approx(_permutation_p(d), rel=1e-9)
+
+
+def test_the_issues_examples_exact_not_the_normal_approximation():
+    twelve = np.array([1.0, 1, 1, 2, 2, 2, 0.5, 0.5, 1, 2, 1, 0.5])  # every participant higher, ties
+    assert sa.signed_rank_exact_p(twelve) == pytest.approx(2 / 2 ** 12)  # 0.00049, the approximation 0.002
+    assert stats.wilcoxon(twelve, method="approx").pvalue == pytest.approx(0.002, abs=1e-4)
+    three = np.array([1.0, 1.0, 2.0])
+    assert sa.signed_rank_exact_p(three) == pytest.approx(0.25)  # the approximation: 0.102
+    assert stats.wilcoxon(three, method="approx").pvalue == pytest.approx(0.102, abs=5e-4)
+    with pytest.raises(ValueError, match="non-zero"):
+        sa.signed_rank_exact_p(np.array([1.0, 0.0]))
+
+
+def _forms(levels: dict[str, list[int]]) -> list[Rating]:
+    """Participant i rates every item of condition c ``levels[c][i]`` (reversed items stored reversed)."""
+    forms = []
+    reversed_items = {i for s in Q.scales() for i in s.reversed}
+    n = len(next(iter(levels.values())))
+    for i in range(n):
+        for block, c in enumerate(levels, start=1):
+            v = levels[c][i]
+            ratings = {item: Q.points + 1 - v if item in reversed_items else v for item in Q.rated_items()}
+            forms.append(ConditionForm(participant=f"P{i + 1:02d}", condition=c, order=1, block=block,
+                                       ratings=ratings))
+    return ratings_of(forms)
+
+
+def test_three_participants_get_the_exact_p_and_a_friedman_p_printed_below_its_star():
+    result = sa.analyze(_forms({"uniform": [5, 5, 4], "location": [3, 4, 3], "cartesian": [1, 2, 1]}), [], Q)
+    s = result.scales[0]
+    assert s.p == pytest.approx(stats.friedmanchisquare([5, 5, 4], [3, 4, 3], [1, 2, 1]).pvalue)
+    assert s.p == pytest.approx(0.0498, abs=1e-4)
+    assert [(pt.n, pt.zeros, pt.method) for pt in s.pairs] == [(3, 0, "exact")] * 3
+    assert [pt.p for pt in s.pairs] == pytest.approx([0.25] * 3)  # the normal approximation said 0.102
+    text = sa.report(result, "s", [])
+    assert "| 0.0498 * |" in text and "0.050 *" not in text
+    assert "| Anthropomorphism | UR vs LR | 3 | 0 | 0.0 | 0.25 | exact | 0.75 |" in text
+
+
+def test_zero_differences_are_dropped_and_counted():
+    # P01 and P02 rate uniform and location alike: 4 of 6 pairs tested.
+    levels = {"uniform": [4, 3, 5, 5, 4, 5], "location": [4, 3, 2, 3, 1, 2], "cartesian": [1, 1, 1, 1, 1, 1]}
+    result = sa.analyze(_forms(levels), [], Q)
+    s = result.scales[0]
+    assert s.p is not None and s.p < 0.05
+    pair = next(pt for pt in s.pairs if (pt.a, pt.b) == ("uniform", "location"))
+    assert (pair.n, pair.zeros, pair.method) == (4, 2, "exact")
+    assert pair.p == pytest.approx(stats.wilcoxon([3, 2, 3, 3], method="exact").pvalue)  # 0.125
+    assert "| Anthropomorphism | UR vs LR | 4 | 2 |" in sa.report(result, "s", [])
+
+
+@pytest.mark.parametrize(("n", "method"), [(12, "exact"), (24, "normal")])
+def test_every_pair_of_a_synthetic_study_matches_an_independent_computation(n, method):
+    rng = np.random.default_rng(41)
+    result = sa.analyze(ratings_of(condition_forms(Q, rng, n, {"uniform": 1.2})), [], Q)
+    tested = 0
+    for s in result.scales:
+        for pt in s.pairs:
+            a = np.array([s.scores[pt.a][p] for p in result.complete])
+            b = np.array([s.scores[pt.b][p] for p in result.complete])
+            d = np.round(a - b, 9)
+            nonzero = d[d != 0]
+            assert (pt.n, pt.zeros) == (nonzero.size, n - nonzero.size)
+            if nonzero.size <= sa.EXACT_MAX_N:
+                assert pt.method == "exact"
+                if nonzero.size <= 14:  # scipy's permutation test takes seconds beyond 2^14 patterns
+                    assert pt.p == pytest.approx(_permutation_p(nonzero), rel=1e-9)
+            else:
+                assert pt.method == "normal"
+                assert pt.p == pytest.approx(stats.wilcoxon(nonzero, method="approx").pvalue, rel=1e-9)
+            tested += pt.method == method
+    assert tested > 0
+
+
+@pytest.mark.parametrize(("p", "text"), [(0.0498, "0.0498"), (0.04996, "0.04996"), (0.05, "0.05"),
+                                         (0.00049, "0.00049"), (0.00999, "0.00999"), (0.25, "0.25"), (1.0, "1")])
+def test_p_is_printed_with_the_digits_that_keep_its_star(p, text):
+    assert sa._p(p) == text
+    assert sa.stars(float(sa._p(p))) == sa.stars(p)
