@@ -7,11 +7,11 @@ import itertools
 import numpy as np
 import pytest
 from scipy import stats
-from study_synthetic import condition_forms, ratings_of
+from study_synthetic import condition_forms, final_forms, ratings_of
 
 from nwr.common.questionnaire import load_questionnaire
 from nwr.services.tools.study import analysis as sa
-from nwr.services.tools.study.store import ConditionForm, Rating
+from nwr.services.tools.study.store import ConditionForm, FinalAnswer, FinalForm, Rating
 
 Q, _ = load_questionnaire()
 CONDITIONS = ("uniform", "location", "cartesian")
@@ -134,3 +134,63 @@ def test_every_pair_of_a_synthetic_study_matches_an_independent_computation(n, m
 def test_p_is_printed_with_the_digits_that_keep_its_star(p, text):
     assert sa._p(p) == text
     assert sa.stars(float(sa._p(p))) == sa.stars(p)
+
+
+# -- small N: reliability, figures -----------------------------------------------------
+
+
+def test_cronbachs_alpha_of_few_participants_or_negative_is_marked_not_interpretable():
+    assert sa.alpha_text(-10.5, 3) == "-10.50 (not interpretable: N = 3 < 5)"
+    assert sa.alpha_text(0.9, 4).endswith("(not interpretable: N = 4 < 5)")
+    assert sa.alpha_text(-0.2, 12) == "-0.20 (not interpretable: negative)"
+    assert sa.alpha_text(0.81, 5) == "0.81"
+    rng = np.random.default_rng(4)
+    result = sa.analyze(ratings_of(condition_forms(Q, rng, 3, {"uniform": 1.2})), [], Q)
+    negative = [(s.scale.name, c) for s in result.scales for c, a in s.alpha.items() if a is not None and a < 0]
+    assert negative  # three participants: alpha swings below 0
+    text = sa.report(result, "s", [])
+    rows = [line for line in text.splitlines() if line.startswith("| Perceived Safety | UR | 3 |")]
+    assert len(rows) == 1 and "not interpretable: N = 3" in rows[0]
+    assert all("not interpretable" in line for line in
+               text.split("## Descriptive statistics")[1].split("## Friedman")[0].splitlines() if "| 3 |" in line)
+
+
+def test_every_boxplot_shows_each_participants_score():
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(4)
+    result = sa.analyze(ratings_of(condition_forms(Q, rng, 3, {"uniform": 1.2})), [], Q)
+    for kind in ("godspeed", "custom"):
+        fig = sa._boxplot_figure(result, kind, kind)
+        scales = [s for s in result.scales if s.scale.kind == kind]
+        for ax, s in zip(fig.axes, scales):
+            shown = np.concatenate([np.asarray(c.get_offsets())[:, 1] for c in ax.collections])
+            expected = np.concatenate([list(s.scores[c].values()) for c in result.conditions])
+            assert sorted(shown.tolist()) == pytest.approx(sorted(expected.tolist())), s.scale.name
+        plt.close(fig)
+
+
+def test_the_radar_plots_question_names_stay_off_its_ring():
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(4)
+    forms = condition_forms(Q, rng, 3, {})
+    finals = [a for f in final_forms(Q, rng, 3, {"uniform": 2, "cartesian": 1, "none": 1})
+              for a in _final_answers(f)]
+    result = sa.analyze(ratings_of(forms), finals, Q)
+    fig = sa._radar_figure(result)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    ring = ax.get_window_extent(renderer)
+    names = {c.short for c in Q.choice}
+    labels = [t for t in ax.texts if t.get_text() in names]
+    assert len(labels) == len(Q.choice)
+    for t in labels:
+        box = t.get_window_extent(renderer)
+        assert box.x0 >= ring.x1 or box.x1 <= ring.x0 or box.y0 >= ring.y1 or box.y1 <= ring.y0, t.get_text()
+    plt.close(fig)
+
+
+def _final_answers(form: FinalForm) -> list[FinalAnswer]:
+    return [FinalAnswer(form.participant, item, "choice", text, "") for item, text in form.choices.items()]

@@ -13,7 +13,8 @@ normal approximation with the tie correction), their
 p-values Holm-corrected within each subscale (the family: its k (k - 1) / 2
 pairs), effect size the matched-pairs rank-biserial correlation. With two
 conditions the one Wilcoxon test is the test. Cronbach's alpha per subscale
-and condition describes the items' consistency. Stars: *, **, *** for
+and condition describes the items' consistency (marked not interpretable with
+fewer than 5 participants or below 0). Stars: *, **, *** for
 (corrected) p below 0.05, 0.01, 0.001.
 
 Per condition, what the recordings measured (``analysis.summarize`` of each
@@ -76,6 +77,21 @@ def _differences(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a - b, rounded so that equal scores (means of integer ratings) differ by exactly 0 and equal differences
     tie: floating-point noise would otherwise break a tie or turn a zero difference into a rank."""
     return np.round(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), 9)
+
+
+ALPHA_MIN_N = 5  # Cronbach's alpha from fewer participants swings too widely to say anything about the items
+
+
+def alpha_text(alpha: float | None, n: int) -> str:
+    """Cronbach's alpha as the report prints it: with the reason it is not interpretable where it is not (too
+    few participants, or negative: the items vary against each other more than together)."""
+    if alpha is None:
+        return "- (no variance or fewer than 2 items or participants)" if n else "-"
+    if n < ALPHA_MIN_N:
+        return f"{alpha:.2f} (not interpretable: N = {n} < {ALPHA_MIN_N})"
+    if alpha < 0:
+        return f"{alpha:.2f} (not interpretable: negative)"
+    return f"{alpha:.2f}"
 
 
 def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
@@ -301,6 +317,19 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
 
 
 def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | None:
+    fig = _boxplot_figure(result, kind, title)
+    if fig is None:
+        return None
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def _boxplot_figure(result: Analysis, kind: str, title: str) -> Any:
+    """The boxplots of one kind of subscale, each participant's score a dot over its condition's box (jittered
+    sideways, the same seed every run: at a few participants the box alone hides how few answers it has)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -313,13 +342,16 @@ def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | Non
     cols = 2 if len(scales) == 4 else len(scales)
     rows = -(-len(scales) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), squeeze=False)
+    rng = np.random.default_rng(0)
     for ax, s in zip(axes.flat, scales):
         data = [list(s.scores[c].values()) for c in result.conditions]
-        ax.boxplot(data, tick_labels=labels, showmeans=True, widths=0.5,
+        ax.boxplot(data, tick_labels=labels, showmeans=True, widths=0.5, showfliers=False,
                    medianprops={"color": "red", "linewidth": 2},
                    meanprops={"marker": "o", "markerfacecolor": "red", "markeredgecolor": "red", "markersize": 5},
-                   flierprops={"marker": "x", "markeredgecolor": "0.3"},
                    boxprops={"color": "0.2"}, whiskerprops={"color": "0.2"}, capprops={"color": "0.2"})
+        for position, values in enumerate(data, start=1):
+            x = position + rng.uniform(-0.15, 0.15, len(values))
+            ax.scatter(x, values, s=22, color="tab:blue", alpha=0.7, edgecolors="none", zorder=3)
         ax.set_title(s.scale.name, fontsize=11)
         ax.set_ylim(0.8, 5.2)
         ax.set_yticks(range(1, 6))
@@ -338,12 +370,11 @@ def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | Non
     for ax in list(axes.flat)[len(scales):]:
         ax.set_visible(False)
     fig.suptitle(title, fontsize=12)
-    fig.text(0.5, 0.005, "red dot: mean, red line: median; * p < 0.05, ** p < 0.01, *** p < 0.001 "
-             "(Wilcoxon signed-rank, Holm-corrected)", ha="center", fontsize=7, color="0.35")
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
-    return path
+    fig.text(0.5, 0.005, "blue dots: each participant's score; red dot: mean, red line: median\n* p < 0.05, "
+             "** p < 0.01, *** p < 0.001 (Wilcoxon signed-rank, Holm-corrected)", ha="center", va="bottom",
+             fontsize=7, color="0.35")
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    return fig
 
 
 def _friedman_text(s: ScaleResult) -> str:
@@ -353,6 +384,17 @@ def _friedman_text(s: ScaleResult) -> str:
 
 
 def _radar(result: Analysis, path: Path) -> Path | None:
+    fig = _radar_figure(result)
+    if fig is None:
+        return None
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _radar_figure(result: Analysis) -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -381,23 +423,26 @@ def _radar(result: Analysis, path: Path) -> Path | None:
         ax.fill(closed, np.append(counts, counts[0]), color=color, alpha=0.08)
     ax.set_xticks(angles)
     ax.set_xticklabels([])
-    # The counts beside each question's name: points of equal count would hide each other's numbers.
-    # Just outside the outer ring whatever the counts (a fixed offset in votes is far out for a few votes).
-    outside = 1.2 * (top + 1)
+    # The counts beside each question's name: points of equal count would hide each other's numbers. Each
+    # name and its counts a block just outside the outer ring, growing away from it (left of a question on the
+    # left, above one at the top): centred on the ring, a long name ran across it.
+    short = [*(q.label(c) for c in result.conditions), "none"]
     for angle, choice in zip(angles, q.choice):
-        ax.text(angle, outside, choice.short, ha="center", va="center", fontsize=11, fontweight="bold")
-        short = [*(q.label(c) for c in result.conditions), "none"]
+        x, y = np.sin(angle), np.cos(angle)  # on the page: the first question at the top, then clockwise
+        ha = "left" if x > 0.1 else "right" if x < -0.1 else "center"
+        dx, dy = 6 * np.sign(x) * (abs(x) > 0.1), 26 * np.sign(y) * (abs(y) > 0.1)
         tally = "  ".join(f"{n} {result.votes[choice.id][o]}" for n, o in zip(short, options))
-        ax.text(angle, outside, "\n\n" + tally, ha="center", va="center", fontsize=9, color="0.3")
+        ax.annotate(choice.short, (angle, top + 1), xytext=(dx, dy + 1), textcoords="offset points", ha=ha,
+                    va="bottom", fontsize=11, fontweight="bold", annotation_clip=False)
+        ax.annotate(tally, (angle, top + 1), xytext=(dx, dy - 1), textcoords="offset points", ha=ha, va="top",
+                    fontsize=9, color="0.3", annotation_clip=False)
     ax.set_ylim(0, top + 1)
     ax.set_yticks(range(0, top + 2, max(1, (top + 1) // 4)))
     ax.tick_params(axis="y", labelsize=7, labelcolor="0.5")
     ax.set_title(f"Forced choice: votes of {sum(result.votes[q.choice[0].id].values())} participants", fontsize=12,
-                 pad=48)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=len(options), fontsize=9, frameon=False)
-    fig.savefig(path, dpi=150, bbox_inches="tight")
-    plt.close(fig)
-    return path
+                 pad=64)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=len(options), fontsize=9, frameon=False)
+    return fig
 
 
 def figures(result: Analysis, out: Path) -> list[Path]:
@@ -454,7 +499,8 @@ def report(result: Analysis, store: str, pictures: list[Path],
               "subscale's pairs (p Holm), effect size the matched-pairs rank-biserial correlation r (> 0: the "
               "first condition rated higher). The Friedman p-values are not corrected across subscales. Stars: "
               "*, **, *** for p Holm < 0.05, 0.01, 0.001. Cronbach's alpha per subscale and condition over "
-              "every participant who answered it.", "",
+              f"every participant who answered it, marked not interpretable with fewer than {ALPHA_MIN_N} "
+              "participants or when negative.", "",
               "## Descriptive statistics", ""]
     rows = []
     for s in result.scales:
@@ -466,7 +512,7 @@ def report(result: Analysis, store: str, pictures: list[Path],
             q1, med, q3 = np.percentile(v, [25, 50, 75])
             rows.append([s.scale.name, lab(c), str(v.size), f"{v.mean():.2f}",
                          _f(float(v.std(ddof=1)) if v.size > 1 else None), f"{med:.2f}", f"{q1:.2f}-{q3:.2f}",
-                         _f(s.alpha[c])])
+                         alpha_text(s.alpha[c], int(v.size))])
     lines += _table(["subscale", "condition", "n", "mean", "SD", "median", "IQR", "Cronbach's alpha"], rows)
     lines += ["## Friedman tests", ""]
     k = len(result.conditions)
