@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,11 +11,16 @@ from scipy import stats
 from study_synthetic import condition_forms, final_forms, ratings_of
 
 from nwr.common.questionnaire import load_questionnaire
+from nwr.common.recordings import Recorded
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.tools.recordings import analysis
 from nwr.services.tools.study import analysis as sa
 from nwr.services.tools.study.store import ConditionForm, FinalAnswer, FinalForm, Rating
 
 Q, _ = load_questionnaire()
 CONDITIONS = ("uniform", "location", "cartesian")
+DATA = Path(__file__).parent / "data"
+DESC = load_description()
 
 
 def _brute_force_p(d: np.ndarray) -> float:
@@ -194,3 +200,75 @@ def test_the_radar_plots_question_names_stay_off_its_ring():
 
 def _final_answers(form: FinalForm) -> list[FinalAnswer]:
     return [FinalAnswer(form.participant, item, "choice", text, "") for item, text in form.choices.items()]
+
+
+# -- what the recordings measured ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cartesian_session() -> list[Recorded]:
+    """The lockstep pipeline (gateway, planner, simulated bridge; no network) on the short touch script under
+    the Cartesian reflex: its second touch's pain rises over several skin samples, each restarting the reflex."""
+    import msgspec
+
+    from nwr.common import keys
+    from nwr.common.config import Profile
+    from nwr.common.launch import load_script
+    from nwr.services.gateway.core import Gateway, SimSkin, sim_settings
+    from nwr.services.pipeline.lockstep import Lockstep
+
+    profile, script = Profile(), load_script(str(DATA / "short.toml"))
+    sim = SimSkin(sim_settings(profile.gateway), DESC.pads, script)
+    gateway = Gateway(profile.gateway, len(DESC.pads))
+    samples = []
+    for i in range(int(script.duration_s * 25)):
+        t = (i + 1) / 25
+        samples.append(gateway.process(t, 10**9 + round(t * 1e9), sim.sample(t))[0])
+    produced: list[tuple[str, bytes, int]] = []
+    Lockstep(Profile(), strategy="cartesian").run(
+        samples, lambda k, msg, t: produced.append((k, msgspec.msgpack.encode(msg), t)))
+    records = [Recorded("skin/pressure", s.stamp_ns, s) for s in samples]
+    records += [Recorded(k, t, keys.codec(k).decode(b)) for k, b, t in produced]
+    return sorted(records, key=lambda r: r.log_time_ns)
+
+
+def test_the_peak_speed_is_the_whole_withdrawals_not_its_first_skin_period(cartesian_session):
+    model = RobotModel(DESC)
+    touches = analysis.summarize(cartesian_session, DESC, model)
+    peaks = sa.withdrawal_peak_speeds(cartesian_session, touches, model)
+    states = [r.message for r in cartesian_session if r.key == "robot/state"]
+    checked = 0
+    for touch in touches:
+        if not touch.reflex_seq or touch.withdrawal_mm is None or touch.withdrawal_mm < 50:
+            continue
+        # The touched pad's mean speed along its normal from the onset to its furthest withdrawal (where the
+        # arm stops withdrawing): the peak of the arm's fastest point can be no lower.
+        onset = next(s for s in states if s.reflex_seq == touch.reflex_seq and s.accepted is not None)
+        n0 = model.pad_normal(np.asarray(onset.q), touch.pad)
+        p0 = model.pad_points(np.asarray(onset.q))[touch.pad]
+        along = [(s.stamp_ns, float((model.pad_points(np.asarray(s.q))[touch.pad] - p0) @ n0))
+                 for s in states if s.stamp_ns >= onset.accepted_ns and s.phase == "REFLEX"]
+        t_far, far = min(along, key=lambda x: x[1])
+        mean_speed = -far / ((t_far - onset.accepted_ns) / 1e9)
+        assert mean_speed > 0.1, touch  # the session's slow-building touch: a real withdrawal
+        assert peaks[touch.reflex_seq] >= mean_speed, (touch.name, peaks[touch.reflex_seq], mean_speed)
+        assert touch.peak_speed_m_s is not None and touch.peak_speed_m_s < mean_speed  # summarize's 40 ms window
+        checked += 1
+    assert checked == 1
+
+
+def test_the_reports_peak_speed_comes_from_the_whole_withdrawal(cartesian_session, tmp_path, monkeypatch):
+    from nwr.common import recordings
+
+    monkeypatch.setattr(recordings, "read_recording", lambda path: (cartesian_session, {}))
+    forms = condition_forms(Q, np.random.default_rng(1), 1, {}, ("cartesian", "uniform"))
+    ratings = ratings_of(forms)
+    for r in ratings:
+        (tmp_path / r.recording).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / r.recording).touch()
+    measures = sa.measure_recordings(ratings, tmp_path, lambda: DESC)
+    model = RobotModel(DESC)
+    touches = analysis.summarize(cartesian_session, DESC, model)
+    peaks = sa.withdrawal_peak_speeds(cartesian_session, touches, model)
+    assert measures["cartesian"].peak_m_s == pytest.approx([peaks[t.reflex_seq] for t in touches if t.reflex_seq])
+    assert max(measures["cartesian"].peak_m_s) > 0.2  # summarize's own said 0.068
