@@ -88,16 +88,52 @@ def _forms(levels: dict[str, list[int]]) -> list[Rating]:
     return ratings_of(forms)
 
 
-def test_three_participants_get_the_exact_p_and_a_friedman_p_printed_below_its_star():
+def test_three_participants_get_exact_p_values():
     result = sa.analyze(_forms({"uniform": [5, 5, 4], "location": [3, 4, 3], "cartesian": [1, 2, 1]}), [], Q)
     s = result.scales[0]
-    assert s.p == pytest.approx(stats.friedmanchisquare([5, 5, 4], [3, 4, 3], [1, 2, 1]).pvalue)
-    assert s.p == pytest.approx(0.0498, abs=1e-4)
+    # Every participant ranks the conditions alike: 6 of the 6^3 orderings do (chi2 = 6; its approximation 0.0498).
+    assert stats.friedmanchisquare([5, 5, 4], [3, 4, 3], [1, 2, 1]).pvalue == pytest.approx(0.0498, abs=1e-4)
+    assert (s.p, s.p_method) == (pytest.approx(6 / 216), "exact")
     assert [(pt.n, pt.zeros, pt.method) for pt in s.pairs] == [(3, 0, "exact")] * 3
     assert [pt.p for pt in s.pairs] == pytest.approx([0.25] * 3)  # the normal approximation said 0.102
     text = sa.report(result, "s", [])
-    assert "| 0.0498 * |" in text and "0.050 *" not in text
+    assert "| Anthropomorphism | 3 | 6.00 | 0.0278 * | exact |" in text
     assert "| Anthropomorphism | UR vs LR | 3 | 0 | 0.0 | 0.25 | exact | 0.75 |" in text
+
+
+def _friedman_permutation_p(data: np.ndarray) -> float:
+    """scipy's permutation test of the Friedman statistic (each participant's ratings reordered)."""
+    def chi2(*samples: np.ndarray, axis: int) -> np.ndarray:
+        x = np.moveaxis(np.stack(samples), 0, -1)  # ... x participants x conditions
+        r = stats.rankdata(x, axis=-1)
+        return np.sum(r.sum(axis=-2) ** 2, axis=-1)
+
+    return float(stats.permutation_test(tuple(data.T), chi2, permutation_type="samples", n_resamples=np.inf,
+                                        vectorized=True, alternative="greater").pvalue)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_exact_friedman_p_with_ties_counts_every_ordering(seed):
+    rng = np.random.default_rng(seed)
+    n, k = (3, 3) if seed < 2 else (5, 3) if seed < 4 else (3, 4)
+    data = rng.integers(1, 4, size=(n, k)).astype(float) + rng.choice([0, 1 / 3], size=(n, k))
+    p = sa.friedman_exact_p(data)
+    assert p == pytest.approx(_friedman_permutation_p(data), rel=1e-9)
+    brute = [sum(r ** 2 for r in np.sum(rows, axis=0))
+             for rows in itertools.product(*(itertools.permutations(stats.rankdata(row)) for row in data))]
+    observed = sum(r ** 2 for r in stats.rankdata(data, axis=1).sum(axis=0))
+    assert p == pytest.approx(np.mean(np.array(brute) >= observed - 1e-9), rel=1e-12)
+
+
+def test_a_larger_study_takes_the_friedman_p_from_chi2():
+    rng = np.random.default_rng(41)
+    result = sa.analyze(ratings_of(condition_forms(Q, rng, 12, {"uniform": 1.2})), [], Q)
+    for s in result.scales:
+        assert s.p_method == "chi2"
+        data = np.array([[s.scores[c][p] for c in result.conditions] for p in result.complete])
+        assert s.p == pytest.approx(stats.friedmanchisquare(*data.T).pvalue)
+    seven = sa.analyze(ratings_of(condition_forms(Q, rng, 7, {"uniform": 1.2})), [], Q)
+    assert {s.p_method for s in seven.scales} == {"exact"}  # 6^7 orderings; 6^8 > 2^20
 
 
 def test_zero_differences_are_dropped_and_counted():
@@ -133,6 +169,12 @@ def test_every_pair_of_a_synthetic_study_matches_an_independent_computation(n, m
                 assert pt.p == pytest.approx(stats.wilcoxon(nonzero, method="approx").pvalue, rel=1e-9)
             tested += pt.method == method
     assert tested > 0
+
+
+def test_a_friedman_p_just_below_005_keeps_its_digits():
+    result = sa.analyze(_forms({"uniform": [5, 5, 4], "location": [3, 4, 3], "cartesian": [1, 2, 1]}), [], Q)
+    result.scales[0].p = 0.0498  # the chi2 approximation's at this N
+    assert "| 0.0498 * |" in sa.report(result, "s", []) and "0.050 *" not in sa.report(result, "s", [])
 
 
 @pytest.mark.parametrize(("p", "text"), [(0.0498, "0.0498"), (0.04996, "0.04996"), (0.05, "0.05"),

@@ -5,7 +5,8 @@ items, reversed items flipped (``points + 1 - x``). Across conditions, for
 the participants who answered every condition (the others are listed, with
 what they miss, and kept in the descriptive statistics only): the Friedman
 test (``scipy.stats.friedmanchisquare``, effect size Kendall's W =
-chi2 / (N (k - 1))), and where its p < 0.05 the pairwise Wilcoxon signed-rank
+chi2 / (N (k - 1)); its p exact while the participants' orderings k!^N are at
+most 2^20, ``friedman_exact_p``, else from chi2), and where its p < 0.05 the pairwise Wilcoxon signed-rank
 tests (two-sided, zero differences dropped; with up to 20 non-zero
 differences the exact p, every sign pattern counted with tied differences at
 their mid-ranks, ``signed_rank_exact_p``; beyond, ``scipy.stats.wilcoxon``'s
@@ -26,7 +27,9 @@ recording is said in the report, not fatal.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +75,30 @@ def cronbach_alpha(items: np.ndarray) -> float | None:
     if total == 0:
         return None
     return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
+
+
+FRIEDMAN_EXACT_MAX = 2**20  # up to this many within-participant orderings (k!^n), the Friedman p is exact
+
+
+def friedman_exact_p(data: np.ndarray) -> float:
+    """The exact p of the Friedman test on ``data`` (participants x conditions), ties at their mid-ranks:
+    under the null hypothesis each participant's ratings are equally likely in any order across the
+    conditions, so each of the k!^n orderings is equally likely; p is the share whose statistic (the sum of the
+    squared rank sums, which orders the orderings as chi2 does: the tie correction does not change under
+    them) is at least the observed one. Built by counting the rank-sum vectors participant by participant."""
+    doubled = np.rint(2 * stats.rankdata(data, axis=1)).astype(np.int64)  # mid-ranks: multiples of 1/2
+    k = doubled.shape[1]
+    counts: dict[tuple[int, ...], int] = {(0,) * k: 1}
+    for row in doubled:
+        orders = list(itertools.permutations(row.tolist()))
+        grown: dict[tuple[int, ...], int] = defaultdict(int)
+        for sums, c in counts.items():
+            for order in orders:
+                grown[tuple(a + b for a, b in zip(sums, order))] += c
+        counts = grown
+    observed = int((doubled.sum(axis=0) ** 2).sum())
+    total = sum(counts.values())
+    return sum(c for sums, c in counts.items() if sum(x * x for x in sums) >= observed) / total
 
 
 def _differences(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -154,6 +181,7 @@ class ScaleResult:
     n: int = 0  # complete participants in the tests
     chi2: float | None = None
     p: float | None = None
+    p_method: str = ""  # "exact" (every ordering counted, k!^n <= 2^20) or "chi2" (the asymptotic distribution)
     kendall_w: float | None = None
     pairs: list[PairTest] = field(default_factory=list)
     note: str = ""
@@ -236,10 +264,12 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
     data = np.round(raw, 9)  # equal means of integer ratings tie exactly in the Friedman ranks
     if k >= 3:
         if np.all(data == data[:, :1]):  # every participant rated every condition alike: no ranks differ
-            result.chi2, result.p, result.kendall_w = 0.0, 1.0, 0.0
+            result.chi2, result.p, result.kendall_w, result.p_method = 0.0, 1.0, 0.0, "exact"
         else:
             chi2, p = stats.friedmanchisquare(*data.T)
-            result.chi2, result.p = float(chi2), float(p)
+            result.chi2, result.p, result.p_method = float(chi2), float(p), "chi2"
+            if math.factorial(k) ** n <= FRIEDMAN_EXACT_MAX:
+                result.p, result.p_method = friedman_exact_p(data), "exact"
             result.kendall_w = float(chi2) / (n * (k - 1))
         if result.p >= ALPHA:
             return
@@ -535,8 +565,9 @@ def report(result: Analysis, store: str, pictures: list[Path],
     lines += ["## Method", "",
               "Each subscale's score is the mean of its items per participant and condition, reversed items "
               f"flipped ({q.points + 1} - x). Across conditions, over the participants who answered every "
-              "condition: the Friedman test (effect size Kendall's W); where its p < 0.05, pairwise Wilcoxon "
-              "signed-rank tests (two-sided, zero differences dropped; with up to "
+              "condition: the Friedman test (exact p while there are at most 2^20 orderings of the "
+              "participants' ratings, else the chi2 approximation; effect size Kendall's W); where its p < 0.05, "
+              "pairwise Wilcoxon signed-rank tests (two-sided, zero differences dropped; with up to "
               f"{EXACT_MAX_N} non-zero differences the exact p of the signed-rank statistic, every sign pattern "
               "counted with ties at their mid-ranks, else the normal approximation with the tie correction; the "
               "table says which) with the Holm correction over the "
@@ -560,9 +591,11 @@ def report(result: Analysis, store: str, pictures: list[Path],
     lines += _table(["subscale", "condition", "n", "mean", "SD", "median", "IQR", "Cronbach's alpha"], rows)
     lines += ["## Friedman tests", ""]
     k = len(result.conditions)
-    lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "Kendall's W", "note"],
+    lines += ["p method: exact (every ordering of each participant's ratings across the conditions counted, "
+              "while k!^N <= 2^20: N <= 7 for 3 conditions) or chi2 (the asymptotic distribution).", ""]
+    lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "p method", "Kendall's W", "note"],
                     [[s.scale.name, str(s.n), _f(s.chi2), _p(s.p) + (" " + stars(s.p) if stars(s.p) else ""),
-                      _f(s.kendall_w), s.note] for s in result.scales])
+                      s.p_method or "-", _f(s.kendall_w), s.note] for s in result.scales])
     post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), str(pt.zeros), _f(pt.statistic, ".1f"),
              _p(pt.p), pt.method, _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
     lines += ["## Pairwise Wilcoxon signed-rank tests", ""]
