@@ -314,3 +314,24 @@ def test_the_reports_peak_speed_comes_from_the_whole_withdrawal(cartesian_sessio
     peaks = sa.withdrawal_peak_speeds(cartesian_session, touches, model)
     assert measures["cartesian"].peak_m_s == pytest.approx([peaks[t.reflex_seq] for t in touches if t.reflex_seq])
     assert max(measures["cartesian"].peak_m_s) > 0.2  # summarize's own said 0.068
+
+
+def test_the_rank_biserial_interval_is_a_bootstrap_over_participants():
+    rng = np.random.default_rng(2)
+    a = rng.integers(1, 6, 12).astype(float)
+    b = a - rng.choice([-1, 0, 0, 1, 1, 2], 12)  # ties and zero differences
+    low, high = sa.rank_biserial_ci(a, b, resamples=400, seed=3)
+    # The same resamples, one by one through rank_biserial.
+    idx = np.random.default_rng(3).integers(0, 12, size=(400, 12))
+    rs = [sa.rank_biserial(a[i], b[i]) for i in idx]
+    assert (low, high) == pytest.approx(tuple(np.percentile(rs, [2.5, 97.5])))
+    assert low <= sa.rank_biserial(a, b) <= high and -1 <= low < high <= 1
+    assert sa.rank_biserial_ci(a + 1, a) == (1.0, 1.0)  # everyone higher: every resample says so
+    # scipy's bootstrap of the same statistic agrees to within the resampling noise.
+    ref = stats.bootstrap((a, b), lambda x, y: sa.rank_biserial(x, y), paired=True, vectorized=False,
+                          method="percentile", n_resamples=2000, rng=np.random.default_rng(0)).confidence_interval
+    assert sa.rank_biserial_ci(a, b) == pytest.approx((ref.low, ref.high), abs=0.1)
+    result = sa.analyze(ratings_of(condition_forms(Q, np.random.default_rng(18), 12, {"uniform": 1.2})), [], Q)
+    pair = result.scales[0].pairs[0]
+    assert pair.r_ci is not None and f"| {pair.r:.2f} | {pair.r_ci[0]:.2f} to {pair.r_ci[1]:.2f} |" in \
+        sa.report(result, "s", [])

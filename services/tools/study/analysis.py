@@ -133,6 +133,26 @@ def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
     return float((ranks[d > 0].sum() - ranks[d < 0].sum()) / ranks.sum())
 
 
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def rank_biserial_ci(a: np.ndarray, b: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES,
+                     seed: int = 0) -> tuple[float, float]:
+    """95 % percentile bootstrap interval of ``rank_biserial(a, b)``: the participants resampled with
+    replacement (their pairs kept together), the same seed every run so a report is reproducible."""
+    d = _differences(a, b)
+    rng = np.random.default_rng(seed)
+    resampled = d[rng.integers(0, d.size, size=(resamples, d.size))]
+    zeros = (resampled == 0).sum(axis=1, keepdims=True)
+    # Zero differences tie at the lowest ranks (1..z): the others' ranks among the non-zero ones are theirs - z.
+    ranks = np.where(resampled != 0, stats.rankdata(np.abs(resampled), axis=1) - zeros, 0.0)
+    total = ranks.sum(axis=1)
+    signed = (np.sign(resampled) * ranks).sum(axis=1)
+    r = np.divide(signed, total, out=np.zeros_like(total), where=total > 0)
+    low, high = np.percentile(r, [2.5, 97.5])
+    return float(low), float(high)
+
+
 EXACT_MAX_N = 20  # up to this many non-zero differences, every one of the 2^n sign patterns is counted
 
 
@@ -171,6 +191,7 @@ class PairTest:
     method: str = "exact"  # "exact" (every sign pattern counted) or "normal" (the tie-corrected approximation)
     p_holm: float = 1.0
     r: float = 0.0  # rank-biserial, > 0: a rated higher
+    r_ci: tuple[float, float] | None = None  # its 95 % bootstrap interval
 
 
 @dataclass
@@ -290,7 +311,7 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
             else:  # beyond 2^20 sign patterns: the normal approximation with the tie correction
                 p, method = float(stats.wilcoxon(nonzero, method="approx").pvalue), "normal"
             pairs.append(PairTest(conditions[i], conditions[j], int(nonzero.size), statistic, p, zeros=zeros,
-                                  method=method, r=rank_biserial(a, b)))
+                                  method=method, r=rank_biserial(a, b), r_ci=rank_biserial_ci(a, b)))
     for pair, adjusted in zip(pairs, holm([pt.p for pt in pairs])):
         pair.p_holm = adjusted
     result.pairs = pairs
@@ -546,6 +567,10 @@ def _p(p: float | None) -> str:
     return repr(p)
 
 
+def _ci(ci: tuple[float, float] | None) -> str:
+    return "-" if ci is None else f"{ci[0]:.2f} to {ci[1]:.2f}"
+
+
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
             *("| " + " | ".join(r) + " |" for r in rows), ""]
@@ -597,15 +622,18 @@ def report(result: Analysis, store: str, pictures: list[Path],
                     [[s.scale.name, str(s.n), _f(s.chi2), _p(s.p) + (" " + stars(s.p) if stars(s.p) else ""),
                       s.p_method or "-", _f(s.kendall_w), s.note] for s in result.scales])
     post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), str(pt.zeros), _f(pt.statistic, ".1f"),
-             _p(pt.p), pt.method, _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
+             _p(pt.p), pt.method, _p(pt.p_holm), _f(pt.r), _ci(pt.r_ci), stars(pt.p_holm)]
+            for s in result.scales for pt in s.pairs]
     lines += ["## Pairwise Wilcoxon signed-rank tests", ""]
     if post:
         lines += ["N: the pairs tested (participants whose two scores differ); zeros: participants who gave both "
                   "conditions the same score, dropped from the test. p method: exact (every sign pattern of the "
                   f"N differences counted, ties at their mid-ranks; N <= {EXACT_MAX_N}) or normal (the "
-                  f"tie-corrected normal approximation, N > {EXACT_MAX_N}).", ""]
+                  f"tie-corrected normal approximation, N > {EXACT_MAX_N}). r 95 % CI: percentile bootstrap over the "
+                  f"participants ({BOOTSTRAP_RESAMPLES} resamples, seed 0); with few participants it takes few "
+                  "distinct values and says little.", ""]
         lines += _table(["subscale", "pair", "N", "zeros", "T (smaller rank sum)", "p", "p method", "p Holm",
-                         "r (rank-biserial)", ""], post)
+                         "r (rank-biserial)", "r 95 % CI", ""], post)
     else:
         lines += ["None: no Friedman test had p < 0.05.", ""]
     lines += ["## Forced choice", ""]
