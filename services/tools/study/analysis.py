@@ -5,24 +5,31 @@ items, reversed items flipped (``points + 1 - x``). Across conditions, for
 the participants who answered every condition (the others are listed, with
 what they miss, and kept in the descriptive statistics only): the Friedman
 test (``scipy.stats.friedmanchisquare``, effect size Kendall's W =
-chi2 / (N (k - 1))), and where its p < 0.05 the pairwise Wilcoxon signed-rank
-tests (``scipy.stats.wilcoxon``, two-sided, zero differences dropped; exact
-without ties, else the normal approximation with the tie correction), their
+chi2 / (N (k - 1)); its p exact while the participants' orderings k!^N are at
+most 2^20, ``friedman_exact_p``, else from chi2), and where its p < 0.05 the pairwise Wilcoxon signed-rank
+tests (two-sided, zero differences dropped; with up to 20 non-zero
+differences the exact p, every sign pattern counted with tied differences at
+their mid-ranks, ``signed_rank_exact_p``; beyond, ``scipy.stats.wilcoxon``'s
+normal approximation with the tie correction), their
 p-values Holm-corrected within each subscale (the family: its k (k - 1) / 2
 pairs), effect size the matched-pairs rank-biserial correlation. With two
 conditions the one Wilcoxon test is the test. Cronbach's alpha per subscale
-and condition describes the items' consistency. Stars: *, **, *** for
+and condition describes the items' consistency (marked not interpretable with
+fewer than 5 participants or below 0). Stars: *, **, *** for
 (corrected) p below 0.05, 0.01, 0.001.
 
 Per condition, what the recordings measured (``analysis.summarize`` of each
 block's recording): reflexes per block, onset latency, withdrawal and peak
-speed, medians over the condition's reflexes. A missing or unreadable
+speed (over the whole withdrawal: ``withdrawal_peak_speeds``), medians over
+the condition's reflexes. A missing or unreadable
 recording is said in the report, not fatal.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,10 +77,55 @@ def cronbach_alpha(items: np.ndarray) -> float | None:
     return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
 
 
+FRIEDMAN_EXACT_MAX = 2**20  # up to this many within-participant orderings (k!^n), the Friedman p is exact
+
+
+def friedman_exact_p(data: np.ndarray) -> float:
+    """The exact p of the Friedman test on ``data`` (participants x conditions), ties at their mid-ranks:
+    under the null hypothesis each participant's ratings are equally likely in any order across the
+    conditions, so each of the k!^n orderings is equally likely; p is the share whose statistic (the sum of the
+    squared rank sums, which orders the orderings as chi2 does: the tie correction does not change under
+    them) is at least the observed one. Built by counting the rank-sum vectors participant by participant."""
+    doubled = np.rint(2 * stats.rankdata(data, axis=1)).astype(np.int64)  # mid-ranks: multiples of 1/2
+    k = doubled.shape[1]
+    counts: dict[tuple[int, ...], int] = {(0,) * k: 1}
+    for row in doubled:
+        orders = list(itertools.permutations(row.tolist()))
+        grown: dict[tuple[int, ...], int] = defaultdict(int)
+        for sums, c in counts.items():
+            for order in orders:
+                grown[tuple(a + b for a, b in zip(sums, order))] += c
+        counts = grown
+    observed = int((doubled.sum(axis=0) ** 2).sum())
+    total = sum(counts.values())
+    return sum(c for sums, c in counts.items() if sum(x * x for x in sums) >= observed) / total
+
+
+def _differences(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b, rounded so that equal scores (means of integer ratings) differ by exactly 0 and equal differences
+    tie: floating-point noise would otherwise break a tie or turn a zero difference into a rank."""
+    return np.round(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), 9)
+
+
+ALPHA_MIN_N = 5  # Cronbach's alpha from fewer participants swings too widely to say anything about the items
+
+
+def alpha_text(alpha: float | None, n: int) -> str:
+    """Cronbach's alpha as the report prints it: with the reason it is not interpretable where it is not (too
+    few participants, or negative: the items vary against each other more than together)."""
+    if alpha is None:
+        return "- (no variance or fewer than 2 items or participants)" if n else "-"
+    if n < ALPHA_MIN_N:
+        return f"{alpha:.2f} (not interpretable: N = {n} < {ALPHA_MIN_N})"
+    if alpha < 0:
+        return f"{alpha:.2f} (not interpretable: negative)"
+    return f"{alpha:.2f}"
+
+
 def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
     """Matched-pairs rank-biserial correlation of a - b (zero differences dropped): +1 every participant rated
     ``a`` higher, -1 every one ``b``."""
-    d = a - b
+    d = _differences(a, b)
     d = d[d != 0]
     if d.size == 0:
         return 0.0
@@ -81,15 +133,65 @@ def rank_biserial(a: np.ndarray, b: np.ndarray) -> float:
     return float((ranks[d > 0].sum() - ranks[d < 0].sum()) / ranks.sum())
 
 
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def rank_biserial_ci(a: np.ndarray, b: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES,
+                     seed: int = 0) -> tuple[float, float]:
+    """95 % percentile bootstrap interval of ``rank_biserial(a, b)``: the participants resampled with
+    replacement (their pairs kept together), the same seed every run so a report is reproducible."""
+    d = _differences(a, b)
+    rng = np.random.default_rng(seed)
+    resampled = d[rng.integers(0, d.size, size=(resamples, d.size))]
+    zeros = (resampled == 0).sum(axis=1, keepdims=True)
+    # Zero differences tie at the lowest ranks (1..z): the others' ranks among the non-zero ones are theirs - z.
+    ranks = np.where(resampled != 0, stats.rankdata(np.abs(resampled), axis=1) - zeros, 0.0)
+    total = ranks.sum(axis=1)
+    signed = (np.sign(resampled) * ranks).sum(axis=1)
+    r = np.divide(signed, total, out=np.zeros_like(total), where=total > 0)
+    low, high = np.percentile(r, [2.5, 97.5])
+    return float(low), float(high)
+
+
+EXACT_MAX_N = 20  # up to this many non-zero differences, every one of the 2^n sign patterns is counted
+
+
+def signed_rank_exact_p(d: np.ndarray) -> float:
+    """Two-sided exact p of the Wilcoxon signed-rank test on the non-zero differences ``d``, ties given their
+    mid-ranks: under the null hypothesis each difference's sign is + or - with probability 1/2, so the
+    statistic T+ (the sum of the positive differences' ranks) takes each of the 2^n sign patterns' values with
+    probability 2^-n. p is the probability of a T+ at least as far from its mean as the one observed. The
+    distribution is built by convolution over the doubled ranks (mid-ranks are multiples of 1/2), so it is
+    exact in integers and takes n^3 steps, not 2^n."""
+    d = np.asarray(d, dtype=float)
+    if d.size == 0 or np.any(d == 0):
+        raise ValueError(f"signed_rank_exact_p needs non-zero differences, got {d.tolist()}")
+    doubled = np.rint(2 * stats.rankdata(np.abs(d))).astype(np.int64)
+    total = int(doubled.sum())
+    counts = np.zeros(total + 1, dtype=np.float64)  # counts[s]: sign patterns with 2 T+ = s (exact below 2^53)
+    counts[0] = 1.0
+    for r in doubled:
+        shifted = np.zeros_like(counts)
+        shifted[r:] = counts[:-r]
+        counts = counts + shifted
+    observed = int(doubled[d > 0].sum())
+    # |2 T+ - total| >= |2 t - total|, in integers: the two tails at once, no double counting at the centre.
+    far = np.abs(2 * np.arange(total + 1) - total) >= abs(2 * observed - total)
+    return float(counts[far].sum() / counts.sum())
+
+
 @dataclass
 class PairTest:
     a: str
     b: str
-    n: int  # complete participants (zero differences included; the test drops them)
-    statistic: float  # scipy's: the smaller of the signed-rank sums
+    n: int  # pairs in the test: complete participants whose scores differ (zero differences dropped)
+    statistic: float  # the smaller of the signed-rank sums
     p: float
+    zeros: int = 0  # complete participants who gave both conditions the same score (dropped)
+    method: str = "exact"  # "exact" (every sign pattern counted) or "normal" (the tie-corrected approximation)
     p_holm: float = 1.0
     r: float = 0.0  # rank-biserial, > 0: a rated higher
+    r_ci: tuple[float, float] | None = None  # its 95 % bootstrap interval
 
 
 @dataclass
@@ -100,6 +202,7 @@ class ScaleResult:
     n: int = 0  # complete participants in the tests
     chi2: float | None = None
     p: float | None = None
+    p_method: str = ""  # "exact" (every ordering counted, k!^n <= 2^20) or "chi2" (the asymptotic distribution)
     kendall_w: float | None = None
     pairs: list[PairTest] = field(default_factory=list)
     note: str = ""
@@ -178,31 +281,37 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
     if n < 3:
         result.note = f"{n} participant(s) answered every condition: too few for the tests (3 or more)"
         return
-    data = np.array([[result.scores[c][p] for c in conditions] for p in complete])  # participants x conditions
+    raw = np.array([[result.scores[c][p] for c in conditions] for p in complete])  # participants x conditions
+    data = np.round(raw, 9)  # equal means of integer ratings tie exactly in the Friedman ranks
     if k >= 3:
         if np.all(data == data[:, :1]):  # every participant rated every condition alike: no ranks differ
-            result.chi2, result.p, result.kendall_w = 0.0, 1.0, 0.0
+            result.chi2, result.p, result.kendall_w, result.p_method = 0.0, 1.0, 0.0, "exact"
         else:
             chi2, p = stats.friedmanchisquare(*data.T)
-            result.chi2, result.p = float(chi2), float(p)
+            result.chi2, result.p, result.p_method = float(chi2), float(p), "chi2"
+            if math.factorial(k) ** n <= FRIEDMAN_EXACT_MAX:
+                result.p, result.p_method = friedman_exact_p(data), "exact"
             result.kendall_w = float(chi2) / (n * (k - 1))
         if result.p >= ALPHA:
             return
     pairs = []
     for i in range(k):
         for j in range(i + 1, k):
-            a, b = data[:, i], data[:, j]
-            if np.all(a == b):
-                pairs.append(PairTest(conditions[i], conditions[j], n, 0.0, 1.0))
+            a, b = raw[:, i], raw[:, j]  # rounded after the subtraction (two roundings could break a tie)
+            d = _differences(a, b)
+            nonzero = d[d != 0]
+            zeros = int(d.size - nonzero.size)
+            if nonzero.size == 0:
+                pairs.append(PairTest(conditions[i], conditions[j], 0, 0.0, 1.0, zeros=zeros))
                 continue
-            d = a - b
-            nonzero = np.abs(d[d != 0])
-            # Exact without zeros or ties; else the normal approximation with the tie correction (scipy's
-            # permutation method would take seconds a test and, on subscale means, gives the same answer).
-            exact = nonzero.size == d.size and np.unique(nonzero).size == nonzero.size
-            res = stats.wilcoxon(a, b, method="exact" if exact else "approx")
-            pairs.append(PairTest(conditions[i], conditions[j], n, float(res.statistic), float(res.pvalue),
-                                  r=rank_biserial(a, b)))
+            ranks = stats.rankdata(np.abs(nonzero))
+            statistic = float(min(ranks[nonzero > 0].sum(), ranks[nonzero < 0].sum()))
+            if nonzero.size <= EXACT_MAX_N:
+                p, method = signed_rank_exact_p(nonzero), "exact"
+            else:  # beyond 2^20 sign patterns: the normal approximation with the tie correction
+                p, method = float(stats.wilcoxon(nonzero, method="approx").pvalue), "normal"
+            pairs.append(PairTest(conditions[i], conditions[j], int(nonzero.size), statistic, p, zeros=zeros,
+                                  method=method, r=rank_biserial(a, b), r_ci=rank_biserial_ci(a, b)))
     for pair, adjusted in zip(pairs, holm([pt.p for pt in pairs])):
         pair.p_holm = adjusted
     result.pairs = pairs
@@ -224,15 +333,56 @@ class ConditionMeasures:
     problems: list[str] = field(default_factory=list)  # "P03 b2 ...: missing"
 
 
+def withdrawal_peak_speeds(records: list[Any], touches: list[Any], model: Any) -> dict[int, float]:
+    """Each reflex touch's fastest point of the arm over its whole withdrawal, m/s, by the touch's first reflex.
+
+    The withdrawal: the robot states from the reflex's onset while the arm withdraws (phase REFLEX) for this
+    touch, under its first reflex or any restart of it (a reflex of the same pad triggered within the touch:
+    pain that rises over several skin samples restarts the reflex at each), until the task resumes or another
+    touch's reflex begins. ``analysis.summarize``'s own peak speed stops at the first later reflex onset of any
+    touch, this touch's restarts included: a reflex restarted one skin period (40 ms) after its onset has its
+    peak taken from its first 40 ms of acceleration (0.068 m/s for a 126 mm withdrawal that reaches 0.21 m/s).
+    Without phases (older recordings): every state of that span."""
+    states = [r.message for r in records if r.key == "robot/state"]
+    statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
+                and r.message.active and (r.message.reflex is None or not r.message.reflex.shadow)]
+    reflexes = {st.reflex.reflex_seq: st.reflex for st in statuses if st.reflex is not None}
+    onsets: dict[int, int] = {}
+    for state in states:
+        if state.accepted is not None and state.reflex_seq not in onsets:
+            onsets[state.reflex_seq] = state.accepted_ns
+    out: dict[int, float] = {}
+    for touch in touches:
+        t0 = onsets.get(touch.reflex_seq)
+        if not touch.reflex_seq or t0 is None:
+            continue
+        own = {seq for seq, r in reflexes.items()
+               if r.contact.pad == touch.pad and touch.first_seq <= r.trace.seq <= touch.last_seq}
+        own.add(touch.reflex_seq)
+        resumed = next((st.stamp_ns for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
+        end = min([resumed if resumed is not None else states[-1].stamp_ns,
+                   *(t for seq, t in onsets.items() if t > t0 and seq in reflexes and seq not in own)])
+        span = [s for s in states if t0 <= s.stamp_ns <= end]
+        moving = [s for s in span if s.phase == "REFLEX" and s.reflex_seq in own] or span
+        if moving:
+            out[touch.reflex_seq] = max(
+                float(np.linalg.norm(model.speed_jacobians(np.asarray(s.q)) @ np.asarray(s.dq), axis=1).max())
+                for s in moving)
+    return out
+
+
 def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str, ConditionMeasures]:
     """Per condition, each rated block's recording (relative to ``root``) summarized; a recording that is
     missing or unreadable is noted, not fatal. ``desc``: a RobotDescription, or a callable returning one
-    (loaded only when a recording is there)."""
+    (loaded only when a recording is there). The peak speed is the whole withdrawal's
+    (``withdrawal_peak_speeds``)."""
     from nwr.common.recordings import read_recording
+    from nwr.common.robot import RobotModel
     from nwr.services.tools.recordings import analysis
 
     blocks = sorted({(r.condition, r.participant, r.block, r.recording) for r in ratings})
     out: dict[str, ConditionMeasures] = {}
+    model = None
     for condition, participant, block, recording in blocks:
         cm = out.setdefault(condition, ConditionMeasures(condition))
         path = root / recording
@@ -243,7 +393,9 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
             records, _ = read_recording(path)
             if callable(desc):
                 desc = desc()
-            touches = analysis.summarize(records, desc)
+            model = model or RobotModel(desc)
+            touches = analysis.summarize(records, desc, model)
+            peaks = withdrawal_peak_speeds(records, touches, model)
         except (NwrError, OSError) as exc:
             cm.problems.append(f"{participant} block {block}: {recording} unreadable ({exc})")
             continue
@@ -252,7 +404,7 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
         cm.reflexes_per_block.append(len(reflexes))
         cm.onset_ms += [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
         cm.withdrawal_mm += [t.withdrawal_mm for t in reflexes if t.withdrawal_mm is not None]
-        cm.peak_m_s += [t.peak_speed_m_s for t in reflexes if t.peak_speed_m_s is not None]
+        cm.peak_m_s += [peaks[t.reflex_seq] for t in reflexes if t.reflex_seq in peaks]
     return out
 
 
@@ -260,6 +412,19 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
 
 
 def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | None:
+    fig = _boxplot_figure(result, kind, title)
+    if fig is None:
+        return None
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def _boxplot_figure(result: Analysis, kind: str, title: str) -> Any:
+    """The boxplots of one kind of subscale, each participant's score a dot over its condition's box (jittered
+    sideways, the same seed every run: at a few participants the box alone hides how few answers it has)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -272,13 +437,16 @@ def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | Non
     cols = 2 if len(scales) == 4 else len(scales)
     rows = -(-len(scales) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * rows), squeeze=False)
+    rng = np.random.default_rng(0)
     for ax, s in zip(axes.flat, scales):
         data = [list(s.scores[c].values()) for c in result.conditions]
-        ax.boxplot(data, tick_labels=labels, showmeans=True, widths=0.5,
+        ax.boxplot(data, tick_labels=labels, showmeans=True, widths=0.5, showfliers=False,
                    medianprops={"color": "red", "linewidth": 2},
                    meanprops={"marker": "o", "markerfacecolor": "red", "markeredgecolor": "red", "markersize": 5},
-                   flierprops={"marker": "x", "markeredgecolor": "0.3"},
                    boxprops={"color": "0.2"}, whiskerprops={"color": "0.2"}, capprops={"color": "0.2"})
+        for position, values in enumerate(data, start=1):
+            x = position + rng.uniform(-0.15, 0.15, len(values))
+            ax.scatter(x, values, s=22, color="tab:blue", alpha=0.7, edgecolors="none", zorder=3)
         ax.set_title(s.scale.name, fontsize=11)
         ax.set_ylim(0.8, 5.2)
         ax.set_yticks(range(1, 6))
@@ -297,12 +465,11 @@ def _boxplots(result: Analysis, kind: str, path: Path, title: str) -> Path | Non
     for ax in list(axes.flat)[len(scales):]:
         ax.set_visible(False)
     fig.suptitle(title, fontsize=12)
-    fig.text(0.5, 0.005, "red dot: mean, red line: median; * p < 0.05, ** p < 0.01, *** p < 0.001 "
-             "(Wilcoxon signed-rank, Holm-corrected)", ha="center", fontsize=7, color="0.35")
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=150)
-    plt.close(fig)
-    return path
+    fig.text(0.5, 0.005, "blue dots: each participant's score; red dot: mean, red line: median\n* p < 0.05, "
+             "** p < 0.01, *** p < 0.001 (Wilcoxon signed-rank, Holm-corrected)", ha="center", va="bottom",
+             fontsize=7, color="0.35")
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    return fig
 
 
 def _friedman_text(s: ScaleResult) -> str:
@@ -312,6 +479,17 @@ def _friedman_text(s: ScaleResult) -> str:
 
 
 def _radar(result: Analysis, path: Path) -> Path | None:
+    fig = _radar_figure(result)
+    if fig is None:
+        return None
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _radar_figure(result: Analysis) -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -340,23 +518,26 @@ def _radar(result: Analysis, path: Path) -> Path | None:
         ax.fill(closed, np.append(counts, counts[0]), color=color, alpha=0.08)
     ax.set_xticks(angles)
     ax.set_xticklabels([])
-    # The counts beside each question's name: points of equal count would hide each other's numbers.
-    # Just outside the outer ring whatever the counts (a fixed offset in votes is far out for a few votes).
-    outside = 1.2 * (top + 1)
+    # The counts beside each question's name: points of equal count would hide each other's numbers. Each
+    # name and its counts a block just outside the outer ring, growing away from it (left of a question on the
+    # left, above one at the top): centred on the ring, a long name ran across it.
+    short = [*(q.label(c) for c in result.conditions), "none"]
     for angle, choice in zip(angles, q.choice):
-        ax.text(angle, outside, choice.short, ha="center", va="center", fontsize=11, fontweight="bold")
-        short = [*(q.label(c) for c in result.conditions), "none"]
+        x, y = np.sin(angle), np.cos(angle)  # on the page: the first question at the top, then clockwise
+        ha = "left" if x > 0.1 else "right" if x < -0.1 else "center"
+        dx, dy = 6 * np.sign(x) * (abs(x) > 0.1), 26 * np.sign(y) * (abs(y) > 0.1)
         tally = "  ".join(f"{n} {result.votes[choice.id][o]}" for n, o in zip(short, options))
-        ax.text(angle, outside, "\n\n" + tally, ha="center", va="center", fontsize=9, color="0.3")
+        ax.annotate(choice.short, (angle, top + 1), xytext=(dx, dy + 1), textcoords="offset points", ha=ha,
+                    va="bottom", fontsize=11, fontweight="bold", annotation_clip=False)
+        ax.annotate(tally, (angle, top + 1), xytext=(dx, dy - 1), textcoords="offset points", ha=ha, va="top",
+                    fontsize=9, color="0.3", annotation_clip=False)
     ax.set_ylim(0, top + 1)
     ax.set_yticks(range(0, top + 2, max(1, (top + 1) // 4)))
     ax.tick_params(axis="y", labelsize=7, labelcolor="0.5")
     ax.set_title(f"Forced choice: votes of {sum(result.votes[q.choice[0].id].values())} participants", fontsize=12,
-                 pad=48)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=len(options), fontsize=9, frameon=False)
-    fig.savefig(path, dpi=150, bbox_inches="tight")
-    plt.close(fig)
-    return path
+                 pad=64)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=len(options), fontsize=9, frameon=False)
+    return fig
 
 
 def figures(result: Analysis, out: Path) -> list[Path]:
@@ -375,9 +556,19 @@ def _f(x: float | None, fmt: str = ".2f") -> str:
 
 
 def _p(p: float | None) -> str:
-    if p is None:
+    """p to 3 significant digits, more where rounding would cross a star's threshold (0.0498 stays below 0.05:
+    "0.0498", and 0.049996 is "0.049996", never "0.0500" beside a star)."""
+    if p is None or not np.isfinite(p):
         return "-"
-    return "< 0.001" if p < 0.001 else f"{p:.3f}"
+    for digits in range(3, 10):
+        text = f"{p:.{digits}g}"
+        if stars(float(text)) == stars(p):
+            return text
+    return repr(p)
+
+
+def _ci(ci: tuple[float, float] | None) -> str:
+    return "-" if ci is None else f"{ci[0]:.2f} to {ci[1]:.2f}"
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -399,13 +590,17 @@ def report(result: Analysis, store: str, pictures: list[Path],
     lines += ["## Method", "",
               "Each subscale's score is the mean of its items per participant and condition, reversed items "
               f"flipped ({q.points + 1} - x). Across conditions, over the participants who answered every "
-              "condition: the Friedman test (effect size Kendall's W); where its p < 0.05, pairwise Wilcoxon "
-              "signed-rank tests (two-sided, zero differences dropped; exact p without ties, else the normal "
-              "approximation with the tie correction) with the Holm correction over the "
+              "condition: the Friedman test (exact p while there are at most 2^20 orderings of the "
+              "participants' ratings, else the chi2 approximation; effect size Kendall's W); where its p < 0.05, "
+              "pairwise Wilcoxon signed-rank tests (two-sided, zero differences dropped; with up to "
+              f"{EXACT_MAX_N} non-zero differences the exact p of the signed-rank statistic, every sign pattern "
+              "counted with ties at their mid-ranks, else the normal approximation with the tie correction; the "
+              "table says which) with the Holm correction over the "
               "subscale's pairs (p Holm), effect size the matched-pairs rank-biserial correlation r (> 0: the "
               "first condition rated higher). The Friedman p-values are not corrected across subscales. Stars: "
               "*, **, *** for p Holm < 0.05, 0.01, 0.001. Cronbach's alpha per subscale and condition over "
-              "every participant who answered it.", "",
+              f"every participant who answered it, marked not interpretable with fewer than {ALPHA_MIN_N} "
+              "participants or when negative.", "",
               "## Descriptive statistics", ""]
     rows = []
     for s in result.scales:
@@ -417,18 +612,28 @@ def report(result: Analysis, store: str, pictures: list[Path],
             q1, med, q3 = np.percentile(v, [25, 50, 75])
             rows.append([s.scale.name, lab(c), str(v.size), f"{v.mean():.2f}",
                          _f(float(v.std(ddof=1)) if v.size > 1 else None), f"{med:.2f}", f"{q1:.2f}-{q3:.2f}",
-                         _f(s.alpha[c])])
+                         alpha_text(s.alpha[c], int(v.size))])
     lines += _table(["subscale", "condition", "n", "mean", "SD", "median", "IQR", "Cronbach's alpha"], rows)
     lines += ["## Friedman tests", ""]
     k = len(result.conditions)
-    lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "Kendall's W", "note"],
+    lines += ["p method: exact (every ordering of each participant's ratings across the conditions counted, "
+              "while k!^N <= 2^20: N <= 7 for 3 conditions) or chi2 (the asymptotic distribution).", ""]
+    lines += _table(["subscale", "N", f"chi2 (df = {k - 1})", "p", "p method", "Kendall's W", "note"],
                     [[s.scale.name, str(s.n), _f(s.chi2), _p(s.p) + (" " + stars(s.p) if stars(s.p) else ""),
-                      _f(s.kendall_w), s.note] for s in result.scales])
-    post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), _f(pt.statistic, ".1f"), _p(pt.p),
-             _p(pt.p_holm), _f(pt.r), stars(pt.p_holm)] for s in result.scales for pt in s.pairs]
+                      s.p_method or "-", _f(s.kendall_w), s.note] for s in result.scales])
+    post = [[s.scale.name, f"{lab(pt.a)} vs {lab(pt.b)}", str(pt.n), str(pt.zeros), _f(pt.statistic, ".1f"),
+             _p(pt.p), pt.method, _p(pt.p_holm), _f(pt.r), _ci(pt.r_ci), stars(pt.p_holm)]
+            for s in result.scales for pt in s.pairs]
     lines += ["## Pairwise Wilcoxon signed-rank tests", ""]
     if post:
-        lines += _table(["subscale", "pair", "N", "T (smaller rank sum)", "p", "p Holm", "r (rank-biserial)", ""], post)
+        lines += ["N: the pairs tested (participants whose two scores differ); zeros: participants who gave both "
+                  "conditions the same score, dropped from the test. p method: exact (every sign pattern of the "
+                  f"N differences counted, ties at their mid-ranks; N <= {EXACT_MAX_N}) or normal (the "
+                  f"tie-corrected normal approximation, N > {EXACT_MAX_N}). r 95 % CI: percentile bootstrap over the "
+                  f"participants ({BOOTSTRAP_RESAMPLES} resamples, seed 0); with few participants it takes few "
+                  "distinct values and says little.", ""]
+        lines += _table(["subscale", "pair", "N", "zeros", "T (smaller rank sum)", "p", "p method", "p Holm",
+                         "r (rank-biserial)", "r 95 % CI", ""], post)
     else:
         lines += ["None: no Friedman test had p < 0.05.", ""]
     lines += ["## Forced choice", ""]
