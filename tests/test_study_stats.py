@@ -277,7 +277,6 @@ def cartesian_session() -> list[Recorded]:
 def test_the_peak_speed_is_the_whole_withdrawals_not_its_first_skin_period(cartesian_session):
     model = RobotModel(DESC)
     touches = analysis.summarize(cartesian_session, DESC, model)
-    peaks = sa.withdrawal_peak_speeds(cartesian_session, touches, model)
     states = [r.message for r in cartesian_session if r.key == "robot/state"]
     checked = 0
     for touch in touches:
@@ -293,8 +292,8 @@ def test_the_peak_speed_is_the_whole_withdrawals_not_its_first_skin_period(carte
         t_far, far = min(along, key=lambda x: x[1])
         mean_speed = -far / ((t_far - onset.accepted_ns) / 1e9)
         assert mean_speed > 0.1, touch  # the session's slow-building touch: a real withdrawal
-        assert peaks[touch.reflex_seq] >= mean_speed, (touch.name, peaks[touch.reflex_seq], mean_speed)
-        assert touch.peak_speed_m_s is not None and touch.peak_speed_m_s < mean_speed  # summarize's 40 ms window
+        # (before, summarize stopped at the touch's own first restart, 40 ms in: 0.068 m/s for 126 mm)
+        assert touch.peak_speed_m_s is not None and touch.peak_speed_m_s >= mean_speed, (touch.name, mean_speed)
         checked += 1
     assert checked == 1
 
@@ -311,8 +310,7 @@ def test_the_reports_peak_speed_comes_from_the_whole_withdrawal(cartesian_sessio
     measures = sa.measure_recordings(ratings, tmp_path, lambda: DESC)
     model = RobotModel(DESC)
     touches = analysis.summarize(cartesian_session, DESC, model)
-    peaks = sa.withdrawal_peak_speeds(cartesian_session, touches, model)
-    assert measures["cartesian"].peak_m_s == pytest.approx([peaks[t.reflex_seq] for t in touches if t.reflex_seq])
+    assert measures["cartesian"].peak_m_s == pytest.approx([t.peak_speed_m_s for t in touches if t.reflex_seq])
     assert max(measures["cartesian"].peak_m_s) > 0.2  # summarize's own said 0.068
 
 

@@ -160,15 +160,15 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         touch.onset_latency_ms = (t0 - onset.accepted.stamp_ns) / 1e6
         resumed = next((st for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
         end = resumed.stamp_ns if resumed is not None else int(state_t[-1]) if len(state_t) else t0
-        # Up to the next reflex at most: a new touch during the return starts another one.
-        later = [o.accepted_ns for o in onsets.values() if o.accepted_ns > t0]
-        until = min([end, *later]) if later else end
         # The touch's motion ends where another touch's reflex begins (this touch's own updates and restarts
-        # go on with it): without a resumption, the end of the recording would take in later touches' motions.
+        # go on with it: a press whose pain builds over several skin samples restarts its reflex every sample,
+        # and its withdrawal's speed is that of the whole motion, not of its first 40 ms): without a resumption,
+        # the end of the recording would take in later touches' motions.
         others = [o.accepted_ns for seq, o in onsets.items() if o.accepted_ns > t0 and seq in reflexes
                   and not (reflexes[seq].contact.pad == touch.pad
                            and touch.first_seq <= reflexes[seq].trace.seq <= touch.last_seq)]
         end = min([end, *others])
+        until = end
         if resumed is not None:
             touch.resumed_after_s = (resumed.stamp_ns - t0) / 1e9
         window = (state_t >= t0) & (state_t <= end)

@@ -20,7 +20,7 @@ fewer than 5 participants or below 0). Stars: *, **, *** for
 
 Per condition, what the recordings measured (``analysis.summarize`` of each
 block's recording): reflexes per block, onset latency, withdrawal and peak
-speed (over the whole withdrawal: ``withdrawal_peak_speeds``), medians over
+speed (over the whole withdrawal, a touch's restarts included), medians over
 the condition's reflexes. A missing or unreadable
 recording is said in the report, not fatal.
 """
@@ -333,49 +333,11 @@ class ConditionMeasures:
     problems: list[str] = field(default_factory=list)  # "P03 b2 ...: missing"
 
 
-def withdrawal_peak_speeds(records: list[Any], touches: list[Any], model: Any) -> dict[int, float]:
-    """Each reflex touch's fastest point of the arm over its whole withdrawal, m/s, by the touch's first reflex.
-
-    The withdrawal: the robot states from the reflex's onset while the arm withdraws (phase REFLEX) for this
-    touch, under its first reflex or any restart of it (a reflex of the same pad triggered within the touch:
-    pain that rises over several skin samples restarts the reflex at each), until the task resumes or another
-    touch's reflex begins. ``analysis.summarize``'s own peak speed stops at the first later reflex onset of any
-    touch, this touch's restarts included: a reflex restarted one skin period (40 ms) after its onset has its
-    peak taken from its first 40 ms of acceleration (0.068 m/s for a 126 mm withdrawal that reaches 0.21 m/s).
-    Without phases (older recordings): every state of that span."""
-    states = [r.message for r in records if r.key == "robot/state"]
-    statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
-                and r.message.active and (r.message.reflex is None or not r.message.reflex.shadow)]
-    reflexes = {st.reflex.reflex_seq: st.reflex for st in statuses if st.reflex is not None}
-    onsets: dict[int, int] = {}
-    for state in states:
-        if state.accepted is not None and state.reflex_seq not in onsets:
-            onsets[state.reflex_seq] = state.accepted_ns
-    out: dict[int, float] = {}
-    for touch in touches:
-        t0 = onsets.get(touch.reflex_seq)
-        if not touch.reflex_seq or t0 is None:
-            continue
-        own = {seq for seq, r in reflexes.items()
-               if r.contact.pad == touch.pad and touch.first_seq <= r.trace.seq <= touch.last_seq}
-        own.add(touch.reflex_seq)
-        resumed = next((st.stamp_ns for st in statuses if st.stamp_ns > t0 and st.mode == "TASK"), None)
-        end = min([resumed if resumed is not None else states[-1].stamp_ns,
-                   *(t for seq, t in onsets.items() if t > t0 and seq in reflexes and seq not in own)])
-        span = [s for s in states if t0 <= s.stamp_ns <= end]
-        moving = [s for s in span if s.phase == "REFLEX" and s.reflex_seq in own] or span
-        if moving:
-            out[touch.reflex_seq] = max(
-                float(np.linalg.norm(model.speed_jacobians(np.asarray(s.q)) @ np.asarray(s.dq), axis=1).max())
-                for s in moving)
-    return out
-
-
 def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str, ConditionMeasures]:
     """Per condition, each rated block's recording (relative to ``root``) summarized; a recording that is
     missing or unreadable is noted, not fatal. ``desc``: a RobotDescription, or a callable returning one
-    (loaded only when a recording is there). The peak speed is the whole withdrawal's
-    (``withdrawal_peak_speeds``)."""
+    (loaded only when a recording is there). The peak speed is the whole withdrawal's (``analysis.summarize``:
+    a touch's own restarts go on with its withdrawal)."""
     from nwr.common.recordings import read_recording
     from nwr.common.robot import RobotModel
     from nwr.services.tools.recordings import analysis
@@ -395,7 +357,6 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
                 desc = desc()
             model = model or RobotModel(desc)
             touches = analysis.summarize(records, desc, model)
-            peaks = withdrawal_peak_speeds(records, touches, model)
         except (NwrError, OSError) as exc:
             cm.problems.append(f"{participant} block {block}: {recording} unreadable ({exc})")
             continue
@@ -404,7 +365,7 @@ def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str
         cm.reflexes_per_block.append(len(reflexes))
         cm.onset_ms += [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
         cm.withdrawal_mm += [t.withdrawal_mm for t in reflexes if t.withdrawal_mm is not None]
-        cm.peak_m_s += [peaks[t.reflex_seq] for t in reflexes if t.reflex_seq in peaks]
+        cm.peak_m_s += [t.peak_speed_m_s for t in reflexes if t.peak_speed_m_s is not None]
     return out
 
 
