@@ -430,7 +430,9 @@ def test_fake_liveliness_token_is_not_seen(lab: Lab, tmp_path: Path, pipeline_fa
 def _latency_script(path: Path, touches: int) -> Path:
     """Supra-threshold touches every 2 s on pads that alternate (PL 3 and PL 4)."""
     pads = ["forearm_top", "wrist_2", "upper_arm_top"]
-    lines = [f"duration_s = {2.0 * touches + 3.0}"]
+    # 3 s more than the last touch's reflex needs: a return waits while the task would go through where a touch
+    # just was (planner.recent_contact_s), and the task must resume before the session ends.
+    lines = [f"duration_s = {2.0 * touches + 6.0}"]
     for i in range(touches):
         lines += ["[[touch]]", f'pad = "{pads[i % len(pads)]}"', f"start_s = {2.0 + 2.0 * i}", "duration_s = 0.3",
                   f"peak_hpa = {9.0 if i % 2 else 18.0}"]

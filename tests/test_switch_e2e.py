@@ -20,7 +20,7 @@ pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 SCRIPT = Path(__file__).parent / "data" / "switch.toml"
 ORDER = ["uniform", "cartesian", "location"]  # UR -> CR -> LR
-SWITCH_AT_S = {8.0: "cartesian", 14.0: "location"}
+SWITCH_AT_S = {10.0: "cartesian", 19.0: "location"}
 
 
 def switcher(pipeline: Pipeline, stop: threading.Event, log: list[str]) -> None:
