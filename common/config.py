@@ -427,6 +427,10 @@ class SafetySection(_Section):
     reason: str = ""
 
 
+# The sections whose plug-ins keep their own tables (Plugged), by name.
+PLUGGED: dict[str, type[Plugged]] = {"gateway": GatewaySection, "planner": PlannerSection, "bridge": BridgeSection}
+
+
 class Profile(_Section):
     robot: RobotSection = msgspec.field(default_factory=RobotSection)
     zenoh: ZenohSection = msgspec.field(default_factory=ZenohSection)
@@ -466,7 +470,7 @@ def decode_profile(raw: Any, where: str) -> Profile:
     (:data:`MOVED`) are read where they were. ConfigError naming ``where`` and the field."""
     if isinstance(raw, dict):
         raw = dict(raw)
-        for name, kind in (("gateway", GatewaySection), ("planner", PlannerSection), ("bridge", BridgeSection)):
+        for name, kind in PLUGGED.items():
             if not isinstance(raw.get(name), dict):
                 continue
             table = dict(raw[name])
@@ -904,7 +908,7 @@ def loosened_safety(profile: Profile, plugins: Iterable[Guarded] = ()) -> list[d
 def _deferred(name: str, sections: Iterable[str]) -> bool:
     """Whether ``name`` is a field of a plug-in's table under one of ``sections``."""
     section, _, rest = name.partition(".")
-    plugged = {"gateway": GatewaySection, "planner": PlannerSection, "bridge": BridgeSection}.get(section)
+    plugged = PLUGGED.get(section)
     return section in sections and plugged is not None and rest.partition(".")[0] not in plugged.__struct_fields__
 
 

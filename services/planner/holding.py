@@ -145,8 +145,9 @@ class Holding(Returning):
             self.partial = True
 
     def _blocking(self, target: np.ndarray, now_ns: int) -> list[int]:
-        """The pads that keep the arm holding: the touched pad while it feels the touch (within release_s),
-        and any other pad feeling one that the way to ``target`` would bring closer to it."""
+        """The pads that keep the arm holding: the touched pad while it feels the touch (within release_s), any
+        other pad feeling one that the way to ``target`` (the saved pose, where the task resumes) would bring
+        closer to it, and any recent touch the way back or the task after it would go through."""
         within = np.flatnonzero(now_ns - self.felt_ns < round(self.cfg.release_s * 1e9)).tolist()
         recent: list[int] = sorted(set(within) | {i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL})
         touched = self.reflex.contact.pad if self.reflex is not None else -1
@@ -162,7 +163,7 @@ class Holding(Returning):
                 continue
             poses = straight(self.q, target)
             left_s = (contact.felt_ns + self.contacts.recent_ns - now_ns) / 1e9
-            if target is self.saved and left_s > 0.0:
+            if left_s > 0.0:  # target: the saved pose, where the task resumes
                 poses += [self.task.position(self.clock.s + s) for s in np.linspace(0.0, left_s, 21)[1:]]
             depth = passes_through(self.model, poses, contact, self.cfg.contact_margin_m)
             if depth > 0.0:
@@ -179,9 +180,11 @@ class Holding(Returning):
     def _task_presses(self) -> list[int]:
         """The pads feeling a touch without a gain (PL 2: no reflex) that the task, within TASK_AHEAD_S, would
         take more than contact_margin_m past where the touch met them: a slow press the task would push into."""
+        felt = [c for c in self.contacts.active() if c.gain <= 0.0]
+        if not felt:  # every pain message in the task asks: nothing to compute without such a touch
+            return []
         poses = [self.task.position(self.clock.s + s) for s in np.linspace(0.0, TASK_AHEAD_S, 11)[1:]]
-        return [c.pad for c in self.contacts.active()
-                if c.gain <= 0.0 and passes_through(self.model, poses, c, self.cfg.contact_margin_m) > 0.0]
+        return [c.pad for c in felt if passes_through(self.model, poses, c, self.cfg.contact_margin_m) > 0.0]
 
     def _felt_ahead(self, now_ns: int) -> list[int]:
         """The pads feeling a touch now that the rest of the return brings closer to it."""
