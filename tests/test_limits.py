@@ -134,7 +134,7 @@ def test_the_reduced_mode_holds_every_point_to_its_own_limit() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("strategy", ["uniform", "location", "cartesian", "cartesian-smooth"])
+@pytest.mark.parametrize("strategy", ["uniform", "location", "cartesian", "cartesian-smooth", "whole-arm"])
 def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> None:
     profile = every_cycle()
     limits = profile.bridge.limits
@@ -164,27 +164,17 @@ def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> No
         if s.reflex_seq not in toward:
             toward[s.reflex_seq] = MODEL.pad_normal(s.q, contacts[s.reflex_seq].pad)
         approach = float((v @ toward[s.reflex_seq]).max())
-        # A reflex restarted while the arm still withdraws blends from that motion: the bridge scales the
-        # command's speed toward the contact to its limit, but no faster than the joints may decelerate. Seen: a
-        # location reflex restarted five times within 0.2 s as its press rose to G = 1, wrist_2 at up to
-        # 0.27 m/s toward the contact for about 0.1 s. Known, not yet fixed: the restarted joint-space plan does
-        # not see the motion it blends from.
-        restarted = s.reflex_seq - 1 in contacts and contacts[s.reflex_seq - 1].pad == contacts[s.reflex_seq].pad
-        allowed = limits.speed_m_s * (1.25 if restarted else 1.0) + TOLERANCE
-        assert approach <= allowed, (s.stamp_ns, approach, restarted)
+        # Also a reflex restarted while the arm withdraws (a press whose pain rises over several samples): the
+        # bridge follows the restarted stream closely (its period measured afresh), nothing catches up.
+        assert approach <= limits.speed_m_s + TOLERANCE, (s.stamp_ns, approach)
     assert reflexes > 100
     # The per-touch table shows what the limits let through, reflex by reflex.
     touches = [t for t in analysis.summarize(records, DESC, MODEL) if t.reflex_seq]
     assert len(touches) == 6
-    infos = {msg.reflex.reflex_seq: msg.reflex for k, msg in out
-             if isinstance(msg, m.PlannerStatus) and msg.reflex is not None}
     for t in touches:
         assert t.peak_speed_m_s is not None and 0 < t.peak_speed_m_s <= limits.withdrawal_speed_m_s + TOLERANCE
-        restarts = sum(r.contact.pad == t.pad and t.first_seq <= r.trace.seq <= t.last_seq for r in infos.values())
-        # (the same known excess as above, over the whole withdrawal of a press that restarted its reflex: 0.298
-        # m/s along the onset's normal for location's five restarts)
-        allowed = limits.speed_m_s * (1.25 if restarts > 1 else 1.0) + TOLERANCE
-        assert t.peak_toward_m_s is not None and t.peak_toward_m_s <= allowed, (t.name, restarts)
+        # Over the whole withdrawal of a press that restarted its reflex too, along the first onset's normal.
+        assert t.peak_toward_m_s is not None and t.peak_toward_m_s <= limits.speed_m_s + TOLERANCE, t.name
 
 
 @pytest.mark.e2e

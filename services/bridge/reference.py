@@ -51,8 +51,12 @@ MAX_LATE_S = 0.02
 PLAN_MATCH_RAD = 1e-6
 # A position stream's reference is the cubic through its last this many steps' targets.
 STREAM_STEPS = 3
-# The median of a stream's stamp steps is smoothed by this share per command.
+# The median of a stream's stamp steps is smoothed by this share per command, once it is the median of this
+# many steps: a new stream's first step can be a reflex's onset, sent at once on its pain message and followed
+# by a skipped cycle (one cycle's motion over two periods); smoothed from there, the stream's speed was
+# underestimated by up to 40 % for 100 ms, the arm fell behind it and caught up beyond the speed limits.
 PERIOD_SMOOTHING = 0.05
+PERIOD_SEED = 3
 # A stream's acceleration is extrapolated this many periods past its last
 # command (a late command), its velocity on to MAX_PERIOD_S.
 ACCEL_PERIODS = 2.0
@@ -188,12 +192,16 @@ class Reference:
 
     def _period(self, cmd: m.Command, gap: int, last_stamp_ns: int) -> float:
         """The stream's period, s: the median of its stamp steps (robust to the jitter of both loops), smoothed
-        (the median of a jittery stream moves by a few per cent from one command to the next)."""
+        once it has :data:`PERIOD_SEED` of them (the median of a jittery stream moves by a few per cent from one
+        command to the next)."""
         self.periods.append((cmd.stamp_ns - last_stamp_ns) / gap / 1e9)
         # statistics.median: the same value as np.median, without its overhead on 15 numbers.
         median = min(max(float(statistics.median(self.periods)), MIN_PERIOD_S), MAX_PERIOD_S)
         estimate = self.period_estimate
-        self.period_estimate = median if estimate is None else estimate + (median - estimate) * PERIOD_SMOOTHING
+        if estimate is None or len(self.periods) <= PERIOD_SEED:
+            self.period_estimate = median
+        else:
+            self.period_estimate = estimate + (median - estimate) * PERIOD_SMOOTHING
         return self.period_estimate
 
     def _stream_period(self) -> float:
