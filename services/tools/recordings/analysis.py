@@ -48,7 +48,7 @@ class TouchSummary:
     reflex_seq: int = 0
     onset_latency_ms: float | None = None
     withdrawal_mm: float | None = None
-    toward_mm: float | None = None  # touched pad's furthest move toward the contact
+    toward_mm: float | None = None  # touched pad's furthest move toward the contact (reflex and hold)
     other_approach_mm: float | None = None  # any other pad's largest approach to the contact point
     other_pad: str = ""
     planned_toward_mm: float | None = None  # the planner's own retreat check
@@ -179,13 +179,20 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             p0 = points0[touch.pad]
             n0 = model.pad_normal(q0, touch.pad)
             d0 = np.linalg.norm(points0 - p0, axis=1)
+            # Toward the contact and other pads closer: over the reflex and its hold, not the return after it
+            # (whose way back past a touch still recent is `past_after_mm`; a return that waited until the
+            # touch was no longer recent goes back through the place legitimately).
+            reflexive = ~came_back[window]
+            if not reflexive.any():
+                reflexive[:] = True
             along, closest = [], d0.copy()
-            for q in state_q[window]:
+            for q, own_motion in zip(state_q[window], reflexive):
                 points = model.pad_points(q)
                 along.append(float((points[touch.pad] - p0) @ n0))
-                closest = np.minimum(closest, np.linalg.norm(points - p0, axis=1))
+                if own_motion:
+                    closest = np.minimum(closest, np.linalg.norm(points - p0, axis=1))
             touch.withdrawal_mm = -1e3 * min(along)
-            touch.toward_mm = 1e3 * max(0.0, max(along))
+            touch.toward_mm = 1e3 * max(0.0, max(np.asarray(along)[reflexive]))
             approach = np.maximum(0.0, d0 - closest)
             approach[touch.pad] = 0.0
             worst = int(np.argmax(approach))
