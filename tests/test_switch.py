@@ -301,3 +301,20 @@ def test_a_reflex_right_after_a_switch_is_not_slowed_and_ends_the_handover():
     back[2] += 0.05  # its return, from outside the range covered before the switch
     verdict = c.on_command(pos(back, owner="b", seq=2, phase="RETURNING", reflex=1, stamp=6 * MS), 6 * MS)
     assert verdict.accepted and not [e for e in c.drain_events() if e.code == "handover_refused"]
+
+
+def test_a_mode_just_changed_is_not_a_contradiction_until_the_bridge_has_had_time_to_show_it():
+    """A planner's status goes out the moment its mode changes (a task paused for a touch below a reflex's
+    level: HOLDING), the bridge's state with the new phase up to a state period later: in between the two
+    disagree honestly. Held past the settling time, the disagreement is a contradiction."""
+    s = Session()
+    a, b = s.a, s.b
+    real = a.status(s.t)
+    holding = msgspec.structs.replace(real, mode="HOLDING", saved_pose=a.q.tolist())
+    b.on_peer_status(holding, s.t)  # the bridge still shows TASK, as it has for seconds
+    assert not b.drain_notes() and b.peer is not None and b.peer.mode == "HOLDING"
+    t = s.t + round(claims.SETTLE_S * 1e9) + 2 * MS  # still TASK at the bridge after the settling time
+    b.on_state(a.q.copy(), True, dq=np.zeros(6), owner="a", now_ns=t, phase="TASK")
+    b.on_peer_status(msgspec.structs.replace(holding, stamp_ns=t), t)
+    notes = b.drain_notes()
+    assert [code for _, code, _ in notes] == ["claim_contradicted"] and "mode HOLDING" in notes[0][2]

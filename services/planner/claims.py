@@ -73,8 +73,13 @@ def distance(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a - b)))
 
 
-def contradiction(status: m.PlannerStatus, seen: Seen, task: FigureEight, joints: tuple[str, ...]) -> str | None:
-    """What in the active planner's status disagrees with the arm as measured (``seen``), if anything."""
+def contradiction(status: m.PlannerStatus, seen: Seen, task: FigureEight, joints: tuple[str, ...], *,
+                  mode_settled: bool = True) -> str | None:
+    """What in the active planner's status disagrees with the arm as measured (``seen``), if anything.
+
+    ``mode_settled``: the status's mode has held for :data:`SETTLE_S` (a planner's status goes out the moment
+    its mode changes, the bridge's state with the new phase up to a state period later: until then the two
+    disagree honestly)."""
     assert seen.q is not None
     if status.saved_pose is not None:
         saved = np.asarray(status.saved_pose, dtype=float)
@@ -85,7 +90,8 @@ def contradiction(status: m.PlannerStatus, seen: Seen, task: FigureEight, joints
             i, by = outside
             return (f"its saved pose puts joint {joints[i]} {by:.3f} rad outside the range measured "
                     "in this session")
-    if (status.mode == "TASK") != (seen.phase == "TASK"):  # a return ends a withdrawal: either may show
+    # A return ends a withdrawal: either may show.
+    if mode_settled and (status.mode == "TASK") != (seen.phase == "TASK"):
         return (f"mode {status.mode} while the bridge has followed its {seen.phase} commands for over "
                 f"{SETTLE_S} s")
     if status.mode == "TASK":

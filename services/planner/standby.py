@@ -46,6 +46,7 @@ class Standby(ReflexControl):
         self.shadow: Reflex | None = None  # what this planner would do, while inactive
         self.seen = claims.Seen(len(desc.joints))  # the arm as measured: what a peer's claims are checked against
         self._noted: dict[tuple[str, str], int] = {}  # when each (code, claimant) was last noted
+        self._claimed_mode: dict[str, tuple[str, int]] = {}  # each claimant's mode, and since when
 
     def on_peer_status(self, status: m.PlannerStatus, now_ns: int) -> None:
         """Another planner's status: mirrored while this one is inactive, if the bridge does follow that planner.
@@ -67,7 +68,13 @@ class Standby(ReflexControl):
             return
         if not status.active:
             return
-        problem = claims.contradiction(status, seen, self.task, self.desc.joints) if settled else None
+        mode, since = self._claimed_mode.get(status.name, ("", 0))
+        if status.mode != mode:
+            self._claimed_mode[status.name] = (status.mode, now_ns)
+            since = now_ns
+        mode_settled = now_ns - since > claims.SETTLE_S * 1e9
+        problem = claims.contradiction(status, seen, self.task, self.desc.joints,
+                                       mode_settled=mode_settled) if settled else None
         if problem is not None:
             self._note("claim_contradicted", status.name, now_ns,
                        f"planner {status.name!r}'s status contradicts the bridge's measured state: {problem}; "
