@@ -138,9 +138,10 @@ def test_compare_figure_plots_the_table_s_withdrawal_signed(short_sessions):
     motion = compare.touch_motion(cr, touch, MODEL)
     assert motion is not None and motion.onset_s is not None and motion.resumed_s is not None
     during = motion.t >= motion.onset_s
-    # The table's withdrawal and toward, from the same contact point and normal: up and down, not a distance.
+    # The table's withdrawal and toward, from the same contact point and normal: up and down, not a distance
+    # (the table's toward covers the reflex and its hold; the figure goes on through the return).
     assert touch.toward_mm is not None and touch.withdrawal_mm is not None and touch.withdrawal_mm > 10.0
-    assert motion.away_mm[during].min() == pytest.approx(-touch.toward_mm)
+    assert motion.away_mm[during].min() <= -touch.toward_mm + 1e-9
     assert motion.away_mm[during].max() == pytest.approx(touch.withdrawal_mm)
     assert motion.t[0] == pytest.approx(-compare.FIGURE_BEFORE_S, abs=0.03)  # time from the touch's onset
     assert motion.t[-1] <= motion.resumed_s + 0.03  # the reflex and its return, not the task after it
