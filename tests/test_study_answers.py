@@ -9,12 +9,13 @@ import sqlite3
 import numpy as np
 import pytest
 from study_synthetic import condition_forms, final_forms, ratings_of
+from test_study_stats import cartesian_session  # noqa: F401 - a fixture: the lockstep Cartesian session
 
 from nwr.common.errors import ConfigError, StudyError
 from nwr.common.questionnaire import QUESTIONNAIRE_PATH, load_questionnaire, parse_questionnaire
 from nwr.services.cli import main
 from nwr.services.tools.study import analysis as sa
-from nwr.services.tools.study.store import ConditionForm, FinalForm, Store, decode_form
+from nwr.services.tools.study.store import ConditionForm, FinalAnswer, FinalForm, Store, decode_form
 
 Q, Q_TEXT = load_questionnaire()
 
@@ -218,6 +219,49 @@ def test_hostile_free_text_is_kept_as_data_in_the_csv(tmp_path):
                 not value.startswith("-") or value == "-5"), value
 
 
+def markdown_tokens(text: str) -> list:
+    """The report parsed as CommonMark (markdown-it-py, which rich brings), inline tokens flattened."""
+    from markdown_it import MarkdownIt
+
+    tokens = []
+    for token in MarkdownIt("commonmark").enable("table").parse(text):
+        tokens += [token, *(token.children or [])]
+    return tokens
+
+
+def test_hostile_free_text_is_shown_literally_in_the_report_and_nothing_loads_from_elsewhere(tmp_path):
+    path = hostile_store(tmp_path)
+    _, report, pictures, tables = sa.run(path, tmp_path / "analysis")
+    text = report.read_text(encoding="utf-8")
+    tokens = markdown_tokens(text)
+    headings = [tokens[i + 1].content for i, t in enumerate(tokens) if t.type == "heading_open"]
+    assert "Results" not in headings and "Conclusions" not in headings, headings
+    assert not [t for t in tokens if t.type in ("html_block", "html_inline", "link_open")]
+    images = [t.attrGet("src") for t in tokens if t.type == "image"]
+    assert images == [p.name for p in pictures] and all((tmp_path / "analysis" / i).exists() for i in images)
+    fenced = "\n".join(t.content for t in tokens if t.type == "fence")
+    for answer in HOSTILE.values():
+        assert answer in fenced  # shown, whole, as text
+    outside = "\n".join(t.content for t in tokens if t.type not in ("fence", "inline"))
+    assert "evil.example" not in outside
+    # Nothing generated names anything elsewhere: the tables hold no free text, the figures are local.
+    assert b"evil.example" not in (tmp_path / "analysis" / "study.csv").read_bytes()
+    assert {t.name for t in tables} == {"study.csv", "study.parquet"}
+
+
+def test_an_answer_of_a_megabyte_makes_no_megabyte_report():
+    from nwr.services.tools.study.store import MAX_ANSWER_CHARS
+
+    forms = condition_forms(Q, np.random.default_rng(4), 3, {})
+    huge = "# Results\n" + "`" * 10 + "A" * 1_000_000
+    finals = [FinalAnswer("P01", "liked_most", "open", huge, "")]
+    text = sa.report(sa.analyze(ratings_of(forms), finals, Q), "s", [])
+    assert len(text) < 20_000 and f"more characters not shown: at most {MAX_ANSWER_CHARS}" in text
+    fences = [t for t in markdown_tokens(text) if t.type == "fence"]
+    assert len(fences) == 1 and fences[0].content.startswith("# Results\n" + "`" * 10)
+    assert "Results" not in [t.content for t in markdown_tokens(text) if t.type == "inline"]
+
+
 def test_a_long_answer_is_refused_at_submission(tmp_path):
     from nwr.services.tools.study.store import MAX_ANSWER_CHARS
 
@@ -266,7 +310,7 @@ def test_a_preferred_condition_comes_out_significant_in_the_direction_drawn(tmp_
             store.submit(final)
     out = tmp_path / "analysis"
     assert main(["study", "analyze", "--store", str(store_path), "--out", str(out)]) == 0
-    result, _, _ = sa.run(store_path, out, desc=lambda: pytest.fail("there is no recording to read"))
+    result, _, _, _ = sa.run(store_path, out, desc=lambda: pytest.fail("there is no recording to read"))
     assert result.complete == [f"P{i:02d}" for i in range(1, 13)] and not result.excluded
     for s in result.scales:
         assert s.p is not None and s.p < 0.05, s.scale.name
@@ -346,3 +390,108 @@ def test_submit_from_json_files(tmp_path, caplog):
     assert "already submitted" in caplog.text
     assert main(["study", "submit", "--store", str(store), "--replace", str(form)]) == 0
 
+
+
+# -- the whole study as one table -------------------------------------------------------
+
+
+def test_the_study_table_has_a_row_per_block_with_its_scores_items_and_choices(tmp_path):
+    import pyarrow.parquet as pq
+
+    from nwr.services.tools.study import table
+
+    path = tmp_path / "study.sqlite"
+    forms = condition_forms(Q, np.random.default_rng(7), 3, {"cartesian": 1.0})
+    with Store(path) as store:
+        store.plan("P04", 1, ("uniform", "location", "cartesian"))  # planned, not answered
+        for form in forms:
+            store.submit(form)
+        for final in final_forms(Q, np.random.default_rng(7), 3, {"uniform": 1, "none": 1}):
+            store.submit(final)
+        finals = {(a.participant, a.item): a.text for a in store.final_answers()}
+    _, _, _, tables = sa.run(path, tmp_path / "out", desc=lambda: pytest.fail("no recording to read"))
+    frame = pq.read_table(tables[1]).to_pylist()
+    with open(tables[0], encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    names = [c.name for c in table.columns(Q)]
+    assert list(rows[0]) == names and pq.read_schema(tables[1]).names == names
+    assert [(r["participant"], r["block"]) for r in frame] == [(f"P0{p}", b) for p in (1, 2, 3, 4) for b in (1, 2, 3)]
+    result = sa.analyze(ratings_of(forms), [], Q)
+    for form in forms:
+        row = next(r for r in frame if (r["participant"], r["block"]) == (form.participant, form.block))
+        assert (row["condition"], row["order"], row["answered"]) == (form.condition, form.order, True)
+        assert row["recording"] == f"{form.participant}/{form.participant}-b{form.block}-{form.condition}.mcap"
+        assert all(row[f"item_{i}"] == v for i, v in form.ratings.items())
+        for s in result.scales:  # the same scores the analysis tests
+            assert row[f"score_{s.scale.id}"] == pytest.approx(s.scores[form.condition][form.participant])
+        assert all(row[f"choice_{c.id}"] == finals[(form.participant, c.id)] for c in Q.choice)
+        assert row["recording_read"] is False and row["recording_problem"] == "missing" and row["reflexes"] is None
+    unanswered = [r for r in frame if r["participant"] == "P04"]
+    assert {r["answered"] for r in unanswered} == {False} and unanswered[0]["score_animacy"] is None
+    csv_row = next(r for r in rows if r["participant"] == "P04")
+    assert (csv_row["answered"], csv_row["score_animacy"], csv_row["choice_safest"]) == ("false", "", "")
+    schema = pq.read_schema(tables[1])
+    assert str(schema.field("block").type) == "int64" and str(schema.field("score_animacy").type) == "double"
+    assert str(schema.field("recording_read").type) == "bool"
+
+
+def test_the_study_table_carries_each_blocks_measured_figures(cartesian_session, tmp_path, monkeypatch):  # noqa: F811
+    from nwr.common import recordings
+    from nwr.common.robot import load_description
+    from nwr.services.tools.recordings import analysis
+    from nwr.services.tools.study import table
+
+    desc = load_description()
+    monkeypatch.setattr(recordings, "read_recording", lambda path: (cartesian_session, {}))
+    forms = condition_forms(Q, np.random.default_rng(1), 1, {}, ("cartesian", "uniform"))
+    for form in forms:
+        (tmp_path / form.participant).mkdir(exist_ok=True)
+        if form.condition == "cartesian":  # the uniform block's recording is missing
+            (tmp_path / form.participant / f"{form.participant}-b{form.block}-{form.condition}.mcap").touch()
+    measured = sa.measure_blocks(sa.rated_blocks(ratings_of(forms)), tmp_path, lambda: desc)
+    rows = table.block_table(Q, [], ratings_of(forms), [], {(b.participant, b.block): b for b in measured})
+    touches = analysis.summarize(cartesian_session, desc)
+    reflexes = [t for t in touches if t.reflex_seq]
+    quality = analysis.quality(touches, "cartesian")
+    cr = next(r for r in rows if r["condition"] == "cartesian")
+    assert cr["recording_read"] and cr["touches"] == len(touches) and cr["reflexes"] == len(reflexes) > 0
+    assert cr["peak_speed_m_s_max"] == pytest.approx(max(t.peak_speed_m_s for t in reflexes)) and \
+        cr["peak_speed_m_s_max"] > 0.2  # the whole withdrawal's
+    assert cr["onset_ms_median"] == pytest.approx(np.median([t.onset_latency_ms for t in reflexes]))
+    assert cr["withdrawal_mm_median"] == pytest.approx(quality.withdrawal_median_mm)
+    assert (cr["pad_toward_gt_5mm"], cr["back_past_recent_touch_gt_10mm"]) == (quality.approached,
+                                                                             quality.back_past)
+    ur = next(r for r in rows if r["condition"] == "uniform")
+    assert ur["recording_problem"] == "missing" and ur["touches"] is None and ur["item_animacy_1"] is not None
+
+
+# -- participant data stays out of git ----------------------------------------------------
+
+
+def test_everything_a_study_writes_by_default_is_git_ignored():
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    from nwr.common.config import Profile
+    from nwr.services.tools.study.main import block_path
+    from nwr.services.tools.study.store import STORE_NAME
+
+    root = Path(__file__).parents[1]
+    if shutil.which("git") is None or subprocess.run(["git", "-C", str(root), "rev-parse"],
+                                                     capture_output=True).returncode != 0:
+        pytest.skip("not a git checkout")
+    recordings = Path(Profile().recorder.directory)
+    store = recordings / STORE_NAME
+    analysis = store.parent / "study-analysis"  # nwr study analyze's default --out
+    written = [block_path(recordings, "P07", 2, "uniform"), store, Path(f"{store}-wal"), Path(f"{store}-shm"),
+               Path(f"{store}-journal"), analysis / "report.md", analysis / "study.csv", analysis / "study.parquet",
+               analysis / "godspeed.png", recordings / "P07" / "P07-b2-uniform.touches.csv",
+               recordings / "demo.mcap"]
+    assert not recordings.is_absolute()
+    proc = subprocess.run(["git", "-C", str(root), "check-ignore", "--no-index", *map(str, written)],
+                          capture_output=True, text=True)
+    assert sorted(proc.stdout.split()) == sorted(map(str, written)), proc.stderr
+    kept = subprocess.run(["git", "-C", str(root), "check-ignore", "--no-index", str(recordings / "README.md")],
+                          capture_output=True, text=True)
+    assert kept.returncode == 1  # the folder's README stays tracked

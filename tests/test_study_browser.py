@@ -151,7 +151,7 @@ def test_a_simulated_study_filled_in_a_browser_finds_the_preferred_condition(bro
         assert kept == {**{(f.participant, c): o for f in finals for c, o in f.choices.items()},
                         **{(f.participant, k): t for f in finals for k, t in f.answers.items()}}
 
-    result, report, _ = sa.run(store_path, tmp_path / "analysis")
+    result, report, _, _ = sa.run(store_path, tmp_path / "analysis")
     assert result.complete == [f"P{i:02d}" for i in range(1, n + 1)] and not result.excluded
     for s in result.scales:
         assert s.p is not None and s.p < 0.05, (s.scale.name, s.p)

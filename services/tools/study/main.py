@@ -287,11 +287,12 @@ def _analyze(args: argparse.Namespace) -> int:
     store = _store_path(args)
     out = Path(args.out) if args.out else store.parent / "study-analysis"
     description = profile_for(args).robot.description or None
-    result, report, pictures = study_analysis.run(store, out, lambda: load_description(description))
+    result, report, pictures, tables = study_analysis.run(store, out, lambda: load_description(description))
     for participant, why in result.excluded.items():
         log.warning("participant %s excluded from the within-subject tests: %s", participant, why)
     print(f"{len(result.complete)} of {len(result.participants)} participants in the tests; report {report}; "
-          f"figures {', '.join(p.name for p in pictures) or 'none'}")
+          f"figures {', '.join(p.name for p in pictures) or 'none'}; one row per block in "
+          f"{', '.join(t.name for t in tables)}")
     return 0
 
 
