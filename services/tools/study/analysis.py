@@ -23,6 +23,12 @@ block's recording): reflexes per block, onset latency, withdrawal and peak
 speed (over the whole withdrawal, a touch's restarts included), medians over
 the condition's reflexes. A missing or unreadable
 recording is said in the report, not fatal.
+
+Besides report.md and the figures: the whole study as one table, a row per
+block with its recording's figures beside its answers, as study.csv and
+study.parquet (``nwr.services.tools.study.table``; columns in docs/study.md).
+Open answers appear in the report as literal blocks (never Markdown or HTML),
+at most 2000 characters each.
 """
 
 from __future__ import annotations
