@@ -495,3 +495,22 @@ def test_everything_a_study_writes_by_default_is_git_ignored():
     kept = subprocess.run(["git", "-C", str(root), "check-ignore", "--no-index", str(recordings / "README.md")],
                           capture_output=True, text=True)
     assert kept.returncode == 1  # the folder's README stays tracked
+
+
+def test_a_wider_significance_bracket_sits_above_the_narrower_ones_it_spans():
+    import matplotlib.pyplot as plt
+
+    forms = condition_forms(Q, np.random.default_rng(24), 12, {"cartesian": 1.0, "location": 0.3})
+    result = sa.analyze(ratings_of(forms), [], Q)
+    fig = sa._boxplot_figure(result, "godspeed", "t")
+    checked = 0
+    for ax in fig.axes:
+        brackets = [(min(line.get_xdata()), max(line.get_xdata()), max(line.get_ydata())) for line in ax.get_lines()
+                    if len(line.get_xdata()) == 4]
+        for a in brackets:
+            for b in brackets:
+                if b[1] - b[0] > a[1] - a[0] and b[0] <= a[0] and a[1] <= b[1]:
+                    assert b[2] > a[2], (ax.get_title(), a, b)
+                    checked += 1
+    plt.close(fig)
+    assert checked >= 2  # Anthropomorphism: UR-CR above UR-LR and LR-CR

@@ -457,11 +457,10 @@ def _boxplot_figure(result: Analysis, kind: str, title: str) -> Any:
         ax.set_yticks(range(1, 6))
         ax.grid(axis="y", alpha=0.3)
         top = 5.25
-        for pair in s.pairs:
-            mark = stars(pair.p_holm)
-            if not mark:
-                continue
-            i, j = result.conditions.index(pair.a) + 1, result.conditions.index(pair.b) + 1
+        # Narrow brackets first: a wider one goes above them, its stars (in its middle) clear of their legs.
+        spans = sorted(((result.conditions.index(pair.a) + 1, result.conditions.index(pair.b) + 1, stars(pair.p_holm))
+                        for pair in s.pairs if stars(pair.p_holm)), key=lambda x: (x[1] - x[0], x[0]))
+        for i, j, mark in spans:
             ax.plot([i, i, j, j], [top, top + 0.08, top + 0.08, top], color="black", linewidth=1)
             ax.text((i + j) / 2, top + 0.06, mark, ha="center", va="bottom", fontsize=11)
             top += 0.35
