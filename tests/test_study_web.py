@@ -278,6 +278,13 @@ def test_a_huge_post_is_refused_before_it_is_read_and_an_over_long_answer_shows_
     assert "All questionnaires are answered" in ok.text
 
 
+def test_an_unknown_page_or_method_is_a_page_too(client):
+    for method, url, status in (("GET", "/admin", 404), ("POST", "/p/P07/thanks", 405), ("PUT", "/", 405)):
+        page = client.request(method, url, headers={"origin": f"http://{HOST}"}, content=b"")
+        assert page.status_code == status and 'id="title">' in page.text, (method, url, page.text)
+        assert page.headers["content-type"].startswith("text/html")
+
+
 def test_every_page_forbids_scripts_frames_loads_from_elsewhere_and_caching(client):
     for url in ("/", "/p/P07/block/1", "/p/P07/block/9", "/p/P07/thanks"):
         headers = client.get(url).headers

@@ -408,12 +408,18 @@ def create_app(store_path: str | Path, hosts: Iterable[str]) -> Starlette:
             state = due(store, participant)
         return page(request, "thanks.html", due=state)
 
+    async def no_page(request: Request, exc: Exception) -> Response:
+        status = getattr(exc, "status_code", 404)
+        return message(request, "No such page", f"There is no page {request.url.path!r} here "
+                       f"({request.method}): start from the questionnaires' start page.", status)
+
     return Starlette(routes=[
         Route("/", index, name="index"),
         Route("/p/{participant}/block/{block:int}", condition_form, methods=["GET", "POST"], name="block"),
         Route("/p/{participant}/final", final_form, methods=["GET", "POST"], name="final"),
         Route("/p/{participant}/thanks", thanks, name="thanks"),
-    ], middleware=[Middleware(Guard, hosts=frozenset(h.lower() for h in hosts), render=refused)])
+    ], middleware=[Middleware(Guard, hosts=frozenset(h.lower() for h in hosts), render=refused)],
+        exception_handlers={404: no_page, 405: no_page})
 
 
 class FormServer:
