@@ -302,7 +302,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     # Required for a session (checked in _session): argparse would also demand them of `nwr study analyze`.
-    p.add_argument("--participant", help="participant ID (names the recordings' folder); required for a session")
+    p.add_argument("--participant", help="participant ID, a pseudonymous code such as P07 (up to 8 letters, an "
+                                         "optional - or _, 1 to 6 digits; names the recordings' folder); required "
+                                         "for a session")
     p.add_argument("--order", type=int, help="required for a session: "
                         "counterbalanced order (a cyclic Latin square of the conditions); the paper's: "
                         + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
