@@ -514,3 +514,12 @@ def test_a_wider_significance_bracket_sits_above_the_narrower_ones_it_spans():
                     checked += 1
     plt.close(fig)
     assert checked >= 2  # Anthropomorphism: UR-CR above UR-LR and LR-CR
+
+
+def test_an_alpha_of_zero_is_zero_not_negative():
+    # Three participants' Perceived Safety items (the reversed one flipped) whose covariances sum to 0: the
+    # formula gives -3.3e-16, which printed "-0.00" and would have been called negative.
+    items = np.array([[3, 3, 2], [2, 3, 1], [4, 2, 3]], dtype=float)
+    alpha = sa.cronbach_alpha(items)
+    assert alpha == 0.0 and str(alpha) == "0.0"
+    assert sa.alpha_text(alpha, 7) == "0.00" and sa.alpha_text(alpha, 3).startswith("0.00 (not interpretable")

@@ -82,7 +82,9 @@ def cronbach_alpha(items: np.ndarray) -> float | None:
     total = items.sum(axis=1).var(ddof=1)
     if total == 0:
         return None
-    return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
+    # Rounded: an alpha of exactly 0 (the items' covariances summing to 0) comes out as -3e-16, which would
+    # print "-0.00" and be called negative.
+    return round(float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total)), 12) + 0.0
 
 
 FRIEDMAN_EXACT_MAX = 2**20  # up to this many within-participant orderings (k!^n), the Friedman p is exact
