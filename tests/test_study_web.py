@@ -349,3 +349,15 @@ def test_forms_on_a_wildcard_address_is_a_one_line_error(store_path, caplog):
 
     assert main(["study", "forms", "--store", str(store_path), "--host", "0.0.0.0", "--port", "0"]) == 2
     assert "every network of this machine" in caplog.text
+
+
+def test_a_session_with_forms_on_a_wildcard_address_is_refused_before_anything_is_written(tmp_path, caplog):
+    from nwr.services.cli import main
+
+    profile = tmp_path / "profile.toml"
+    profile.write_text(f'[recorder]\ndirectory = "{tmp_path / "rec"}"\n')
+    assert main(["--profile", str(profile), "study", "--participant", "P07", "--order", "1", "--forms", "0",
+                 "--forms-host", "0.0.0.0"]) == 2
+    assert "every network of this machine" in caplog.text and not (tmp_path / "rec").exists()
+    assert main(["--profile", str(profile), "study", "--participant", "Anna", "--order", "1"]) == 2
+    assert "a participant ID is a code such as P07" in caplog.text and not (tmp_path / "rec").exists()

@@ -123,6 +123,10 @@ def _run(args: argparse.Namespace) -> int:
     conditions = conditions_of(args.conditions)
     order = order_of(args.order, conditions)
     check_participant(args.participant)
+    if args.forms_port is not None:  # a wildcard or a name for the forms: refused before anything is written
+        from nwr.services.tools.study.web import bind_address
+
+        bind_address(args.forms_host)
     directory = Path(profile.recorder.directory)
     paths = [block_path(directory, args.participant, i + 1, c) for i, c in enumerate(order)]
     existing = [p for p in paths if p.exists()]
