@@ -442,7 +442,8 @@ def test_the_study_table_carries_each_blocks_measured_figures(cartesian_session,
     from nwr.services.tools.study import table
 
     desc = load_description()
-    monkeypatch.setattr(recordings, "read_recording", lambda path: (cartesian_session, {}))
+    monkeypatch.setattr(recordings, "read_recording", lambda path, only=None: (
+        [r for r in cartesian_session if only is None or only(r.key)], {}))
     forms = condition_forms(Q, np.random.default_rng(1), 1, {}, ("cartesian", "uniform"))
     for form in forms:
         (tmp_path / form.participant).mkdir(exist_ok=True)

@@ -378,7 +378,7 @@ def measure_blocks(blocks: list[tuple[str, int, str, str]], root: Path, desc: An
             bm.problem = "missing"
             continue
         try:
-            records, _ = recordings.read_recording(path)
+            records, _ = recordings.read_recording(path, only=analysis.summarized)
             if callable(desc):
                 desc = desc()
             model = model or RobotModel(desc)
