@@ -595,8 +595,11 @@ def recording_robot(metadata: dict[str, dict[str, str]]) -> str:
     return metadata.get(SESSION_METADATA, {}).get("robot", keys.DEFAULT_ROBOT)
 
 
-def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
-    """Every message of a recording, decoded strictly, and the file's metadata.
+def read_recording(path: str | Path, robot: str | None = None, *, only: Callable[[str], bool] | None = None
+                   ) -> tuple[list[Recorded], dict[str, dict[str, str]]]:
+    """Every message of a recording, decoded strictly, and the file's metadata; ``only``: the messages whose
+    key (relative to the robot's prefix) it accepts, the others not decoded (a summary needs no commands, 70 %
+    of a session's messages).
 
     RecordingError (one line: the file, the problem, what to do) for a file
     that is no finished recording (:class:`RecordingReader`); DecodeError for a
@@ -614,6 +617,8 @@ def read_recording(path: str | Path, robot: str | None = None) -> tuple[list[Rec
             if not channel.topic.startswith(head):
                 continue  # not the pipeline's (the view's channels of an exported file, say)
             relative = keys.relative_key(robot, channel.topic)
+            if only is not None and not only(relative):
+                continue
             dec = decoders.get(relative)
             if dec is None:
                 try:

@@ -151,7 +151,7 @@ def test_a_simulated_study_filled_in_a_browser_finds_the_preferred_condition(bro
         assert kept == {**{(f.participant, c): o for f in finals for c, o in f.choices.items()},
                         **{(f.participant, k): t for f in finals for k, t in f.answers.items()}}
 
-    result, report, _ = sa.run(store_path, tmp_path / "analysis")
+    result, report, _, _ = sa.run(store_path, tmp_path / "analysis")
     assert result.complete == [f"P{i:02d}" for i in range(1, n + 1)] and not result.excluded
     for s in result.scales:
         assert s.p is not None and s.p < 0.05, (s.scale.name, s.p)
@@ -228,3 +228,47 @@ def test_a_session_with_forms_waits_for_each_blocks_questionnaire(browser, tmp_p
         assert all(b.recorded_at and b.answered_at for b in blocks)
         assert {(r.block, r.condition) for r in store.ratings()} == {(1, "cartesian"), (2, "uniform"),
                                                                      (3, "location")}
+
+
+def test_a_form_posted_from_another_sites_page_is_refused_and_the_participant_still_answers(browser, tmp_path):
+    """A page of another origin (here another port of 127.0.0.1) that posts a filled-in form to the
+    questionnaire: the browser sends its Origin, the server refuses it and stores nothing; then the
+    participant's own form goes through."""
+    import http.server
+    import threading
+    from functools import partial
+
+    from selenium.webdriver.common.by import By
+
+    driver = browser
+    store_path = tmp_path / "study.sqlite"
+    with Store(store_path) as store:
+        q = store.questionnaire
+        store.plan("P05", 1, CONDITIONS)
+        store.recorded("P05", 1)
+    form = next(f for f in condition_forms(q, np.random.default_rng(2), 5, {}) if f.participant == "P05"
+                and f.block == 1)
+    with serve(store_path, port=0) as server:
+        fields = "".join(f'<input type="hidden" name="{k}" value="{v}">' for k, v in form.ratings.items())
+        (tmp_path / "evil").mkdir()
+        (tmp_path / "evil" / "index.html").write_text(
+            f'<!doctype html><form method="post" action="{server.url}p/P05/block/1">{fields}'
+            '<input type="hidden" name="token" value="guessed"><button id="go">Win a prize</button></form>')
+        handler = partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path / "evil"))
+        evil = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=evil.serve_forever, daemon=True).start()
+        try:
+            driver.get(f"http://127.0.0.1:{evil.server_address[1]}/")
+            driver.find_element(By.ID, "go").click()
+            assert text_of(driver, "title") == "Not sent from this questionnaire"
+            assert "Nothing was saved" in text_of(driver, "message")
+        finally:
+            evil.shutdown()
+            evil.server_close()
+        with Store(store_path) as store:
+            assert store.submitted_at("P05", form.condition) is None
+        driver.get(server.url + "p/P05/block/1")  # the participant's own form: not "Already answered"
+        fill_condition_form(driver, form, keyboard=True)
+        assert text_of(driver, "title") == "Thank you!"
+    with Store(store_path) as store:
+        assert {r.item: r.value for r in store.ratings()} == form.ratings

@@ -301,7 +301,8 @@ def test_the_peak_speed_is_the_whole_withdrawals_not_its_first_skin_period(carte
 def test_the_reports_peak_speed_comes_from_the_whole_withdrawal(cartesian_session, tmp_path, monkeypatch):
     from nwr.common import recordings
 
-    monkeypatch.setattr(recordings, "read_recording", lambda path: (cartesian_session, {}))
+    monkeypatch.setattr(recordings, "read_recording", lambda path, only=None: (
+        [r for r in cartesian_session if only is None or only(r.key)], {}))
     forms = condition_forms(Q, np.random.default_rng(1), 1, {}, ("cartesian", "uniform"))
     ratings = ratings_of(forms)
     for r in ratings:
@@ -312,6 +313,23 @@ def test_the_reports_peak_speed_comes_from_the_whole_withdrawal(cartesian_sessio
     touches = analysis.summarize(cartesian_session, DESC, model)
     assert measures["cartesian"].peak_m_s == pytest.approx([t.peak_speed_m_s for t in touches if t.reflex_seq])
     assert max(measures["cartesian"].peak_m_s) > 0.2  # summarize's own said 0.068
+
+
+def test_the_study_reads_only_what_the_summary_needs_and_gets_the_same_touches(cartesian_session, tmp_path):
+    from nwr.common import keys
+    from nwr.common.recordings import McapRecorder, read_recording
+
+    needed = [r for r in cartesian_session if analysis.summarized(r.key)]
+    assert 0 < len(needed) < len(cartesian_session) / 2  # the commands are most of a session
+    assert analysis.summarize(needed, DESC) == analysis.summarize(cartesian_session, DESC)
+    path = tmp_path / "s.mcap"
+    with path.open("wb") as f:
+        recorder = McapRecorder(f, "ur10e")
+        for r in cartesian_session:
+            recorder.write(keys.key("ur10e", r.key), r.message, r.log_time_ns)
+        recorder.finish()
+    records, _ = read_recording(path, only=analysis.summarized)
+    assert [(r.key, r.log_time_ns) for r in records] == [(r.key, r.log_time_ns) for r in needed]
 
 
 def test_the_rank_biserial_interval_is_a_bootstrap_over_participants():

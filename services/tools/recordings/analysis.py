@@ -85,6 +85,13 @@ class TouchSummary:
     reflex_known: bool = True
 
 
+def summarized(key: str) -> bool:
+    """Whether :func:`summarize` reads messages of ``key`` (``read_recording(..., only=summarized)`` decodes no
+    others: no commands, 70 % of a session's messages)."""
+    return key in ("skin/pressure", "skin/pain", "robot/state") or (key.startswith("reflex/")
+                                                                   and key.endswith("/status"))
+
+
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,
               touches: list[TouchSummary] | None = None) -> list[TouchSummary]:
     """The per-touch figures; ``touches``: the touches to describe, when known otherwise than from the skin's

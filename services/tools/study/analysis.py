@@ -23,6 +23,12 @@ block's recording): reflexes per block, onset latency, withdrawal and peak
 speed (over the whole withdrawal, a touch's restarts included), medians over
 the condition's reflexes. A missing or unreadable
 recording is said in the report, not fatal.
+
+Besides report.md and the figures: the whole study as one table, a row per
+block with its recording's figures beside its answers, as study.csv and
+study.parquet (``nwr.services.tools.study.table``; columns in docs/study.md).
+Open answers appear in the report as literal blocks (never Markdown or HTML),
+at most 2000 characters each.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import re
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +47,8 @@ from scipy import stats
 
 from nwr.common.errors import NwrError
 from nwr.common.questionnaire import Questionnaire, Scale
-from nwr.services.tools.study.store import NO_PREFERENCE, FinalAnswer, Rating, Store
+from nwr.services.tools.study import table
+from nwr.services.tools.study.store import MAX_ANSWER_CHARS, NO_PREFERENCE, FinalAnswer, Rating, Store
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +82,9 @@ def cronbach_alpha(items: np.ndarray) -> float | None:
     total = items.sum(axis=1).var(ddof=1)
     if total == 0:
         return None
-    return float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total))
+    # Rounded: an alpha of exactly 0 (the items' covariances summing to 0) comes out as -3e-16, which would
+    # print "-0.00" and be called negative.
+    return round(float(k / (k - 1) * (1 - items.var(axis=0, ddof=1).sum() / total)), 12) + 0.0
 
 
 FRIEDMAN_EXACT_MAX = 2**20  # up to this many within-participant orderings (k!^n), the Friedman p is exact
@@ -323,6 +333,22 @@ def _test(result: ScaleResult, conditions: list[str], complete: list[str]) -> No
 
 
 @dataclass
+class BlockMeasures:
+    """One block's recording summarized (``analysis.summarize``): its touches, or why it could not be read."""
+
+    participant: str
+    block: int
+    condition: str
+    recording: str  # relative to the store's folder
+    touches: list[Any] = field(default_factory=list)  # TouchSummary, every touch of the block
+    problem: str = ""  # "": read; else "missing" or "unreadable (why)"
+
+    @property
+    def reflexes(self) -> list[Any]:
+        return [t for t in self.touches if t.reflex_seq]
+
+
+@dataclass
 class ConditionMeasures:
     condition: str
     blocks: int = 0
@@ -330,43 +356,63 @@ class ConditionMeasures:
     onset_ms: list[float] = field(default_factory=list)
     withdrawal_mm: list[float] = field(default_factory=list)
     peak_m_s: list[float] = field(default_factory=list)
-    problems: list[str] = field(default_factory=list)  # "P03 b2 ...: missing"
+    problems: list[str] = field(default_factory=list)  # "P03 block 2: ... is missing"
 
 
-def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str, ConditionMeasures]:
-    """Per condition, each rated block's recording (relative to ``root``) summarized; a recording that is
-    missing or unreadable is noted, not fatal. ``desc``: a RobotDescription, or a callable returning one
-    (loaded only when a recording is there). The peak speed is the whole withdrawal's (``analysis.summarize``:
-    a touch's own restarts go on with its withdrawal)."""
-    from nwr.common.recordings import read_recording
+def measure_blocks(blocks: list[tuple[str, int, str, str]], root: Path, desc: Any) -> list[BlockMeasures]:
+    """Each block (participant, block, condition, recording relative to ``root``) with its recording
+    summarized; a recording that is missing or unreadable is noted in its ``problem``, not fatal. ``desc``: a
+    RobotDescription, or a callable returning one (loaded only when a recording is there). The peak speed is
+    the whole withdrawal's (``analysis.summarize``: a touch's own restarts go on with its withdrawal)."""
+    from nwr.common import recordings
     from nwr.common.robot import RobotModel
     from nwr.services.tools.recordings import analysis
 
-    blocks = sorted({(r.condition, r.participant, r.block, r.recording) for r in ratings})
-    out: dict[str, ConditionMeasures] = {}
+    out = []
     model = None
-    for condition, participant, block, recording in blocks:
-        cm = out.setdefault(condition, ConditionMeasures(condition))
+    for participant, block, condition, recording in blocks:
+        bm = BlockMeasures(participant, block, condition, recording)
+        out.append(bm)
         path = root / recording
         if not path.exists():
-            cm.problems.append(f"{participant} block {block}: {recording} is missing")
+            bm.problem = "missing"
             continue
         try:
-            records, _ = read_recording(path)
+            records, _ = recordings.read_recording(path, only=analysis.summarized)
             if callable(desc):
                 desc = desc()
             model = model or RobotModel(desc)
-            touches = analysis.summarize(records, desc, model)
+            bm.touches = analysis.summarize(records, desc, model)
         except (NwrError, OSError) as exc:
-            cm.problems.append(f"{participant} block {block}: {recording} unreadable ({exc})")
+            bm.problem = f"unreadable ({exc})"
+    return out
+
+
+def condition_measures(blocks: list[BlockMeasures]) -> dict[str, ConditionMeasures]:
+    """Per condition, its blocks' reflexes pooled (medians over them in the report)."""
+    out: dict[str, ConditionMeasures] = {}
+    for bm in blocks:
+        cm = out.setdefault(bm.condition, ConditionMeasures(bm.condition))
+        if bm.problem:
+            cm.problems.append(f"{bm.participant} block {bm.block}: {bm.recording} is {bm.problem}")
             continue
         cm.blocks += 1
-        reflexes = [t for t in touches if t.reflex_seq]
+        reflexes = bm.reflexes
         cm.reflexes_per_block.append(len(reflexes))
         cm.onset_ms += [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
         cm.withdrawal_mm += [t.withdrawal_mm for t in reflexes if t.withdrawal_mm is not None]
         cm.peak_m_s += [t.peak_speed_m_s for t in reflexes if t.peak_speed_m_s is not None]
     return out
+
+
+def rated_blocks(ratings: list[Rating]) -> list[tuple[str, int, str, str]]:
+    """The blocks that have answers: (participant, block, condition, recording), sorted."""
+    return sorted({(r.participant, r.block, r.condition, r.recording) for r in ratings})
+
+
+def measure_recordings(ratings: list[Rating], root: Path, desc: Any) -> dict[str, ConditionMeasures]:
+    """Per condition, each rated block's recording (relative to ``root``) summarized (:func:`measure_blocks`)."""
+    return condition_measures(measure_blocks(rated_blocks(ratings), root, desc))
 
 
 # -- figures ---------------------------------------------------------------------------
@@ -413,11 +459,10 @@ def _boxplot_figure(result: Analysis, kind: str, title: str) -> Any:
         ax.set_yticks(range(1, 6))
         ax.grid(axis="y", alpha=0.3)
         top = 5.25
-        for pair in s.pairs:
-            mark = stars(pair.p_holm)
-            if not mark:
-                continue
-            i, j = result.conditions.index(pair.a) + 1, result.conditions.index(pair.b) + 1
+        # Narrow brackets first: a wider one goes above them, its stars (in its middle) clear of their legs.
+        spans = sorted(((result.conditions.index(pair.a) + 1, result.conditions.index(pair.b) + 1, stars(pair.p_holm))
+                        for pair in s.pairs if stars(pair.p_holm)), key=lambda x: (x[1] - x[0], x[0]))
+        for i, j, mark in spans:
             ax.plot([i, i, j, j], [top, top + 0.08, top + 0.08, top], color="black", linewidth=1)
             ax.text((i + j) / 2, top + 0.06, mark, ha="center", va="bottom", fontsize=11)
             top += 0.35
@@ -532,13 +577,32 @@ def _ci(ci: tuple[float, float] | None) -> str:
     return "-" if ci is None else f"{ci[0]:.2f} to {ci[1]:.2f}"
 
 
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f\u0085\u2028\u2029]")
+
+
+def literal(text: str, limit: int = MAX_ANSWER_CHARS) -> list[str]:
+    """A participant's free text as Markdown lines that show it and nothing else: a fenced code block (its
+    fence longer than any run of backticks in the text, so no line of it can close the block), in which no
+    heading, image, link or HTML is possible; line breaks kept, other control characters dropped, at most
+    ``limit`` characters (the rest said, not shown)."""
+    text = _CONTROL.sub("", text.replace("\r\n", "\n").replace("\r", "\n").replace("\t", "    "))
+    more = len(text) - limit
+    if more > 0:
+        text = text[:limit]
+    fence = "`" * max(3, 1 + max((len(run) for run in re.findall(r"`+", text)), default=0))
+    lines = [fence + "text", *text.split("\n"), fence]
+    if more > 0:
+        lines.append(f"({more} more characters not shown: at most {limit} of an answer)")
+    return lines
+
+
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
             *("| " + " | ".join(r) + " |" for r in rows), ""]
 
 
 def report(result: Analysis, store: str, pictures: list[Path],
-           measures: dict[str, ConditionMeasures] | None = None) -> str:
+           measures: dict[str, ConditionMeasures] | None = None, tables: list[Path] | None = None) -> str:
     q = result.questionnaire
     lab = q.label
     conds = ", ".join(f"{lab(c)} ({c})" if lab(c) != c else c for c in result.conditions)
@@ -623,27 +687,45 @@ def report(result: Analysis, store: str, pictures: list[Path],
         problems = [p for cm in measures.values() for p in cm.problems]
         if problems:
             lines += ["Recordings not read:", "", *(f"- {p}" for p in problems), ""]
+    if tables:
+        lines += ["## The whole study as one table", "",
+                  f"{', '.join(f'`{t.name}`' for t in tables)} beside this report: one row per block, what its "
+                  "recording measured beside its answers and the participant's forced choices (no free text); "
+                  "every column in docs/study.md.", ""]
     if any(result.open_answers.values()):
-        lines += ["## Open answers", ""]
+        lines += ["## Open answers", "",
+                  "As the participants wrote them, each in a literal block (never read as Markdown or HTML), at "
+                  f"most {MAX_ANSWER_CHARS} characters each.", ""]
         for o in q.open:
             answers = result.open_answers.get(o.id, [])
             if answers:
-                lines += [f"**{o.text}**", "", *(f"- {p}: {text}" for p, text in answers), ""]
+                lines += [f"**{o.text}**", ""]
+                for p, text in answers:
+                    lines += [f"{p}:", "", *literal(text), ""]
     if pictures:
         lines += ["## Figures", "", *(f"![{p.stem}]({p.name})" for p in pictures), ""]
     return "\n".join(lines)
 
 
-def run(store_path: Path, out: Path, desc: Any = None) -> tuple[Analysis, Path, list[Path]]:
-    """Analyse the store at ``store_path`` into ``out`` (report.md and the figures); ``desc``: the robot
-    description for the recordings (a callable is called when the first recording is read)."""
+def run(store_path: Path, out: Path, desc: Any = None) -> tuple[Analysis, Path, list[Path], list[Path]]:
+    """Analyse the store at ``store_path`` into ``out``: report.md, the figures and the whole study as one
+    table (``study.csv``, ``study.parquet``: :mod:`nwr.services.tools.study.table`); the analysis and the
+    report's, the figures' and the tables' paths. ``desc``: the robot description for the recordings (a
+    callable is called when the first recording is read); None: the recordings are not read."""
     with Store(store_path, create=False) as store:
-        ratings, finals, q = store.ratings(), store.final_answers(), store.questionnaire
+        ratings, finals, q, planned = store.ratings(), store.final_answers(), store.questionnaire, store.blocks()
     if not ratings:
         log.warning("%s holds no per-condition answers yet", store_path)
     result = analyze(ratings, finals, q)
     pictures = figures(result, out)
-    measures = measure_recordings(ratings, store_path.parent, desc) if desc is not None else None
+    rated = rated_blocks(ratings)
+    everyone = sorted({(b.participant, b.block, b.condition, b.recording) for b in planned} | set(rated))
+    measured = measure_blocks(everyone, store_path.parent, desc) if desc is not None else None
+    measures = None if measured is None else condition_measures(
+        [bm for bm in measured if (bm.participant, bm.block, bm.condition, bm.recording) in set(rated)])
+    rows = table.block_table(q, planned, ratings, finals,
+                             None if measured is None else {(bm.participant, bm.block): bm for bm in measured})
+    tables = [table.write_csv(q, rows, out / table.CSV_NAME), table.write_parquet(q, rows, out / table.PARQUET_NAME)]
     path = out / "report.md"
-    path.write_text(report(result, str(store_path), pictures, measures), encoding="utf-8")
-    return result, path, pictures
+    path.write_text(report(result, str(store_path), pictures, measures, tables), encoding="utf-8")
+    return result, path, pictures, tables

@@ -47,7 +47,7 @@ from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
 from nwr.services.planner import strategies
 from nwr.services.profile import profile_for
-from nwr.services.tools.study.store import STORE_NAME, Store, recording_name
+from nwr.services.tools.study.store import STORE_NAME, Store, check_participant, recording_name
 
 if TYPE_CHECKING:
     from nwr.services.tools.study.web import FormServer
@@ -122,8 +122,11 @@ def _run(args: argparse.Namespace) -> int:
     profile = profile_for(args)
     conditions = conditions_of(args.conditions)
     order = order_of(args.order, conditions)
-    if not args.participant.replace("-", "").replace("_", "").isalnum():
-        raise ConfigError(f"--participant {args.participant!r}: letters, digits, '-' and '_' only (it names a folder)")
+    check_participant(args.participant)
+    if args.forms_port is not None:  # a wildcard or a name for the forms: refused before anything is written
+        from nwr.services.tools.study.web import bind_address
+
+        bind_address(args.forms_host)
     directory = Path(profile.recorder.directory)
     paths = [block_path(directory, args.participant, i + 1, c) for i, c in enumerate(order)]
     existing = [p for p in paths if p.exists()]
@@ -257,8 +260,9 @@ def _export(args: argparse.Namespace) -> int:
     from nwr.services.tools.study.store import Store
 
     with Store(_store_path(args), create=False) as store:
-        n = store.export_csv(args.csv)
-    print(f"{n} answers from {store.path} written to {args.csv}")
+        n = store.export_csv(args.csv, free_text=args.free_text)
+    left_out = "" if args.free_text else " (open answers left out: --free-text to include them)"
+    print(f"{n} answers from {store.path} written to {args.csv}{left_out}")
     return 0
 
 
@@ -287,11 +291,12 @@ def _analyze(args: argparse.Namespace) -> int:
     store = _store_path(args)
     out = Path(args.out) if args.out else store.parent / "study-analysis"
     description = profile_for(args).robot.description or None
-    result, report, pictures = study_analysis.run(store, out, lambda: load_description(description))
+    result, report, pictures, tables = study_analysis.run(store, out, lambda: load_description(description))
     for participant, why in result.excluded.items():
         log.warning("participant %s excluded from the within-subject tests: %s", participant, why)
     print(f"{len(result.complete)} of {len(result.participants)} participants in the tests; report {report}; "
-          f"figures {', '.join(p.name for p in pictures) or 'none'}")
+          f"figures {', '.join(p.name for p in pictures) or 'none'}; one row per block in "
+          f"{', '.join(t.name for t in tables)}")
     return 0
 
 
@@ -301,7 +306,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     # Required for a session (checked in _session): argparse would also demand them of `nwr study analyze`.
-    p.add_argument("--participant", help="participant ID (names the recordings' folder); required for a session")
+    p.add_argument("--participant", help="participant ID, a pseudonymous code such as P07 (up to 8 letters, an "
+                                         "optional - or _, 1 to 6 digits; names the recordings' folder); required "
+                                         "for a session")
     p.add_argument("--order", type=int, help="required for a session: "
                         "counterbalanced order (a cyclic Latin square of the conditions); the paper's: "
                         + "; ".join(f"{i + 1} = {' -> '.join(o)}" for i, o in enumerate(ORDERS)))
@@ -317,7 +324,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "each block until its form is submitted, after the last for the final form")
     p.add_argument("--forms-host", default="127.0.0.1", metavar="ADDRESS",
                    help="the address the forms are served on (default 127.0.0.1: this machine only; the lab "
-                        "network's address of this machine for a tablet)")
+                        "network's address of this machine for a tablet, said loudly on stderr; requests naming "
+                        "another host, and forms posted from other pages, are refused)")
 
     def _session(args: argparse.Namespace) -> int:
         missing = [flag for flag, value in (("--participant", args.participant), ("--order", args.order))
@@ -347,13 +355,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--store", metavar="PATH", help=store_help)
     f.add_argument("--port", type=int, default=FORMS_PORT, help=f"TCP port (default {FORMS_PORT})")
     f.add_argument("--host", default="127.0.0.1", metavar="ADDRESS",
-                   help="the address to serve on (default 127.0.0.1; a LAN address for a tablet)")
+                   help="the address to serve on (default 127.0.0.1: this machine only; this machine's LAN "
+                        "address for a tablet, said loudly on stderr)")
     f.set_defaults(handler=_forms)
     e = answers.add_parser("export", help="every answer as CSV, one row per participant x condition x item",
                            description="Every answer in tidy long format: one row per participant x condition x "
                                        "item, with order, block, recording, subscale and whether it is reversed; "
-                                       "the final form's answers with an empty condition.")
+                                       "the final form's answers with an empty condition. The open answers (free "
+                                       "text) only with --free-text. A cell a spreadsheet would run as a formula "
+                                       "(starting with = + - @, a tab or CR, other than a number) starts with '.")
     e.add_argument("--csv", required=True, metavar="OUT", help="the CSV file to write")
+    e.add_argument("--free-text", action="store_true",
+                   help="include the open answers (free text, which may identify someone; left out by default)")
     e.add_argument("--store", metavar="PATH", help=store_help)
     e.set_defaults(handler=_export)
     a = answers.add_parser("analyze", help="the paper's analysis of the answers and recordings: report and figures",

@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import os
+import re
 import sqlite3
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -53,8 +55,14 @@ SCHEMA_VERSION = 1
 FORMAT = "nwr-study-answers"
 STORE_NAME = "study.sqlite"
 NO_PREFERENCE = "none"  # a forced choice's "no preference"
+# An open answer's length, characters: a few paragraphs. Longer is refused at submission (the web form says so
+# and keeps the text); the report shows no more of any answer.
+MAX_ANSWER_CHARS = 2000
 
-Participant = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")]
+# A participant ID is a pseudonym: a code such as P07 (up to 8 letters, an optional - or _, 1 to 6 digits), never
+# a name or initials and a birth date. The key from codes to people is kept apart from the data (docs/study.md).
+PARTICIPANT_PATTERN = r"^[A-Za-z]{0,8}[-_]?[0-9]{1,6}$"
+Participant = Annotated[str, msgspec.Meta(pattern=PARTICIPANT_PATTERN)]
 Condition = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_-]{0,31}$")]
 Positive = Annotated[int, msgspec.Meta(ge=1)]
 
@@ -81,6 +89,15 @@ class FinalForm(msgspec.Struct, tag="final", tag_field="form", forbid_unknown_fi
 
 Form = ConditionForm | FinalForm
 FORM_DECODER = msgspec.json.Decoder(Form)
+
+
+def check_participant(participant: str) -> str:
+    """``participant`` if it is a pseudonymous code (:data:`PARTICIPANT_PATTERN`); StudyError otherwise."""
+    if not re.fullmatch(PARTICIPANT_PATTERN, participant):
+        raise StudyError(f"participant {participant!r}: a participant ID is a code such as P07 (up to 8 letters, "
+                         "an optional '-' or '_', then 1 to 6 digits), never a name: keep the list linking codes "
+                         "to people apart from the study's data")
+    return participant
 
 
 def recording_name(participant: str, block: int, condition: str) -> Path:
@@ -181,6 +198,8 @@ class Store:
                              "(or give --store PATH)")
         if not exists:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            # Readable by its owner only (SQLite gives its -wal and -shm files the same permissions).
+            os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
         try:
             self.db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
             self.db.execute("PRAGMA foreign_keys = ON")
@@ -247,6 +266,7 @@ class Store:
     def submit(self, form: Form, *, replace: bool = False) -> int:
         """Check ``form`` and write it in one transaction; its submission id. StudyError naming the item for
         a bad answer; for a form already submitted unless ``replace``."""
+        check_participant(form.participant)  # a Struct built in Python is not validated as decoding does
         self.db.execute("BEGIN IMMEDIATE")  # the checks below read what this transaction then writes
         try:
             match form:
@@ -328,12 +348,16 @@ class Store:
             text = form.answers.get(question.id, "").strip()
             if question.required and not text:
                 raise StudyError(f"{who}: no answer to {question.id} ({question.text!r}), which is required")
+            if len(text) > MAX_ANSWER_CHARS:
+                raise StudyError(f"{who}: the answer to {question.id} has {len(text)} characters, more than the "
+                                 f"{MAX_ANSWER_CHARS} an open answer may have: shorten it")
             rows.append((question.id, None, text))
         return rows
 
     def plan(self, participant: str, order: int, conditions: Sequence[str], *, replace: bool = False) -> None:
         """Register a session: ``participant`` runs ``conditions`` (in this order), counterbalanced order
         ``order``. The same plan again is kept; another one is refused unless ``replace`` (``--overwrite``)."""
+        check_participant(participant)
         planned = [(b.order, b.condition) for b in self.blocks(participant)]
         wanted = [(order, c) for c in conditions]
         if planned == wanted:
@@ -397,9 +421,11 @@ class Store:
                                 "answers a ON a.submission = s.id WHERE s.form = 'final' "
                                 "ORDER BY s.participant, a.rowid")]
 
-    def export_csv(self, out: str | Path) -> int:
+    def export_csv(self, out: str | Path, *, free_text: bool = False) -> int:
         """Every answer in tidy long format, one row per participant x condition x item (the final form's
-        answers with an empty condition); the number of rows."""
+        answers with an empty condition); the number of rows. The open answers (free text, which may say who
+        someone is) only with ``free_text``. Every cell that a spreadsheet would read as a formula is
+        neutralised (:func:`csv_cell`)."""
         q = self.questionnaire
         header = ["participant", "order", "block", "condition", "recording", "form", "scale", "item", "reversed",
                   "value", "answer", "submitted_at"]
@@ -409,13 +435,33 @@ class Store:
             w.writerow(header)
             for r in self.ratings():
                 scale = q.scale_of(r.item)
-                w.writerow([r.participant, r.order, r.block, r.condition, r.recording, "condition", scale.id, r.item,
-                            int(r.item in scale.reversed), r.value, "", r.submitted_at])
+                w.writerow(csv_row([r.participant, r.order, r.block, r.condition, r.recording, "condition", scale.id,
+                                    r.item, int(r.item in scale.reversed), r.value, "", r.submitted_at]))
                 n += 1
             for a in self.final_answers():
-                w.writerow([a.participant, "", "", "", "", "final", a.kind, a.item, "", "", a.text, a.submitted_at])
+                if a.kind == "open" and not free_text:
+                    continue
+                w.writerow(csv_row([a.participant, "", "", "", "", "final", a.kind, a.item, "", "", a.text,
+                                    a.submitted_at]))
                 n += 1
         return n
+
+
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: object) -> object:
+    """A value as a CSV cell that no spreadsheet runs as a formula (OWASP's CSV injection advice): text
+    starting with = + - @ a tab or a carriage return gets a leading ``'``, unless it is a plain number (-3.5
+    stays a number). Numbers and everything else pass unchanged."""
+    if isinstance(value, str) and value.startswith(_FORMULA_START) and not _NUMBER.fullmatch(value):
+        return "'" + value
+    return value
+
+
+def csv_row(values: Sequence[object]) -> list[object]:
+    return [csv_cell(v) for v in values]
 
 
 def _now() -> str:
