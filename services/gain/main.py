@@ -16,7 +16,8 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", choices=["continuous", "discrete"], help="gain model (overrides gain.model)")
+    parser.add_argument("--model", choices=["continuous", "discrete", "effective-mass"],
+                        help="gain model (overrides gain.model; effective-mass: docs/reflexes.md)")
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
