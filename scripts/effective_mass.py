@@ -82,12 +82,15 @@ def main() -> None:
     parser.add_argument("--script", default="demo")
     parser.add_argument("--periods", default="12,6", help="task periods, s, comma-separated")
     parser.add_argument("--strategy", default="cartesian")
+    parser.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR (default: a temporary directory)")
     args = parser.parse_args()
     periods = [float(p) for p in args.periods.split(",")]
     print(f"script {args.script!r}, strategy {args.strategy!r}, lockstep")
     print(f"{'period (s)':>10} {'top speed (m/s)':>15} {'model':>15} {'reflexes':>8} {'lost (s)':>8} "
           f"{'of (s)':>7} {'max F at onset (N)':>18}")
-    with tempfile.TemporaryDirectory() as work:
+    with tempfile.TemporaryDirectory() as temporary:
+        work = args.keep or temporary
+        Path(work).mkdir(parents=True, exist_ok=True)
         for period in periods:
             _, _, top = allowed_speed(period)
             for model in ("continuous", "effective-mass"):

@@ -317,3 +317,34 @@ def test_the_gain_wiring_reads_the_robot_state_only_for_the_effective_mass_model
     assert [i.name for i in wiring(Profile()).subscriptions()] == ["pressure"]
     em = Profile(gain=GainSection(model="effective-mass"))
     assert sorted(i.name for i in wiring(em).subscriptions()) == ["pressure", "state"]
+
+
+# -- a lockstep session with the model: recorded, summarised, re-run bit for bit -------------------------------
+
+@pytest.mark.slow
+def test_a_lockstep_session_with_the_model_records_its_predictions_and_re_runs_bit_for_bit(tmp_path: Path, capsys):
+    from nwr.services.tools.recordings.analysis import summarize
+    from nwr.services.tools.recordings.compare import load_session, table
+    from nwr.services.tools.recordings.replay import simulate
+    from nwr.services.tools.recordings.summary import print_summary
+    from nwr.services.tools.recordings.verify import verify
+
+    profile = Profile(gain=GainSection(model="effective-mass"))
+    path = simulate(profile, str(Path(__file__).parent / "data" / "short.toml"), "cartesian", tmp_path / "em.mcap")[0]
+    assert {r.service: r.verdict for r in verify(path)} == {
+        "gateway": "identical", "gain": "identical", "planner-cartesian": "identical", "bridge": "identical"}
+    from nwr.common.recordings import read_recording
+
+    records, _ = read_recording(path)
+    pains = [r.message for r in records if r.key == "skin/pain"]
+    assert all(p.model == "effective-mass" and len(p.impact_n) == N for p in pains)
+    assert sum(p.impact_basis == MEASURED for p in pains) >= len(pains) - 1  # the first sample may precede a state
+    touches = summarize(records, DESC)
+    reflexes = [t for t in touches if t.reflex_seq]
+    assert reflexes and all(t.impact_n is not None and t.effective_mass_kg is not None for t in touches)
+    assert all(0.0 <= t.impact_n <= LIMIT for t in touches if t.impact_n is not None)
+    assert print_summary(path, None, profile, columns="t,pad,force,mass") == 0
+    out = capsys.readouterr().out
+    assert "force" in out and "mass" in out and "predicted impact force at the onset" in out
+    session = load_session(path, DESC, ROBOT, profile)
+    assert "force (N)" in table([session], [[t] for t in session.touches]).splitlines()[0]

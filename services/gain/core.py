@@ -196,7 +196,12 @@ class GainEstimator:
         levels: list[int] = []
         gains: list[float] = []
         best = -1
+        per_pad = self.per_pad
         for i, p in enumerate(change):
+            if -math.inf < p < per_pad[i].thresholds[0] * scales[i]:
+                levels.append(1)  # PL 1 at the pad's scaled thresholds: G = 0, no contact
+                gains.append(0.0)
+                continue
             if not math.isfinite(p):
                 self.non_finite += 1
             level, g = self.gain(i, p, scales[i])
