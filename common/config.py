@@ -617,6 +617,11 @@ def _check_thresholds(where: str, thresholds: list[float]) -> None:
         )
 
 
+def check_profile(profile: Profile) -> None:
+    """The hard cross-checks again, for a profile a command-line flag changed after it loaded."""
+    _check_profile(profile)
+
+
 def _check_profile(profile: Profile) -> None:
     """The hard cross-checks that need nothing but the profile (ConfigError naming the field)."""
     gain, gateway, planner, bridge = profile.gain, profile.gateway, profile.planner, profile.bridge
@@ -643,7 +648,7 @@ def _check_profile(profile: Profile) -> None:
                 raise ConfigError(f"gain.effective_mass.{where} = {region!r} is no body region of "
                                   f"gain.effective_mass.regions ({', '.join(sorted(em.regions))})")
         # The most sensitive thresholds: the floor's share of each pad's own.
-        felt = [(f"{where} x gain.effective_mass.floor", round(pl2 * em.floor, 9)) for where, pl2 in felt]
+        felt = [(f"gain.effective_mass.floor x {where}", round(pl2 * em.floor, 9)) for where, pl2 in felt]
     for where, pl2 in felt:
         if gateway.contact_hpa >= pl2:
             raise ConfigError(

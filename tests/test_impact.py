@@ -222,7 +222,7 @@ def test_an_unknown_pad_or_region_is_refused_at_start(cfg, match):
     ('[gain]\nmodel = "effective-mass"\n[gain.effective_mass]\npad_regions = {nope = "hand"}\n',
      "pad_regions names \\['nope'\\]"),
     ('[gain]\nmodel = "effective-mass"\n[gateway]\ncontact_hpa = 1.2\nrelease_hpa = 0.5\n',
-     "not below gain.thresholds_hpa x gain.effective_mass.floor"),
+     "not below gain.effective_mass.floor x gain.thresholds_hpa\\[0\\] = 1.2 hPa"),
 ])
 def test_the_profile_refuses_unknown_regions_and_a_floor_below_the_contact_level(tmp_path: Path, text, match):
     path = tmp_path / "p.toml"
