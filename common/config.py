@@ -133,9 +133,47 @@ class PadGainOverride(_Section):
     k: Steepness | None = None
 
 
+class BodyRegion(_Section):
+    # A body region of the person beside the arm in ISO/TS 15066's power and
+    # force limiting model (docs/reflexes.md, "Effective-mass sensitivity").
+    # Effective spring constant k, N/m: stiffer, a larger predicted force.
+    k_n_m: Annotated[float, msgspec.Meta(gt=0, le=1e7)] = 75_000.0
+    # Effective mass m_H, kg: heavier, a larger predicted force.
+    mass_kg: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 5.6
+    # The transient contact force limit, N: a pad whose predicted impact force
+    # reaches it feels with its thresholds at gain.effective_mass.floor.
+    transient_n: Annotated[float, msgspec.Meta(gt=0, le=10_000)] = 280.0
+
+
+# The default body region's name (its values are BodyRegion's defaults).
+DEFAULT_BODY_REGION = "hand"
+
+
+class EffectiveMassSection(_Section):
+    # gain.model = "effective-mass": each pad's thresholds scaled by
+    # 1 - (1 - floor) * min(1, F / transient_n), F the impact force a
+    # collision at the pad's speed would cause; floor: the most sensitive
+    # scale (thresholds x floor, where F reaches the region's limit).
+    floor: Annotated[float, msgspec.Meta(ge=0.1, le=1)] = 0.6
+    # A pad slower than this is at rest: its direction of motion is undefined
+    # (the outward normal is used for its effective mass) and its force is 0.
+    rest_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=0.1)] = 0.005
+    # A robot state older than this (or none yet, or one the bridge marks as
+    # not measured) gives every pad the most sensitive scale, s.
+    state_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.1
+    # The body region each pad would meet, by pad name; a pad not named meets
+    # default_region. Every name must be one of regions.
+    default_region: str = DEFAULT_BODY_REGION
+    pad_regions: dict[str, str] = {}
+    # The body regions, by name.
+    regions: dict[str, BodyRegion] = msgspec.field(default_factory=lambda: {DEFAULT_BODY_REGION: BodyRegion()})
+
+
 class GainSection(_Section):
-    # "continuous": the paper's piecewise scaled sigmoid; "discrete": PL steps.
-    model: Literal["continuous", "discrete"] = "continuous"
+    # "continuous": the paper's piecewise scaled sigmoid; "discrete": PL steps;
+    # "effective-mass": the continuous model with each pad's thresholds scaled
+    # down by the impact force its motion predicts ([gain.effective_mass]).
+    model: Literal["continuous", "discrete", "effective-mass"] = "continuous"
     # Upper thresholds of PL 1, 2, 3 and the saturation of PL 4, hPa.
     thresholds_hpa: list[float] = msgspec.field(default_factory=lambda: [2.0, 6.0, 12.0, 20.0])
     # Sigmoid steepness k (the paper's 3). 0.1-50: below, the scaled sigmoid
@@ -145,6 +183,8 @@ class GainSection(_Section):
     pl3_gain: Fraction = 0.35
     # Per-pad overrides, by pad name.
     overrides: dict[str, PadGainOverride] = {}
+    # The effective-mass model's parameters (used with model = "effective-mass").
+    effective_mass: EffectiveMassSection = msgspec.field(default_factory=EffectiveMassSection)
 
 
 class RestartSection(_Section):
@@ -577,6 +617,11 @@ def _check_thresholds(where: str, thresholds: list[float]) -> None:
         )
 
 
+def check_profile(profile: Profile) -> None:
+    """The hard cross-checks again, for a profile a command-line flag changed after it loaded."""
+    _check_profile(profile)
+
+
 def _check_profile(profile: Profile) -> None:
     """The hard cross-checks that need nothing but the profile (ConfigError naming the field)."""
     gain, gateway, planner, bridge = profile.gain, profile.gateway, profile.planner, profile.bridge
@@ -595,6 +640,15 @@ def _check_profile(profile: Profile) -> None:
             f"gateway: release_hpa ({gateway.release_hpa}) must not exceed contact_hpa "
             f"({gateway.contact_hpa})"
         )
+    if gain.model == "effective-mass":
+        em = gain.effective_mass
+        for where in ("default_region", *(f"pad_regions.{pad}" for pad in em.pad_regions)):
+            region = _get(em, where)
+            if region not in em.regions:
+                raise ConfigError(f"gain.effective_mass.{where} = {region!r} is no body region of "
+                                  f"gain.effective_mass.regions ({', '.join(sorted(em.regions))})")
+        # The most sensitive thresholds: the floor's share of each pad's own.
+        felt = [(f"gain.effective_mass.floor x {where}", round(pl2 * em.floor, 9)) for where, pl2 in felt]
     for where, pl2 in felt:
         if gateway.contact_hpa >= pl2:
             raise ConfigError(
@@ -692,6 +746,7 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
 
     pads = {pad.name for pad in desc.pads}
     for field, names in (("gain.overrides", list(profile.gain.overrides)),
+                         ("gain.effective_mass.pad_regions", list(profile.gain.effective_mass.pad_regions)),
                          ("planner.target_order", planner.target_order)):
         unknown = [name for name in names if name not in pads]
         if unknown:
@@ -754,6 +809,13 @@ GUARDS: dict[str, Guard] = {
     "planner.restarts.interval_s": Guard("below", "s"),
     # How far and how fast a reflex moves the arm.
     "gain.pl3_gain": Guard("above"),
+    # The effective-mass model: how much more sensitive a moving pad becomes, and what it predicts.
+    "gain.effective_mass.floor": Guard("above"),
+    "gain.effective_mass.rest_speed_m_s": Guard("above", "m/s"),
+    "gain.effective_mass.state_timeout_s": Guard("above", "s"),
+    "gain.effective_mass.regions.<region>.k_n_m": Guard("below", "N/m"),
+    "gain.effective_mass.regions.<region>.mass_kg": Guard("below", "kg"),
+    "gain.effective_mass.regions.<region>.transient_n": Guard("above", "N"),
     "planner.q_max_deg": Guard("above", "deg"),
     "planner.v_max_m_s": Guard("above", "m/s"),
     "planner.reflex_duration_s": Guard("above", "s"),
@@ -797,6 +859,9 @@ def _pattern(name: str) -> str | None:
     parts = name.split(".")
     if len(parts) == 4 and parts[:2] == ["gain", "overrides"] and parts[3] == "thresholds_hpa" and parts[2]:
         return "gain.overrides.<pad>.thresholds_hpa"
+    if len(parts) == 5 and parts[:3] == ["gain", "effective_mass", "regions"] and parts[3] and \
+            f"gain.effective_mass.regions.<region>.{parts[4]}" in GUARDS:
+        return f"gain.effective_mass.regions.<region>.{parts[4]}"
     return None
 
 
@@ -809,7 +874,14 @@ def _get(obj: Any, dotted: str) -> Any:
 def _default(name: str) -> Any:
     """The documented default of a safety-relevant field (a pad's override: the profile-wide default)."""
     pattern = _pattern(name)
-    value = _DEFAULT.gain.thresholds_hpa if pattern == "gain.overrides.<pad>.thresholds_hpa" else _get(_DEFAULT, name)
+    if pattern == "gain.overrides.<pad>.thresholds_hpa":
+        value = _DEFAULT.gain.thresholds_hpa
+    elif pattern is not None and "<region>" in pattern:
+        # Every body region is held against the default region's values (any region less conservative than
+        # the reference's must be acknowledged).
+        value = getattr(BodyRegion(), name.rpartition(".")[2])
+    else:
+        value = _get(_DEFAULT, name)
     return list(value) if isinstance(value, list) else value  # a copy: the defaults stay the defaults
 
 
@@ -888,6 +960,10 @@ def guarded(profile: Profile) -> list[Guarded]:
                 if override.thresholds_hpa is not None:
                     name = pattern.replace("<pad>", pad)
                     found.append(Guarded(name, override.thresholds_hpa, _default(name), guard))
+        elif "<region>" in pattern:
+            for region, values in profile.gain.effective_mass.regions.items():
+                name = pattern.replace("<region>", region)
+                found.append(Guarded(name, _get(values, name.rpartition(".")[2]), _default(name), guard))
         else:
             found.append(Guarded(pattern, _get(profile, pattern), _default(pattern), guard))
     return found

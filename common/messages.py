@@ -140,6 +140,15 @@ class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown
     level: list[int]
     gain: list[Finite]
     strongest: Contact | None = None
+    # The effective-mass model's prediction per pad (empty for the paper's models): the arm's effective mass
+    # along the pad's direction of motion, kg (0: unknown), the impact force a collision at its speed would
+    # cause, N (where unknown: its body region's limit), and the scale of its pain thresholds; impact_basis is
+    # "state" (predicted from the robot state) or why no prediction could be made (every pad then unknown and
+    # at its most sensitive: "no_state", "stale_state", "non_finite_state", "ill_conditioned").
+    effective_mass_kg: list[Finite] = []
+    impact_n: list[Finite] = []
+    threshold_scale: list[Finite] = []
+    impact_basis: str = ""
 
 
 class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_unknown_fields=True):

@@ -810,6 +810,16 @@ class RobotModel:
         tau = pin.rnea(self.model, data, q, v, a) - pin.computeGeneralizedGravity(self.model, data, q)
         return float(v @ tau)
 
+    def mass_matrix(self, q: Any) -> np.ndarray:
+        """The joint-space mass matrix M(q) (nq, nq), kg m^2, symmetric (the URDF's inertias; CRBA)."""
+        upper = pin.crba(self.model, self._dynamics, self._as_q(q))
+        return np.triu(upper) + np.triu(upper, 1).T  # CRBA fills the upper triangle only
+
+    def pad_jacobians(self, q: Any) -> np.ndarray:
+        """Linear Jacobians (n_pads, 3, nq) of the pad points, base_frame axes (the first rows of
+        :meth:`speed_jacobians`). Read-only, computed once per pose."""
+        return self.speed_jacobians(q)[:len(self._pad_ids)]
+
     def kinetic_energy(self, q: Any, dq: Any) -> float:
         """The arm's kinetic energy at ``q`` moving at ``dq``, J."""
         return float(pin.computeKineticEnergy(self.model, self._dynamics, self._as_q(q), np.asarray(dq, dtype=float)))

@@ -95,6 +95,12 @@ LOOSENED: dict[str, Any] = {
     "planner.restarts.burst": 20,
     "planner.restarts.interval_s": 0.1,
     "gain.pl3_gain": 0.5,
+    "gain.effective_mass.floor": 0.8,
+    "gain.effective_mass.rest_speed_m_s": 0.01,
+    "gain.effective_mass.state_timeout_s": 0.2,
+    "gain.effective_mass.regions.hand.k_n_m": 40_000.0,
+    "gain.effective_mass.regions.hand.mass_kg": 0.6,
+    "gain.effective_mass.regions.hand.transient_n": 300.0,
     "planner.q_max_deg": [40.0, 70.0, 146.0, 80.0, 0.0, 0.0],
     "planner.uniform.fraction": 0.6,
     **{f"planner.location.{level}.{region}": [min(1.0, w + 0.1) for w in row]
@@ -144,7 +150,8 @@ LOOSENED: dict[str, Any] = {
 
 
 def test_every_safety_relevant_field_has_a_loosened_case() -> None:
-    patterns = {re.sub(r"^gain\.overrides\.[^.]+\.", "gain.overrides.<pad>.", f) for f in LOOSENED}
+    patterns = {re.sub(r"^gain\.effective_mass\.regions\.[^.]+\.", "gain.effective_mass.regions.<region>.",
+                       re.sub(r"^gain\.overrides\.[^.]+\.", "gain.overrides.<pad>.", f)) for f in LOOSENED}
     assert patterns == set(GUARDS) | {g.field for g in plugin_guards()}
 
 
@@ -425,7 +432,10 @@ def _fields() -> dict[str, tuple[Any, str]]:
             if isinstance(t, mi.StructType):
                 walk(f"{name}.", t, value)
             elif isinstance(t, mi.DictType) and isinstance(t.value_type, mi.StructType):
-                walk(f"{name}.<pad>.", t.value_type, t.value_type.cls())
+                walk(f"{name}.{'<region>' if field.name == 'regions' else '<pad>'}.", t.value_type,
+                     t.value_type.cls())
+            elif isinstance(t, mi.DictType) and not value:  # a table by pad name, empty by default: one row
+                found[name] = (value, _bound(t.value_type))
             elif isinstance(t, mi.DictType):
                 assert value, name  # a table of rows documents its default rows
                 for key, row in value.items():
@@ -468,6 +478,7 @@ def test_the_documented_defaults_bounds_and_safe_ranges_are_the_codes() -> None:
         assert doc_default == f"`{toml_value(default)}`", name
         assert hard.startswith(bound) and hard, name  # the Meta bound first, then the cross-checks
         pattern = name.replace(name.split(".")[2], "<pad>") if name.startswith("gain.overrides.") else name
+        pattern = name if "<region>" in name else pattern
         plugins = {g.field: g for g in plugin_guards()}
         if pattern in GUARDS or name in plugins:
             assert safe == safe_range(name), name

@@ -18,6 +18,20 @@ Continuous model, with the scaled sigmoid
 
 with k = 3. Non-finite changes give PL 1 and G = 0 (and are counted by the
 caller): a pad that reports garbage must never trigger a reflex.
+
+Effective-mass model (``gain.model = "effective-mass"``, this project's,
+after Rustler et al.'s adaptive sensitivity): the continuous model with each
+pad's four thresholds multiplied by
+
+    s = 1 - (1 - floor) * min(1, F / F_limit)
+
+F the impact force a collision at the pad's speed would cause (:mod:`.impact`),
+F_limit its body region's transient limit: s = 1 (the paper's thresholds) for
+a pad at rest, ``floor`` (default 0.6) for one whose predicted force reaches
+the limit, and ``floor`` for every pad while no prediction can be made (no,
+stale or non-finite robot state, an ill-conditioned mass matrix). A pad is
+never less sensitive than the paper's, nor more than ``floor`` times its
+thresholds.
 """
 
 from __future__ import annotations
@@ -31,6 +45,9 @@ from nwr.common import messages as m
 from nwr.common.config import GainSection
 from nwr.common.errors import ConfigError
 from nwr.common.robot import Pad
+from nwr.services.gain.impact import Impact
+
+EFFECTIVE_MASS = "effective-mass"
 
 # Beyond this exponent e^t overflows a double near 709.8; 1 / (1 + e^t) equals
 # e^-t to double precision long before (from t = 37 on).
@@ -103,25 +120,43 @@ class GainEstimator:
             thresholds = over.thresholds_hpa if over and over.thresholds_hpa else cfg.thresholds_hpa
             k = over.k if over and over.k else cfg.k
             self.per_pad.append(PadGain(tuple(thresholds), k))  # type: ignore[arg-type]
+        self.floor = cfg.effective_mass.floor
         self.seq = 0
         self.non_finite = 0
 
-    def gain(self, pad: int, p: float) -> tuple[int, float]:
+    def gain(self, pad: int, p: float, scale: float = 1.0) -> tuple[int, float]:
+        """A pad's pain level and gain for the change ``p``; ``scale``: the effective-mass model's threshold
+        scale (1: the paper's thresholds)."""
         pg = self.per_pad[pad]
-        level = pain_level(p, pg.thresholds)
         if self.model == "discrete":
-            g = discrete_gain(p, pg.thresholds, self.pl3_gain)
-        else:
-            g = continuous_gain(p, pg.thresholds, pg.k, self.pl3_gain)
-        return level, g
+            return pain_level(p, pg.thresholds), discrete_gain(p, pg.thresholds, self.pl3_gain)
+        thresholds = pg.thresholds if scale == 1.0 else tuple(t * scale for t in pg.thresholds)
+        return pain_level(p, thresholds), continuous_gain(p, thresholds, pg.k, self.pl3_gain)
 
-    def process(self, sample: m.SkinPressure, now_ns: int) -> m.SkinPain:
-        """One pain message per skin sample; raises ValueError on a wrong pad count."""
+    def scales(self, impact: Impact) -> list[float]:
+        """The effective-mass model's threshold scale per pad: 1 - (1 - floor) min(1, F / F_limit)."""
+        return (1.0 - (1.0 - self.floor) * impact.ratio).tolist()
+
+    def gain_range(self, pad: int, p: float) -> tuple[float, float]:
+        """The gains the model may give a change ``p`` on a pad: (least, most) sensitive (the same for the
+        paper's models; the effective-mass model's at rest and at its floor)."""
+        g = self.gain(pad, p)[1]
+        return (g, self.gain(pad, p, self.floor)[1]) if self.model == EFFECTIVE_MASS else (g, g)
+
+    def process(self, sample: m.SkinPressure, now_ns: int, impact: Impact | None = None) -> m.SkinPain:
+        """One pain message per skin sample; raises ValueError on a wrong pad count.
+
+        ``impact``: the effective-mass model's prediction for the sample (required by that model, unused by the
+        paper's)."""
         change = sample.change_hpa
         if len(change) != len(self.pads):
             raise ValueError(
                 f"skin sample {sample.seq} has {len(change)} pads, the skin has {len(self.pads)}: sample dropped"
             )
+        if self.model == EFFECTIVE_MASS:
+            if impact is None:
+                raise ValueError("the effective-mass gain model needs an impact prediction for every sample")
+            return self._scaled(sample, now_ns, impact)
         levels: list[int] = []
         gains: list[float] = []
         best = -1
@@ -140,16 +175,45 @@ class GainEstimator:
             # Strongest contact: highest gain, then highest change.
             if g > 0 and (best < 0 or (g, change[i]) > (gains[best], change[best])):
                 best = i
-        strongest = None
-        if best >= 0:
-            pad = self.pads[best]
-            strongest = m.Contact(
-                pad=best, name=pad.name, region=pad.region, change_hpa=float(change[best]),
-                level=levels[best], gain=gains[best],
-            )
         msg = m.SkinPain(
             seq=self.seq, stamp_ns=now_ns, trace=m.Trace(sample.seq, sample.stamp_ns),
-            model=self.model, level=levels, gain=gains, strongest=strongest,
+            model=self.model, level=levels, gain=gains, strongest=self._contact(best, change, levels, gains),
+        )
+        self.seq += 1
+        return msg
+
+    def _contact(self, best: int, change: list[float], levels: list[int], gains: list[float]) -> m.Contact | None:
+        if best < 0:
+            return None
+        pad = self.pads[best]
+        return m.Contact(pad=best, name=pad.name, region=pad.region, change_hpa=float(change[best]),
+                         level=levels[best], gain=gains[best])
+
+    def _scaled(self, sample: m.SkinPressure, now_ns: int, impact: Impact) -> m.SkinPain:
+        """The effective-mass model: the continuous model on each pad's scaled thresholds."""
+        change = sample.change_hpa
+        scales = self.scales(impact)
+        levels: list[int] = []
+        gains: list[float] = []
+        best = -1
+        per_pad = self.per_pad
+        for i, p in enumerate(change):
+            if -math.inf < p < per_pad[i].thresholds[0] * scales[i]:
+                levels.append(1)  # PL 1 at the pad's scaled thresholds: G = 0, no contact
+                gains.append(0.0)
+                continue
+            if not math.isfinite(p):
+                self.non_finite += 1
+            level, g = self.gain(i, p, scales[i])
+            levels.append(level)
+            gains.append(g)
+            if g > 0 and (best < 0 or (g, change[i]) > (gains[best], change[best])):
+                best = i
+        msg = m.SkinPain(
+            seq=self.seq, stamp_ns=now_ns, trace=m.Trace(sample.seq, sample.stamp_ns),
+            model=self.model, level=levels, gain=gains, strongest=self._contact(best, change, levels, gains),
+            effective_mass_kg=impact.mass_kg.tolist(), impact_n=impact.force_n.tolist(), threshold_scale=scales,
+            impact_basis=impact.basis,
         )
         self.seq += 1
         return msg

@@ -6,7 +6,7 @@ import argparse
 import logging
 import threading
 
-from nwr.common.config import Profile
+from nwr.common.config import Profile, check_profile
 from nwr.common.door import Door
 from nwr.common.node import Node
 from nwr.services.gain.wiring import SERVICE, GainWiring
@@ -16,12 +16,14 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", choices=["continuous", "discrete"], help="gain model (overrides gain.model)")
+    parser.add_argument("--model", choices=["continuous", "discrete", "effective-mass"],
+                        help="gain model (overrides gain.model; effective-mass: docs/reflexes.md)")
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
     if args.model:
         profile.gain.model = args.model
+        check_profile(profile)  # the effective-mass model's floor against the contact level, its regions
     lock = threading.Lock()  # the journal's batches are taken under it
     with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gain", token=False,
               door=Door.of(profile), exclusive=True) as node:

@@ -83,6 +83,11 @@ class TouchSummary:
     pain_computed: bool = False
     # False: the recording has no planner (no reflex statuses): whether the touch caused a reflex is unknown.
     reflex_known: bool = True
+    # The effective-mass model's prediction for the touched pad at the onset (the skin sample that started the
+    # touch's reflex, else the touch's first): the arm's effective mass along the pad's motion, kg, and the
+    # impact force a collision at its speed would cause, N (None: the recording's gain model predicts none).
+    effective_mass_kg: float | None = None
+    impact_n: float | None = None
 
 
 def summarized(key: str) -> bool:
@@ -142,6 +147,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
              if r.contact.pad == touch.pad and touch.first_seq <= r.trace.seq <= touch.last_seq),
             None,
         )
+        _predicted(touch, by_seq.get(reflex.trace.seq if reflex is not None else touch.first_seq))
         if reflex is None:
             continue
         touch.reflex_seq = reflex.reflex_seq
@@ -238,6 +244,13 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
                 errors = np.max(np.abs(state_q[around] - np.asarray(saved)), axis=1)
                 touch.return_error_rad = float(errors.min())
     return touches
+
+
+def _predicted(touch: TouchSummary, pain: m.SkinPain | None) -> None:
+    """A touch's predicted impact force and effective mass from the pain message of its onset, if it has them."""
+    if pain is not None and len(pain.impact_n) > touch.pad and len(pain.effective_mass_kg) > touch.pad:
+        touch.impact_n = pain.impact_n[touch.pad]
+        touch.effective_mass_kg = pain.effective_mass_kg[touch.pad]
 
 
 def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[TouchSummary]:

@@ -3,7 +3,8 @@
 Touches are lined up across recordings by pad and by start time from each
 recording's first skin sample (within ``--window`` seconds), which is how a
 replay of one session against several reflex services lines up. Per touch
-and file: pad, gain, onset latency, the touched pad's withdrawal along its
+and file: pad, gain, the predicted impact force at the onset (the
+effective-mass gain model's; "-" for the paper's), onset latency, the touched pad's withdrawal along its
 normal, how far it came toward the contact, the largest approach of any
 other pad to the contact point, the peak joint speed during the reflex and
 its return, the time until the task resumed, and how far the reflex motion
@@ -148,7 +149,7 @@ def command_streams(a: Session, b: Session) -> str:
 
 
 def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]) -> str:
-    header = ["touch", "t (s)", "pad", "file", "gain", "onset (ms)", "withdrawal (mm)", "toward (mm)",
+    header = ["touch", "t (s)", "pad", "file", "gain", "force (N)", "onset (ms)", "withdrawal (mm)", "toward (mm)",
               "other pad closer (mm)", "peak speed (rad/s)", "peak (m/s)", "toward (m/s)", "resumed (s)",
               "dq vs first (mrad)"]
 
@@ -164,7 +165,8 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
                 error = trajectory_error(sessions[0], row[0], session, touch)
             out.append([
                 str(i), f"{(touch.start_ns - session.t0_ns) / 1e9:.2f}", touch.name, session.label, f"{touch.gain:.3f}",
-                f(touch.onset_latency_ms, ".2f"), f(touch.withdrawal_mm, ".1f"), f(touch.toward_mm, ".1f"),
+                f(touch.impact_n, ".0f"), f(touch.onset_latency_ms, ".2f"), f(touch.withdrawal_mm, ".1f"),
+                f(touch.toward_mm, ".1f"),
                 f(touch.other_approach_mm, ".1f"), f(peak_joint_speed(session, touch), ".2f"),
                 f(touch.peak_speed_m_s, ".3f"), f(touch.peak_toward_m_s, ".3f"), f(touch.resumed_after_s, ".2f"),
                 f(None if error is None else 1e3 * error, ".3f"),

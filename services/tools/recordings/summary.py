@@ -37,6 +37,12 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     print(table.render([c.header for c in chosen], table.touch_rows(touches, first, chosen), width))
     if any(t.reflex_seq for t in touches):
         print("\n" + table.render(analysis.QUALITY_HEADER, analysis.quality_rows([analysis.quality(touches)]), width))
+    predicted = [t for t in touches if t.impact_n is not None]
+    if predicted:
+        top = max(predicted, key=lambda t: t.impact_n or 0.0)
+        print(f"\npredicted impact force at the onset ({len(predicted)} touches, the effective-mass gain model): "
+              f"largest {top.impact_n:.0f} N on {top.name} (effective mass {top.effective_mass_kg:.1f} kg); "
+              "per touch: --columns t,pad,gain,force,mass,reflex")
     if lockstep and latencies:
         print(f"\n{len(latencies)} reflexes on simulated time (lockstep): each began within the control cycle of "
               "its skin sample, by construction; no latency is measured here (`nwr demo` or `nwr bench` live)")
@@ -95,7 +101,9 @@ def complete(touches: list[Any], records: list[Any], metadata: dict[str, dict[st
 
 
 def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns: int, profile: Profile) -> int:
-    """Every scripted touch seen on its pad at its time, with a reflex exactly when G(peak) > 0."""
+    """Every scripted touch seen on its pad at its time, with a reflex exactly when G(peak) > 0 (the effective-mass
+    model: when G(peak) > 0 at the paper's thresholds, none when G(peak) = 0 at its floor, either in between: the
+    touch's reflex then depends on how fast its pad moved)."""
     from nwr.services.gain.core import GainEstimator
 
     estimator = GainEstimator(profile.gain, desc.pads)
@@ -103,15 +111,15 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
     mismatches = []
     for touch in script.touch:
         pad = desc.pad(touch.pad)
-        _, expected_gain = estimator.gain(pad.id, touch.peak_hpa)
+        least, most = estimator.gain_range(pad.id, touch.peak_hpa)
         window = (touch.start_s - 0.2, touch.start_s + touch.ramp_s + 0.3)
         match = next((t for t in touches if t.pad == pad.id and window[0] <= (t.start_ns - t0_ns) / 1e9 <= window[1]),
                      None)
         if match is None:
             mismatches.append(f"touch on {pad.name} at {touch.start_s} s was not seen")
-        elif match.reflex_known and (match.reflex_seq > 0) != (expected_gain > 0):
+        elif match.reflex_known and ((match.reflex_seq > 0 and most == 0) or (match.reflex_seq == 0 and least > 0)):
             mismatches.append(f"touch on {pad.name} at {touch.start_s} s ({touch.peak_hpa} hPa): "
-                              f"expected {'a' if expected_gain > 0 else 'no'} reflex")
+                              f"expected {'a' if least > 0 else 'no'} reflex")
     if mismatches:
         print("\nthe recording does NOT match its script:\n  " + "\n  ".join(mismatches))
         return 1

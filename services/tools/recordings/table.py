@@ -1,7 +1,9 @@
 """The per-touch table: its columns as data, printed to fit the terminal, written in full as CSV.
 
 By default ``nwr summary`` and ``nwr demo`` print the essential columns,
-which fit a 120-column terminal; ``--wide`` prints every column and
+which fit a 120-column terminal (the effective-mass gain model's predicted
+impact force, ``force``, and effective mass, ``mass``, at each onset are not
+among them: a line below the table gives their largest); ``--wide`` prints every column and
 ``--columns`` a chosen few (by the names :data:`COLUMNS` gives). The tables
 are rendered with ``rich``: a header's unit goes on a line of its own, and a
 terminal narrower than the table wraps its cells rather than the lines.
@@ -60,6 +62,8 @@ COLUMNS = [
     Column("back_to", "back to (mm)", lambda t, _: cell(t.back_mm, ".1f"), False),
     Column("return_speed", "return (m/s)", lambda t, _: cell(t.return_speed_m_s, ".3f"), False),
     Column("resumed", "resumed (s)", lambda t, _: cell(t.resumed_after_s, ".2f"), True),
+    Column("force", "force (N)", lambda t, _: cell(t.impact_n, ".0f"), False),
+    Column("mass", "mass (kg)", lambda t, _: cell(t.effective_mass_kg, ".1f"), False),
 ]
 NAMES = [c.name for c in COLUMNS]
 
