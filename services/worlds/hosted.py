@@ -13,7 +13,9 @@ same world, bit for bit.
   late cycle catches up at most ``max_catch_up_s`` of steps; the rest is
   skipped (the world's clock falls behind the bridge's by that much, counted
   in :attr:`HostedWorld.lost_ns`), never run in a burst that would look like
-  a jump.
+  a jump. A step's bridge time counts back from the call's (its last step
+  is at the bridge time given): the touches keep the script's clock and the
+  samples the bridge's, however much world time was lost.
 - **Touches.** Each touch of a touch script (the gateway's ground truth on
   ``skin/touch``) becomes a finger on its pad (:meth:`touch`): it enters
   where the pad is when the touch reaches the bridge, presses along the
@@ -110,6 +112,7 @@ class _Finger:
     into: np.ndarray  # the direction it presses in (-normal of the pad)
     k: float
     peak_pushed: float = 0.0
+    lifted: bool = False  # its touch has ended: its target is off the pad
 
     def script_s(self, bridge_ns: int) -> float:
         return (bridge_ns - self.origin_ns) / 1e9
@@ -137,10 +140,6 @@ class HostedWorld:
         self.fingers: dict[str, _Finger] = {}
         self.skin_seq = 0
         self.contacts_seq = 0
-
-    def bridge_ns(self, world_ns: int) -> int:
-        assert self.origin_ns is not None
-        return self.origin_ns + world_ns
 
     def touch(self, msg: m.SkinTouch, now_ns: int) -> BodyPart:
         """A touch reached the bridge at ``now_ns``: its finger enters on its pad. ConfigError (nothing enters)
@@ -178,19 +177,22 @@ class HostedWorld:
             self.lost_ns += lost
             due = self.max_steps
         out: list[tuple[str, Any]] = []
-        for _ in range(max(0, due)):
-            at_ns = self.bridge_ns(world.time_ns + self.step_ns)
+        for i in range(max(0, due)):
+            # The step's bridge time: the last step of the call is at now (a world that lost time is behind
+            # the bridge's clock, the touches are not: they keep the script's clock).
+            at_ns = now_ns - (due - 1 - i) * self.step_ns
             for finger in list(self.fingers.values()):
                 self._aim(finger, at_ns)
             world.step(q_command, dq_command)
             for sample in world.skin():
+                stamp = at_ns - (world.time_ns - sample.delivered_ns)
                 out.append((keys.WORLD_SKIN, m.WorldSkin(
-                    seq=self.skin_seq, stamp_ns=self.bridge_ns(sample.delivered_ns), world_ns=sample.taken_ns,
+                    seq=self.skin_seq, stamp_ns=stamp, world_ns=sample.taken_ns,
                     absolute_hpa=sample.absolute_hpa.tolist(), change_hpa=sample.change_hpa.tolist(),
                     force_n=world.pad_force_n().tolist())))
                 self.skin_seq += 1
                 if self.fingers:
-                    out.append((keys.WORLD_CONTACTS, self.contacts(self.bridge_ns(sample.delivered_ns))))
+                    out.append((keys.WORLD_CONTACTS, self.contacts(stamp)))
         return out
 
     def contacts(self, stamp_ns: int) -> m.WorldContacts:
@@ -199,7 +201,7 @@ class HostedWorld:
         for name, report in self.world.people().items():
             finger = self.fingers.get(name)
             pushed = finger.pushed(report.position) if finger is not None else 0.0
-            if finger is not None:
+            if finger is not None and not finger.lifted:  # the lift off the pad is the person's, not the arm's
                 finger.peak_pushed = max(finger.peak_pushed, pushed)
             people.append(m.WorldPerson(
                 name=name, kind=report.kind, touch=finger.seq if finger is not None else -1,
@@ -220,6 +222,7 @@ class HostedWorld:
             self.world.remove(finger.name)
             del self.fingers[finger.name]
         elif t >= end:
+            finger.lifted = True
             self.world.retarget(finger.name, finger.target(-LIFT_M * finger.k))
         else:
             force = finger_force(touch_profile(finger.touch, t), self.settings)

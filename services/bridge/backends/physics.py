@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 NAME = "physics"
 REAL_ARM = False
 Settings = PhysicsSettings  # [bridge.physics]
+# How often a world that falls behind the bridge's clock is warned about, ns of bridge time.
+WARN_EVERY_NS = 5_000_000_000
 
 
 def check_settings(settings: PhysicsSettings, profile: Profile, desc: RobotDescription) -> None:
@@ -80,6 +82,7 @@ class PhysicsBackend(Backend):
         self.connected = False
         self.fault: m.RobotStatus | None = None
         self.detail = ""
+        self.warned_ns = -WARN_EVERY_NS
 
     def connect(self) -> None:
         self.connected = True
@@ -100,11 +103,18 @@ class PhysicsBackend(Backend):
     def advance(self, now_ns: int) -> list[tuple[str, Any]]:
         if self.fault is not None:
             return []
+        lost = self.hosted.lost_ns
         try:
-            return self.hosted.advance(now_ns, self.q_command, self.dq_command)
+            out = self.hosted.advance(now_ns, self.q_command, self.dq_command)
         except WorldUnstable as exc:
             self.fault, self.detail = "protective_stop", f"physics world stopped: {exc}"
             return []
+        if self.hosted.lost_ns > lost and now_ns - self.warned_ns >= WARN_EVERY_NS:
+            self.warned_ns = now_ns
+            log.warning("the physics world is %.3f s behind the bridge's clock: late cycles caught up at most "
+                        "%.0f ms of world time each (the machine is too slow or too busy for it in real time)",
+                        self.hosted.lost_ns / 1e9, self.hosted.max_steps * self.hosted.step_ns / 1e6)
+        return out
 
     def on_touch(self, touch: m.SkinTouch, now_ns: int) -> str | None:
         try:
