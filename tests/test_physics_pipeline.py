@@ -186,3 +186,33 @@ def test_the_pipeline_in_lockstep_feels_the_worlds_finger_withdraws_and_runs_the
     second = lockstep_run()
     assert [(k, msgspec.msgpack.encode(x), t) for k, x, t in first if not k.startswith("journal/")] == \
         [(k, msgspec.msgpack.encode(x), t) for k, x, t in second if not k.startswith("journal/")]
+
+
+# ------------------------------------------------------------------------------ the launch
+
+
+def test_a_launch_chooses_the_world_and_refuses_half_of_one_or_a_script_it_cannot_play(tmp_path) -> None:
+    import argparse
+
+    from nwr.services.tools.demo import layout_for, world_for
+
+    def args(**kw: object) -> argparse.Namespace:
+        base = dict(world=None, script=None, closed_loop=False, backend=None, robot_ip="", confirmed=False,
+                    planners=None, reflex=None, view=None, follow_target=None)
+        return argparse.Namespace(**{**base, **kw})
+
+    profile = Profile()
+    assert world_for(args(), profile) == "scripted" and profile.bridge.backend == "sim"
+    layout = layout_for(args(world="physics", script="demo"), profile, None)
+    assert profile.bridge.backend == "physics" and profile.gateway.source == "physics"
+    assert layout.bridge == ["--backend", "physics"] and layout.gateway[-2:] == ["--source", "physics"]
+    half = Profile()
+    half.bridge.backend = "physics"
+    with pytest.raises(ConfigError, match="a physics world is both"):
+        world_for(args(), half)
+    with pytest.raises(ConfigError, match="--closed-loop is the scripted world's"):
+        world_for(args(world="physics", closed_loop=True), Profile())
+    hard = tmp_path / "hard.toml"
+    hard.write_text('duration_s = 3.0\n[[touch]]\npad = "wrist_1"\nstart_s = 1.0\nduration_s = 0.5\npeak_hpa = 45.0\n')
+    with pytest.raises(ConfigError, match="beyond a finger's plausible push"):
+        world_for(args(world="physics", script=str(hard)), Profile())

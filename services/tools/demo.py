@@ -64,14 +64,17 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
     if physics[0] != physics[1]:
         raise ConfigError(f"bridge.backend = {profile.bridge.backend!r} and gateway.source = "
                           f"{profile.gateway.source!r}: a physics world is both (\"physics\") or neither")
-    world = getattr(args, "world", None) or ("physics" if physics[0] else "scripted")
+    backend = getattr(args, "backend", None)
+    world = getattr(args, "world", None) or ("physics" if physics[0] or backend == "physics" else "scripted")
     if world == "scripted":
+        if backend == "physics":
+            raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
         if physics[0]:
             profile.bridge.backend, profile.gateway.source = "sim", "sim"
         return world
     if getattr(args, "closed_loop", False):
         raise ConfigError("--closed-loop is the scripted world's contact model; the physics world pushes back itself")
-    if getattr(args, "backend", None) not in (None, "physics"):
+    if backend not in (None, "physics"):
         raise ConfigError(f"--backend {args.backend} with --world physics: the physics world is the bridge's "
                           "physics backend")
     profile.bridge.backend, profile.gateway.source = "physics", "physics"
