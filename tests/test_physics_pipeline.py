@@ -216,3 +216,43 @@ def test_a_launch_chooses_the_world_and_refuses_half_of_one_or_a_script_it_canno
     hard.write_text('duration_s = 3.0\n[[touch]]\npad = "wrist_1"\nstart_s = 1.0\nduration_s = 0.5\npeak_hpa = 45.0\n')
     with pytest.raises(ConfigError, match="beyond a finger's plausible push"):
         world_for(args(world="physics", script=str(hard)), Profile())
+
+
+def test_a_world_that_diverges_under_the_bridge_stops_the_arm_where_it_was_with_a_diagnostic(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from nwr.common.clock import ManualClock
+    from nwr.common.journal import Untracked
+    from nwr.services.bridge.wiring import BridgeWiring
+
+    clock = ManualClock(10**9)
+    out: list[tuple[str, object]] = []
+    reports: list[tuple[str, str, str]] = []
+    bridge = BridgeWiring(physics_profile(), journal=Untracked(clock), out=lambda k, msg: out.append((k, msg)),
+                          diag=lambda level, code, text, every_s=1.0: reports.append((level, code, text)))
+    assert isinstance(bridge.backend, PhysicsBackend) and bridge.listens(bridge.inputs["touch"])
+    for _ in range(50):
+        clock.t_ns += 2_000_000
+        bridge.tick()
+    q_before = bridge.backend.get_observation().q
+
+    def diverge(*args: object, **kwargs: object) -> None:
+        raise WorldUnstable("the physics world diverged at t = 0.1 s: a contact is 25.0 mm deep")
+
+    monkeypatch.setattr(bridge.backend.hosted.world, "step", diverge)
+    for _ in range(30):
+        clock.t_ns += 2_000_000
+        bridge.tick()
+    states = [msg for key, msg in out if key == keys.ROBOT_STATE]
+    assert states[-1].status == "protective_stop"  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(m.as_array(states[-1].q), q_before)  # type: ignore[attr-defined]
+    assert any(code == "protective_stop" and "25.0 mm deep" in text for _, code, text in reports), reports
+
+
+def test_a_finger_that_would_start_inside_the_arm_at_its_starting_pose_is_refused_before_anything_moves() -> None:
+    folded = np.array(DESC.home, dtype=float)
+    folded[2] = 3.1  # the elbow folded: the wrist lies against the shoulder
+    script = TouchScript(duration_s=3.0, touch=[Touch(pad="wrist_1", start_s=1.0, duration_s=0.5, peak_hpa=9.0)])
+    check_script(script, SETTINGS, DESC, np.asarray(DESC.home, dtype=float))  # at home it fits
+    with pytest.raises(ConfigError, match=r"touch on wrist_1 at 1.0 s, at the arm's starting pose: .* starts "
+                                          r"1\d.\d mm inside the arm"):
+        check_script(script, SETTINGS, DESC, folded)

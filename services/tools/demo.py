@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.launch import load_script
@@ -85,8 +87,10 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
 
     script = getattr(args, "script", None) or sim_settings(profile.gateway).script
     if script:
-        check_script(load_script(script), KIND.settings(profile.bridge, "physics", PhysicsSettings),
-                     load_description(profile.robot.description or None))
+        desc = load_description(profile.robot.description or None)
+        q0 = profile.bridge.initial_q or desc.home
+        check_script(load_script(script), KIND.settings(profile.bridge, "physics", PhysicsSettings), desc,
+                     np.asarray(q0, dtype=float))
     return world
 
 

@@ -67,10 +67,12 @@ def touch_end_s(touch: Touch) -> float:
     return touch.start_s + touch.duration_s + (2 * touch.ramp_s if touch.shape == "ramp" else 0.0)
 
 
-def check_script(script: TouchScript, settings: PhysicsSettings, desc: RobotDescription) -> None:
+def check_script(script: TouchScript, settings: PhysicsSettings, desc: RobotDescription,
+                 q0: np.ndarray | None = None) -> None:
     """A touch script's touches as the physics world's fingers: ConfigError for a pad the skin lacks, a push
-    no finger makes (a peak beyond the pressure a finger's plausible push gives), or more fingers at once than
-    the world holds. Before anything moves (a launcher, the gateway's source)."""
+    no finger makes (a peak beyond the pressure a finger's plausible push gives), more fingers at once than
+    the world holds, or (with the arm's starting pose ``q0``) a finger that would start inside the arm on its
+    pad there (another link over it). Before anything moves (a launcher)."""
     area_m2, saturation = settings.effective_area_cm2 * 1e-4, settings.saturation_hpa
     plausible = KINDS["finger"].plausible_push_n
     limit_hpa = float(saturation * math.tanh(plausible / (area_m2 * 100.0 * saturation)))
@@ -89,6 +91,16 @@ def check_script(script: TouchScript, settings: PhysicsSettings, desc: RobotDesc
         if at_once > settings.fingers:
             raise ConfigError(f"the touch script has {at_once} touches at once at {start} s; the physics world "
                               f"holds {settings.fingers} fingers (raise bridge.physics.fingers)")
+    if q0 is not None and script.touch:
+        world = PhysicsWorld(desc, settings, q0)
+        for touch in script.touch:
+            pad = desc.pad(int(touch.pad) if touch.pad.isdigit() else touch.pad).id
+            try:
+                world.press("check", pad, max(finger_force(touch.peak_hpa, settings), 1e-3))
+            except ConfigError as exc:
+                raise ConfigError(f"touch on {touch.pad} at {touch.start_s} s, at the arm's starting pose: "
+                                  f"{exc}") from None
+            world.remove("check")
 
 
 def finger_force(change_hpa: float, settings: PhysicsSettings) -> float:
