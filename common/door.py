@@ -73,6 +73,7 @@ class Door:
             m.SkinPressure: self._pressure,
             m.SkinPain: self._pain,
             m.SkinTouch: self._touch,
+            m.WorldSkin: self._world_skin,
             m.PositionCommand: self._position,
             m.VelocityCommand: self._velocity,
             m.RobotState: self._robot_state,
@@ -173,6 +174,21 @@ class Door:
             if bad:
                 return Refusal("pressure out of range", f"{what} {bad[0]} hPa outside [{lo:g}, {hi:g}]")
         bad = [x for x in (*msg.change_hpa, *msg.touch_hpa) if abs(x) > CHANGE_HPA]
+        if bad:
+            return Refusal("pressure out of range", f"a pressure change of {bad[0]} hPa (at most {CHANGE_HPA:g})")
+        return None
+
+    def _world_skin(self, msg: m.WorldSkin) -> Refusal | None:
+        for values, what in ((msg.absolute_hpa, "absolute_hpa"), (msg.change_hpa, "change_hpa"),
+                             (msg.force_n, "force_n")):
+            refused = self._pads(values, what)
+            if refused:
+                return refused
+        lo, hi = ABSOLUTE_HPA
+        bad = [x for x in msg.absolute_hpa if not lo <= x <= hi]
+        if bad:
+            return Refusal("pressure out of range", f"absolute_hpa {bad[0]} hPa outside [{lo:g}, {hi:g}]")
+        bad = [x for x in msg.change_hpa if abs(x) > CHANGE_HPA]
         if bad:
             return Refusal("pressure out of range", f"a pressure change of {bad[0]} hPa (at most {CHANGE_HPA:g})")
         return None

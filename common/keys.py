@@ -8,6 +8,8 @@ key (under nwr/<robot>/)     message                                priority    
 skin/pressure                SkinPressure                           real-time   yes        block
 skin/touch                   SkinTouch                              data        no         block
 skin/pain                    SkinPain                               real-time   yes        block
+world/skin                   WorldSkin                              real-time   yes        block
+world/contacts               WorldContacts                          data        no         block
 robot/command/<name>         PositionCommand | VelocityCommand      real-time   yes        block
 robot/state                  RobotState                             interactive no         drop
 reflex/<name>/status         PlannerStatus                          data        no         drop
@@ -34,6 +36,12 @@ measurement of the sample latency (``nwr bench``), and a dropped one would
 bias it. The simulated skin's touch ground truth (``skin/touch``, one
 message per touch) is not on the reflex path and is batched the same way,
 never dropped: a re-simulation of the session needs every touch.
+
+A physics world (the bridge's ``physics`` backend) puts its skin samples on
+``world/skin``, on the reflex path like the pressure they become (the
+gateway's ``physics`` source reads them), and its body parts' contact
+figures on ``world/contacts`` (batched, never dropped: the per-touch
+force figures come from them).
 """
 
 from __future__ import annotations
@@ -84,6 +92,12 @@ TOPICS: tuple[Topic, ...] = (
     Topic("skin/touch", m.SkinTouch, "DATA", False, False,
           "simulated skin: one touch's ground truth (pad, profile, contact point), when it starts",
           ("gateway",), ("recorder",)),
+    Topic("world/skin", m.WorldSkin, "REAL_TIME", True, False,
+          "a physics world's skin samples (absolute hPa per pad), from the bridge's physics backend",
+          ("bridge",), ("recorder",)),
+    Topic("world/contacts", m.WorldContacts, "DATA", False, False,
+          "a physics world's body parts: contact force, pressure, energy, how far each was pushed back",
+          ("bridge",), ("recorder",)),
     Topic("skin/pain", m.SkinPain, "REAL_TIME", True, False,
           "per-pad gain and pain level, strongest contact",
           ("gain",), ("recorder", "view", "status")),
@@ -116,6 +130,8 @@ TOPICS: tuple[Topic, ...] = (
 SKIN_PRESSURE = "skin/pressure"
 SKIN_TOUCH = "skin/touch"
 SKIN_PAIN = "skin/pain"
+WORLD_SKIN = "world/skin"
+WORLD_CONTACTS = "world/contacts"
 ROBOT_COMMANDS = "robot/command/*"  # every planner's commands (what the bridge and the recorder take)
 ROBOT_STATE = "robot/state"
 CONTROL_ACTIVE = "control/active"

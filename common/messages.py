@@ -119,6 +119,58 @@ class SkinTouch(msgspec.Struct, tag="skin_touch", tag_field="kind", forbid_unkno
     depth_m: Finite = 0.0
 
 
+class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unknown_fields=True):
+    """A physics world's skin: one sample of every pad as the device would report it, in pad id order.
+
+    The bridge's ``physics`` backend hosts the world and publishes its samples
+    (the skin's rate, 25 Hz by default); the gateway's ``physics`` source
+    takes them as a device's. ``world_ns`` is the world's own time of the
+    sample (its steps since it started); ``force_n`` the normal force on each
+    pad and ``change_hpa`` the pressure change it makes (noise-free: the
+    ground truth beside the noisy absolute reading).
+    """
+
+    seq: int
+    stamp_ns: int
+    world_ns: int
+    absolute_hpa: list[Finite]
+    change_hpa: list[Finite]
+    force_n: list[Finite]
+
+
+class WorldPerson(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One body part in a physics world: what it feels now and at its worst since it entered."""
+
+    # The body part's name (a touch's: "touch-<skin/touch seq>").
+    name: str
+    kind: str
+    # The skin/touch seq the part stands for, -1 if none.
+    touch: int
+    # The pads it touches now.
+    pads: list[int]
+    # The contact force on it, N, and its peak.
+    force_n: Finite
+    peak_force_n: Finite
+    # The force over the contact area, N/cm^2, and its peak.
+    pressure_n_cm2: Finite
+    peak_pressure_n_cm2: Finite
+    # The work the arm's contacts did on it, J.
+    energy_j: Finite
+    # How far the arm has pushed it back from where it met the pad, along the pad's outward normal, m
+    # (now, and the most since it entered): how far the pad moved into the finger.
+    pushed_m: Finite
+    peak_pushed_m: Finite
+
+
+class WorldContacts(msgspec.Struct, tag="world_contacts", tag_field="kind", forbid_unknown_fields=True):
+    """A physics world's people, with every skin sample while any is in the world (their contact figures)."""
+
+    seq: int
+    stamp_ns: int
+    world_ns: int
+    people: list[WorldPerson] = []
+
+
 class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """The strongest contact of a skin sample."""
 
@@ -401,7 +453,7 @@ class Journal(msgspec.Struct, tag="journal", tag_field="kind", forbid_unknown_fi
 
 
 Message = (SkinPressure | SkinTouch | SkinPain | PositionCommand | VelocityCommand | RobotState | PlannerStatus
-           | Diagnostic | SwitchRequest | PlannerDecision | Journal)
+           | Diagnostic | SwitchRequest | PlannerDecision | Journal | WorldSkin | WorldContacts)
 
 
 def as_array(values: list[float] | list[int] | list[bool]) -> np.ndarray:

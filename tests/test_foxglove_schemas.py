@@ -283,6 +283,11 @@ def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:
                                                            pain_seq=3, pain_stamp_ns=1_100, received_ns=1_200,
                                                            reflex_seq=1)),
         (keys.CONTROL_ACTIVE, m.SwitchRequest(seq=0, stamp_ns=stamp_ns, name=PLANNER, requested_by="operator")),
+        (keys.WORLD_SKIN, m.WorldSkin(seq=0, stamp_ns=stamp_ns, world_ns=40_000_000, absolute_hpa=[1013.0] * 10,
+                                      change_hpa=[0.0] * 9 + [9.0], force_n=[0.0] * 9 + [11.3])),
+        (keys.WORLD_CONTACTS, m.WorldContacts(seq=0, stamp_ns=stamp_ns, world_ns=40_000_000, people=[m.WorldPerson(
+            name="touch-0", kind="finger", touch=0, pads=[9], force_n=11.3, peak_force_n=12.0, pressure_n_cm2=20.0,
+            peak_pressure_n_cm2=25.0, energy_j=0.01, pushed_m=0.002, peak_pushed_m=0.004)])),
         (keys.CONTROL_SAFETY, m.SafetyModeRequest(seq=0, stamp_ns=stamp_ns, mode="reduced", requested_by="operator")),
         (keys.diag("gain"), m.Diagnostic(seq=0, stamp_ns=stamp_ns, service="gain", level="warning",
                                          code="decode_error", message="dropped a malformed sample")),

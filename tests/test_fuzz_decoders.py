@@ -37,6 +37,10 @@ EXAMPLES = {
                               peak_hpa=9.0, shape="step", ramp_s=0.3, contact_point=[0.1, 0.2, 0.3],
                               normal=[0.0, 0.0, 1.0], q=[0.0] * 6),
     "skin/pain": m.SkinPain(seq=0, stamp_ns=1, trace=TR, model="continuous", level=[1], gain=[0.0], strongest=CONTACT),
+    "world/skin": m.WorldSkin(seq=0, stamp_ns=1, world_ns=40, absolute_hpa=[1013.0], change_hpa=[0.0], force_n=[0.0]),
+    "world/contacts": m.WorldContacts(seq=0, stamp_ns=1, world_ns=40, people=[m.WorldPerson(
+        name="touch-0", kind="finger", touch=0, pads=[2], force_n=1.0, peak_force_n=2.0, pressure_n_cm2=0.5,
+        peak_pressure_n_cm2=1.0, energy_j=0.0, pushed_m=0.001, peak_pushed_m=0.002)]),
     "robot/command/fuzz": m.PositionCommand(seq=0, stamp_ns=1, owner="cartesian", q=[0.0] * 6, trace=TR),
     "robot/state": m.RobotState(seq=0, stamp_ns=1, q=[0.0] * 6, dq=[0.0] * 6, status="ok", owner="c", backend="sim"),
     "reflex/fuzz/status": m.PlannerStatus(seq=0, stamp_ns=1, name="c", strategy="cartesian", mode="TASK",

@@ -77,7 +77,9 @@ def test_what_a_wired_service_reads_is_its_declared_inputs_and_written_nowhere_e
             assert inp.key is None or keys.topic_for(inp.key.replace("*", "x")).pattern == inp.key, inp
             assert callable(getattr(wiring, inp.method)), inp
     assert wiring_for("planner-lab") is wiring_for("planner")
-    assert reads("bridge") == ("robot/command/*", "skin/pressure", "skin/pain", "control/active", "control/safety")
+    assert reads("bridge") == ("robot/command/*", "skin/pressure", "skin/pain", "skin/touch", "control/active",
+                               "control/safety")
+    assert "world/skin" in reads("gateway")  # a physics world's skin, from the bridge that hosts it
 
 
 def test_each_wiring_writes_only_what_its_service_produces() -> None:

@@ -343,8 +343,8 @@ def test_a_lockstep_session_with_the_model_records_its_predictions_and_re_runs_b
     reflexes = [t for t in touches if t.reflex_seq]
     assert reflexes and all(t.impact_n is not None and t.effective_mass_kg is not None for t in touches)
     assert all(0.0 <= t.impact_n <= LIMIT for t in touches if t.impact_n is not None)
-    assert print_summary(path, None, profile, columns="t,pad,force,mass") == 0
+    assert print_summary(path, None, profile, columns="t,pad,impact,mass") == 0
     out = capsys.readouterr().out
-    assert "force" in out and "mass" in out and "predicted impact force at the onset" in out
+    assert "impact" in out and "mass" in out and "predicted impact force at the onset" in out
     session = load_session(path, DESC, ROBOT, profile)
     assert "force (N)" in table([session], [[t] for t in session.touches]).splitlines()[0]

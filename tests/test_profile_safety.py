@@ -263,7 +263,8 @@ def test_stale_unknown_or_unexplained_acknowledgements_are_refused(tmp_path: Pat
     ("[bridge.ur_rtde]\nreconnect_min_s = 10.0\nreconnect_max_s = 2.0\n",
      r"bridge.ur_rtde.reconnect_min_s = 10.0 s is above"),
     ("[bridge.ur_rtde]\nservo_gain = 50.0\n", r"bridge.ur_rtde: .* >= 100.0 - at `\$.servo_gain`"),
-    ("[bridge.ur_rtd]\nservo_gain = 500.0\n", r"\[bridge.ur_rtd\] names no backend; the backends are sim, ur_rtde"),
+    ("[bridge.ur_rtd]\nservo_gain = 500.0\n",
+     r"\[bridge.ur_rtd\] names no backend; the backends are physics, sim, ur_rtde"),
     ("[planner.whole-arm]\nramp_s = 0.6\n", r"planner.whole-arm.ramp_s = 0.6 s is more than half"),
     ("[gateway.ros1]\ntopc = \"/skin\"\n", r"gateway.ros1: Object contains unknown field `topc`"),
 ])

@@ -20,7 +20,7 @@ import math
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -97,6 +97,8 @@ class Backend(ABC):
     # The following lag of the arm behind position setpoints (a first-order time constant), s: the bridge's
     # model of where the arm should be (checks.StateCheck). The simulated arm is where its setpoint put it.
     lag_s: float = 0.0
+    # A world the bridge hosts (physics): it takes the touch script's touches (on_touch) and advances each cycle.
+    touched: bool = False
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env
@@ -126,6 +128,15 @@ class Backend(ABC):
 
     @abstractmethod
     def _send(self, setpoint: Setpoint) -> None: ...
+
+    def advance(self, now_ns: int) -> list[tuple[str, Any]]:
+        """A hosted world steps up to the bridge time ``now_ns`` (each cycle, before the observation); what it
+        published meanwhile, (key, message) pairs. An arm that moves on its own: nothing."""
+        return []
+
+    def on_touch(self, touch: m.SkinTouch, now_ns: int) -> str | None:
+        """A touch of the touch script reaches a hosted world at ``now_ns``; why it was refused, or None."""
+        return f"the {self.name} backend hosts no world: touch {touch.seq} ignored"
 
     def resync(self, q: np.ndarray) -> None:
         """The core restarted from the measured pose ``q`` (after a fault)."""

@@ -22,6 +22,7 @@ from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.pacing import realtime
+from nwr.common.robot import RobotDescription, load_description
 from nwr.services.bridge import backends
 from nwr.services.bridge.backend import Backend
 from nwr.services.bridge.envelope import Envelope
@@ -68,9 +69,11 @@ def check_arm_flags(backend: str, robot_ip: str, confirmed: bool) -> None:
                           "watches it with the emergency stop at hand (docs/bridge.md)")
 
 
-def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
+def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace,
+                 desc: RobotDescription | None = None) -> Backend:
+    """The backend ``cfg`` names, for the robot ``desc`` (None: the packaged one)."""
     check_arm_flags(cfg.backend, getattr(args, "robot_ip", ""), getattr(args, "confirmed", False))
-    backend: Backend = backends.plugin(cfg.backend).make(cfg, env, q0, args)
+    backend: Backend = backends.plugin(cfg.backend).make(cfg, env, q0, args, desc or load_description(None))
     return backend
 
 
@@ -84,7 +87,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     if getattr(args, "print_envelope", False):
         print(env.describe())
         return 0
-    backend = make_backend(cfg, env, q0, args)
+    backend = make_backend(cfg, env, q0, args, load_description(profile.robot.description or None))
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     realtime(cfg.realtime_priority, "bridge")  # before the session: Zenoh's threads inherit it
     log.info("%s backend; the envelope it enforces:\n%s", backend.name, env.describe())

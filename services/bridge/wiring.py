@@ -20,8 +20,10 @@ the arm.
 
 from __future__ import annotations
 
+import argparse
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from nwr.common import keys
@@ -29,7 +31,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
-from nwr.common.robot import RobotModel, load_description
+from nwr.common.robot import RobotDescription, RobotModel, load_description
 from nwr.common.task import FigureEight, peak_point_speed
 from nwr.services.bridge import backends
 from nwr.services.bridge.backend import Backend, Observation, SimBackend
@@ -37,7 +39,7 @@ from nwr.services.bridge.cartesian import CartesianLimiter, Limits
 from nwr.services.bridge.checks import StateBounds
 from nwr.services.bridge.core import BridgeCore, at_rest
 from nwr.services.bridge.envelope import Envelope, make_envelope
-from nwr.services.wiring import Diag, Out, Wiring, event, receives
+from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives
 
 SERVICE = "bridge"
 
@@ -66,6 +68,17 @@ def task_peak_speed(task: FigureEight, period_s: float, limiter: CartesianLimite
     return peak_point_speed(task, period_s, limiter.model, samples)
 
 
+def simulated_backend(profile: Profile, env: Envelope, q0: np.ndarray, desc: RobotDescription) -> Backend:
+    """The profile's backend when it is a simulated arm (``sim``, ``physics``): what lockstep and ``nwr verify``
+    run; the simulated arm otherwise (a real arm's backend is the live bridge's alone)."""
+    cfg = profile.bridge
+    plugin = backends.plugin(cfg.backend)
+    if plugin.REAL_ARM:
+        return SimBackend(env, 1.0 / cfg.rate_hz, q0)
+    backend: Backend = plugin.make(cfg, env, q0, argparse.Namespace(), desc)
+    return backend
+
+
 def state_bounds(profile: Profile) -> StateBounds:
     """How far the robot's reported state may stray before it is not believed, from the profile."""
     cfg = profile.bridge
@@ -75,7 +88,7 @@ def state_bounds(profile: Profile) -> StateBounds:
 
 class BridgeWiring(Wiring):
     service = SERVICE
-    outputs = (keys.ROBOT_STATE,)
+    outputs = (keys.ROBOT_STATE, keys.WORLD_SKIN, keys.WORLD_CONTACTS)
 
     def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag,
                  backend: Backend | None = None) -> None:
@@ -83,8 +96,8 @@ class BridgeWiring(Wiring):
         env, q0, n_pads = envelope_for(profile)
         desc = load_description(profile.robot.description or None)
         model = RobotModel(desc)
-        if backend is None:  # the simulated arm, as the profile describes it
-            backend = SimBackend(env, 1.0 / cfg.rate_hz, q0)
+        if backend is None:  # a simulated arm (sim, physics), as the profile describes it
+            backend = simulated_backend(profile, env, q0, desc)
             backend.connect()
         elif backend.name != "sim":
             q0 = backend.get_observation().q  # a real arm starts where it is
@@ -122,11 +135,16 @@ class BridgeWiring(Wiring):
         backend = params.get("backend", "sim")
         if backends.plugin(backend).REAL_ARM:
             raise ConfigError(f"the bridge drove the {backend} backend: the arm's measurements are not journaled, "
-                              "so only a bridge on the simulated arm can be re-run")
+                              "so only a bridge on a simulated arm can be re-run")
+        profile = msgspec.structs.replace(profile, bridge=msgspec.structs.replace(profile.bridge, backend=backend))
         return cls(profile, journal=journal, out=out, diag=diag)
 
     def params(self) -> dict[str, Any]:
         return {"backend": self.backend.name}
+
+    def listens(self, inp: Input) -> bool:
+        """The touch script's touches only for a backend that hosts a world (physics)."""
+        return inp.name != "touch" or self.backend.touched
 
     # -- inputs ------------------------------------------------------------------------
     @receives("command", keys.ROBOT_COMMANDS, keyed=True)
@@ -152,6 +170,13 @@ class BridgeWiring(Wiring):
     def on_pain(self, pain: m.SkinPain) -> None:
         self.core.on_pain(pain, self.journal.now_ns())
         self._report()
+
+    @receives("touch", keys.SKIN_TOUCH)
+    def on_touch(self, touch: m.SkinTouch) -> None:
+        """A touch of the touch script (its ground truth): a hosted world's finger presses its pad."""
+        refused = self.backend.on_touch(touch, self.journal.now_ns())
+        if refused is not None:
+            self.diag("error", "touch_refused", refused, every_s=0.0)
 
     @event("token", record=lambda name, alive: (int(alive), name, ()), recall=lambda w, e: (e.text, bool(e.arg)))
     def on_token(self, name: str, alive: bool) -> None:
@@ -181,6 +206,8 @@ class BridgeWiring(Wiring):
         now = self.journal.now_ns()
         core, backend = self.core, self.backend
         self.ticks += 1
+        for key, message in backend.advance(now):  # a hosted world steps to now: its skin, its contacts
+            self.out(key, message)
         obs = backend.get_observation()
         q = self._finite(obs)
         if obs.fault != core.fault:

@@ -1,8 +1,9 @@
 """Skin gateway process: a skin source's pads -> skin/pressure (and skin/touch per simulated touch).
 
-The source is ``gateway.source``, a module of :mod:`.sources`: ``sim`` (the
-default: simulated AIRSKIN pads on a touch script) or ``ros1`` (a real
-skin's pressures from a ROS 1 topic, docs/lab.md).
+The source is ``gateway.source`` (``--source``), a module of :mod:`.sources`:
+``sim`` (the default: simulated AIRSKIN pads on a touch script), ``physics``
+(a physics world's pads, sampled by the world the bridge hosts, on a touch
+script) or ``ros1`` (a real skin's pressures from a ROS 1 topic, docs/lab.md).
 
 It follows the arm's pose (``robot/state``) to tell where each touch meets
 its pad (the ground truth published on ``skin/touch``) and, with
@@ -21,6 +22,8 @@ from nwr.services.gateway import sources
 log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--source", choices=sources.names(),
+                        help="the skin source, a module of services/gateway/sources/ (overrides gateway.source)")
     parser.add_argument("--script", help="touch script: a packaged name (e.g. demo) or a .toml path")
     parser.add_argument("--rate", type=float, help="skin sample rate, Hz (overrides gateway.rate_hz)")
     parser.add_argument(
@@ -46,8 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(profile: Profile, args: argparse.Namespace) -> int:
+    if getattr(args, "source", None):
+        profile.gateway.source = args.source
     source = sources.live(profile.gateway.source)  # a ConfigError naming the sources there are
-    if source.NAME != "sim" and (args.script or args.follow_target or getattr(args, "closed_loop", False)):
+    scripted = args.script or args.follow_target or getattr(args, "closed_loop", False)
+    if source.NAME not in ("sim", "physics") and scripted:
         log.warning("gateway.source = %r: --script, --follow-target and --closed-loop are the simulated skin's and "
                     "are ignored", source.NAME)
     return int(source.run(profile, args))

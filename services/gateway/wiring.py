@@ -15,7 +15,11 @@ runs and ``nwr verify`` run this code.
   kinematics only when one needs the pose), the sample (of the period's
   deadline: a late loop takes the periods it missed one by one);
 - a real skin (``gateway.source = "ros1"``, :mod:`.sources.ros1`) has no ticks: each
-  of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`).
+  of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`);
+- a physics world's skin (``gateway.source = "physics"``, :mod:`.sources.physics`): the
+  ticks run the touch script's clock (the touches' ground truth, which the
+  bridge's world turns into fingers), the world's samples (``world/skin``)
+  are an input (:meth:`GatewayWiring.on_world_skin`).
 """
 
 from __future__ import annotations
@@ -52,6 +56,9 @@ class GatewayWiring(Wiring):
         sim = sim_settings(cfg)
         self.sim = SimSkin(sim, self.pads, script)
         self.gateway = Gateway(cfg, len(self.pads), source=cfg.source)
+        # A physics world's skin (gateway.source = "physics"): the samples come from the world (world/skin, the
+        # bridge hosts it); the ticks run the touch script's clock only (the touches' ground truth).
+        self.world = cfg.source == "physics"
         self.model = RobotModel(self.desc)
         self.follower = TargetFollower(follow_target_s, sim.seed) if follow_target_s else None
         self.journal = journal
@@ -88,7 +95,10 @@ class GatewayWiring(Wiring):
             self.arm_busy = status.mode != "TASK"
 
     def listens(self, inp: Input) -> bool:
-        """The planners' statuses only for a simulated participant who follows the study's target."""
+        """The planners' statuses only for a simulated participant who follows the study's target; a physics
+        world's skin only on that source."""
+        if inp.name == "world_skin":
+            return self.world
         return inp.name != "status" or self.follower is not None
 
     @event("origin")
@@ -122,6 +132,8 @@ class GatewayWiring(Wiring):
                 self.touch_seq, now, self.origin_ns, started, self.pads[started.pad].name, sim.touches,
                 state.q if state is not None else None, state.stamp_ns if state is not None else 0))
             self.touch_seq += 1
+        if self.world:
+            return t  # the world's own skin is sampled by the world (on_world_skin)
         msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
         self.out(keys.SKIN_PRESSURE, msg)
         self._reacquired(events.reacquired)
@@ -134,6 +146,20 @@ class GatewayWiring(Wiring):
         """A real skin's sample (``gateway.source = "ros1"``): each pad's absolute pressure, hPa, NaN where
         the pad is invalid in it (:func:`nwr.common.skinmap.map_values`, whose caller reports why)."""
         absolute = np.asarray(absolute, dtype=float)
+        now = self.journal.now_ns()
+        msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)
+        self.out(keys.SKIN_PRESSURE, msg)
+        self._reacquired(events.reacquired)
+
+    @receives("world_skin", keys.WORLD_SKIN)
+    def on_world_skin(self, sample: m.WorldSkin) -> None:
+        """A physics world's skin sample (``gateway.source = "physics"``): its pads' absolute pressures, as a
+        device's sample (stamped when it arrives)."""
+        absolute = np.asarray(sample.absolute_hpa, dtype=float)
+        if absolute.shape != (len(self.pads),):
+            self.diag("error", "world_skin_pads", f"world skin sample {sample.seq} has {absolute.size} pads, the "
+                      f"skin has {len(self.pads)}: dropped")
+            return
         now = self.journal.now_ns()
         msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)
         self.out(keys.SKIN_PRESSURE, msg)

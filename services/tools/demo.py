@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.launch import load_script
@@ -36,6 +38,11 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "them with `nwr switch NAME`); the first (or --reflex) is active")
     p.add_argument("--follow-target", type=float, metavar="SECONDS",
                    help="simulated participant: press the study's target pad every SECONDS while the arm does its task")
+    p.add_argument("--world", choices=WORLDS,
+                   help="what holds the arm, its skin and the people touching it: the scripted world (pressure "
+                        "curves, the simulated arm) or the physics world (MuJoCo: fingers pressing the pads push "
+                        "back; the bridge's physics backend and the gateway's physics source, docs/worlds.md); "
+                        "default: the profile's (bridge.backend and gateway.source both \"physics\", or neither)")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -46,6 +53,45 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                    help="reflex strategy; the planner is then named after it and is the active one "
                         "(default: the profile's planner)")
     add_arm_arguments(p.add_argument_group("the arm (passed to the bridge; see docs/lab.md)"))
+
+
+WORLDS = ("scripted", "physics")
+
+
+def world_for(args: argparse.Namespace, profile: Profile) -> str:
+    """The world a launch runs in: ``--world``, else the profile's; the profile made to say it (the bridge's
+    backend and the gateway's source), the touch script checked against a physics world before anything starts.
+    ConfigError for a profile that names half a physics world, or a script or flag the world cannot take."""
+    physics = (profile.bridge.backend == "physics", profile.gateway.source == "physics")
+    if physics[0] != physics[1]:
+        raise ConfigError(f"bridge.backend = {profile.bridge.backend!r} and gateway.source = "
+                          f"{profile.gateway.source!r}: a physics world is both (\"physics\") or neither")
+    backend = getattr(args, "backend", None)
+    world = getattr(args, "world", None) or ("physics" if physics[0] or backend == "physics" else "scripted")
+    if world == "scripted":
+        if backend == "physics":
+            raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
+        if physics[0]:
+            profile.bridge.backend, profile.gateway.source = "sim", "sim"
+        return world
+    if getattr(args, "closed_loop", False):
+        raise ConfigError("--closed-loop is the scripted world's contact model; the physics world pushes back itself")
+    if backend not in (None, "physics"):
+        raise ConfigError(f"--backend {args.backend} with --world physics: the physics world is the bridge's "
+                          "physics backend")
+    profile.bridge.backend, profile.gateway.source = "physics", "physics"
+    from nwr.common.robot import load_description
+    from nwr.services.bridge.backends import KIND
+    from nwr.services.worlds.hosted import check_script
+    from nwr.services.worlds.physics import PhysicsSettings
+
+    script = getattr(args, "script", None) or sim_settings(profile.gateway).script
+    if script:
+        desc = load_description(profile.robot.description or None)
+        q0 = profile.bridge.initial_q or desc.home
+        check_script(load_script(script), KIND.settings(profile.bridge, "physics", PhysicsSettings), desc,
+                     np.asarray(q0, dtype=float))
+    return world
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
@@ -67,6 +113,8 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
         session, output = recording
         layout.recorder = recorder_args(output, session, layout.active or profile.planner.strategy)
     gateway = ["--script", args.script] if args.script else []
+    if world_for(args, profile) == "physics":
+        gateway += ["--source", "physics"]
     if args.follow_target:
         gateway += ["--follow-target", str(args.follow_target)]
     if args.closed_loop:
@@ -80,7 +128,7 @@ def bridge_arguments(args: argparse.Namespace, profile: Profile) -> list[str]:
     """The bridge's backend flags; checked here, before any process starts, as the bridge checks them."""
     backend = args.backend or profile.bridge.backend
     check_arm_flags(backend, args.robot_ip, args.confirmed)
-    flags = ["--backend", args.backend] if args.backend else []
+    flags = ["--backend", backend] if args.backend or backend == "physics" else []
     return [*flags, "--robot-ip", args.robot_ip, CONFIRM_FLAG] if backends.plugin(backend).REAL_ARM else flags
 
 
@@ -118,14 +166,17 @@ def run_demo_fast(args: argparse.Namespace) -> int:
     if unsupported:
         raise ConfigError(f"{', '.join(unsupported)}: not with --fast (one planner, the touch script, a recording)")
     profile = profile_for(args)
+    world = world_for(args, profile)
     if args.closed_loop:
         profile.gateway = with_sim(profile.gateway, closed_loop=True)
     _, output = output_path(args, profile)
     strategy = args.reflex or profile.planner.strategy
     strategies.check(strategy)  # before the recording is opened
     path, simulated, wall = simulate(profile, args.script, strategy, output)
+    how = " (closed loop)" if sim_settings(profile.gateway).closed_loop else " (physics world)" \
+        if world == "physics" else ""
     print(f"simulated {simulated:.1f} s of the touch script {args.script!r} against {strategy!r} in lockstep in "
-          f"{wall:.2f} s{' (closed loop)' if sim_settings(profile.gateway).closed_loop else ''}: {path}")
+          f"{wall:.2f} s{how}: {path}")
     return print_summary(path, args.script, profile, wide=args.wide, columns=args.columns)
 
 

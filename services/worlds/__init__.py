@@ -37,7 +37,13 @@ The interface (:class:`nwr.services.worlds.world.World`)
 A physics world adds people (``add``, ``press``, ``retarget``, ``remove``
 between steps), the contact set, and per body part the force figures.
 
+In the pipeline the bridge's ``physics`` backend hosts the physics world
+(:mod:`~nwr.services.worlds.hosted`: on the bridge's clock, a touch
+script's touches as fingers) and the gateway's ``physics`` source reads its
+skin (docs/worlds.md).
+
 Modules: :mod:`~nwr.services.worlds.world` (the interface and readings),
+:mod:`~nwr.services.worlds.hosted` (the world as the bridge hosts it),
 :mod:`~nwr.services.worlds.physics` (the physics world and its settings),
 :mod:`~nwr.services.worlds.mjcf` (its MuJoCo model, generated from the robot
 description), :mod:`~nwr.services.worlds.skin` (pressure from force,

@@ -4,9 +4,11 @@ A module of this package is a backend named after itself (a
 :class:`nwr.common.plugins.Kind`): it sets ``NAME`` to that name,
 ``REAL_ARM`` (a real arm: the bridge needs ``--robot-ip`` and
 ``--i-am-next-to-the-robot``, and a re-run by ``nwr verify`` cannot stand
-in for its measurements) and defines ``make(cfg, env, q0, args) ->
+in for its measurements) and defines ``make(cfg, env, q0, args, desc) ->
 Backend`` (:class:`nwr.services.bridge.backend.Backend`: connect,
-get_observation, send_action, stop). Nothing else lists them: adding a
+get_observation, send_action, stop; ``desc`` the robot description).
+A simulated backend (``sim``, ``physics``) is also what ``nwr verify`` and
+lockstep build from the profile. Nothing else lists them: adding a
 backend is adding a module; its own library is imported there, when it is
 chosen, so that the others never load it.
 """

@@ -8,6 +8,7 @@ import argparse
 import numpy as np
 
 from nwr.common.config import BridgeSection
+from nwr.common.robot import RobotDescription
 from nwr.services.bridge.backend import Backend, SimBackend
 from nwr.services.bridge.envelope import Envelope
 
@@ -15,5 +16,6 @@ NAME = "sim"
 REAL_ARM = False
 
 
-def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
+def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace,
+         desc: RobotDescription) -> Backend:
     return SimBackend(env, 1.0 / cfg.rate_hz, q0)

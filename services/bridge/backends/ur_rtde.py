@@ -53,6 +53,7 @@ import numpy as np
 
 from nwr.common.config import BridgeSection, Guard, Profile
 from nwr.common.errors import ConfigError, NwrError
+from nwr.common.robot import RobotDescription
 from nwr.common.section import Section
 from nwr.services.bridge.backend import Backend, Observation
 from nwr.services.bridge.backends import KIND
@@ -96,7 +97,8 @@ def check_settings(cfg: Settings, profile: Profile, desc: RobotDescription) -> N
                           "to max")
 
 
-def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace) -> Backend:
+def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace,
+         desc: RobotDescription) -> Backend:
     """The UR at ``--robot-ip`` (its ``[bridge.ur_rtde]`` servo and reconnection settings); it starts where it
     is."""
     ur = KIND.settings(cfg, NAME, Settings)

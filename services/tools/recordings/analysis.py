@@ -88,13 +88,17 @@ class TouchSummary:
     # impact force a collision at its speed would cause, N (None: the recording's gain model predicts none).
     effective_mass_kg: float | None = None
     impact_n: float | None = None
+    # A physics world's touch (world/contacts): the peak contact force on the finger, N, and how far the arm
+    # pushed the finger back from where it met the pad (along the pad's normal) while it pressed, mm.
+    person_force_n: float | None = None
+    into_finger_mm: float | None = None
 
 
 def summarized(key: str) -> bool:
     """Whether :func:`summarize` reads messages of ``key`` (``read_recording(..., only=summarized)`` decodes no
     others: no commands, 70 % of a session's messages)."""
-    return key in ("skin/pressure", "skin/pain", "robot/state") or (key.startswith("reflex/")
-                                                                   and key.endswith("/status"))
+    return key in ("skin/pressure", "skin/pain", "robot/state", "skin/touch", "world/contacts") or (
+        key.startswith("reflex/") and key.endswith("/status"))
 
 
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,
@@ -140,6 +144,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
 
     for touch in touches:
         _contact_figures(touch, model, state_t, state_q)
+    _world_figures(touches, records)
 
     for touch in touches:
         reflex = next(
@@ -293,6 +298,27 @@ def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:
         return None
     jerk = np.diff(a, axis=0)[dta > 0] / dta[dta > 0, None]
     return float(np.linalg.norm(jerk, axis=1).max()) if len(jerk) else None
+
+
+def _world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
+    """A physics world's figures per touch (``person_force_n``, ``into_finger_mm``): from the body part that
+    stood for the scripted touch (``skin/touch``) met on the touch's pad at its start (within 0.5 s)."""
+    people: dict[int, tuple[float, float]] = {}  # skin/touch seq -> (peak force, peak pushed back)
+    for r in records:
+        if r.key == "world/contacts":
+            for p in r.message.people:
+                force, pushed = people.get(p.touch, (0.0, 0.0))
+                people[p.touch] = (max(force, p.peak_force_n), max(pushed, p.peak_pushed_m))
+    if not people:
+        return
+    scripted = [r.message for r in records if r.key == "skin/touch"]
+    for touch in touches:
+        match = min((s for s in scripted if s.pad == touch.pad and s.seq in people
+                     and abs(s.origin_ns + s.start_s * 1e9 - touch.start_ns) <= 0.5e9 + s.ramp_s * 1e9),
+                    key=lambda s: abs(s.origin_ns + s.start_s * 1e9 - touch.start_ns), default=None)
+        if match is not None:
+            force, pushed = people[match.seq]
+            touch.person_force_n, touch.into_finger_mm = force, 1e3 * max(0.0, pushed)
 
 
 def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray) -> None:

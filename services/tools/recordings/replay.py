@@ -203,7 +203,8 @@ def simulate(profile: Profile, script_name: str, strategy: str, output: Path) ->
     desc = load_description(profile.robot.description or None)
     source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))
     labels = {"simulated": "lockstep", "script": script_name,
-              "closed_loop": str(sim_settings(profile.gateway).closed_loop).lower()}
+              "closed_loop": str(sim_settings(profile.gateway).closed_loop).lower(),
+              "world": "physics" if profile.bridge.backend == "physics" else "scripted"}
     # The monotonic stamps are simulated (from SimulatedSkin's origin); the
     # wall-clock start is when the simulation ran.
     return record_lockstep(profile, source, strategy, output, labels=labels,

@@ -62,9 +62,14 @@ COLUMNS = [
     Column("back_to", "back to (mm)", lambda t, _: cell(t.back_mm, ".1f"), False),
     Column("return_speed", "return (m/s)", lambda t, _: cell(t.return_speed_m_s, ".3f"), False),
     Column("resumed", "resumed (s)", lambda t, _: cell(t.resumed_after_s, ".2f"), True),
-    Column("force", "force (N)", lambda t, _: cell(t.impact_n, ".0f"), False),
+    Column("impact", "impact (N)", lambda t, _: cell(t.impact_n, ".0f"), False),
     Column("mass", "mass (kg)", lambda t, _: cell(t.effective_mass_kg, ".1f"), False),
+    # A physics world's (nwr summary prints them in a table of their own when the recording has them).
+    Column("pressed", "pad toward finger (mm)", lambda t, _: cell(t.pressed_toward_mm, ".1f"), False),
+    Column("force", "finger (N)", lambda t, _: cell(t.person_force_n, ".1f"), False),
+    Column("into", "into finger (mm)", lambda t, _: cell(t.into_finger_mm, ".1f"), False),
 ]
+WORLD_COLUMNS = ("pressed", "force", "into")
 NAMES = [c.name for c in COLUMNS]
 
 
