@@ -35,8 +35,7 @@ from nwr.common.robot import RobotDescription
 from nwr.services.bridge.backend import Backend, Observation
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.envelope import Envelope
-from nwr.services.worlds.hosted import HostedWorld
-from nwr.services.worlds.physics import PhysicsSettings, WorldUnstable
+from nwr.services.worlds.settings import PhysicsSettings, WorldUnstable
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +74,8 @@ class PhysicsBackend(Backend):
     def __init__(self, env: Envelope, dt: float, q0: np.ndarray, desc: RobotDescription,
                  settings: PhysicsSettings) -> None:
         super().__init__(env, dt)
+        from nwr.services.worlds.hosted import HostedWorld  # MuJoCo: only a bridge that hosts the world loads it
+
         self.hosted = HostedWorld(desc, settings, np.asarray(q0, dtype=float))
         self.lag_s = settings.servo_damping_s
         self.q_command = np.asarray(q0, dtype=float).copy()
