@@ -135,6 +135,12 @@ def test_unusable_export_input_is_one_line(imported: Path, tmp_path: Path, caplo
         errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
         assert len(errors) == 1 and match in errors[0] and "\n" not in errors[0], errors
     assert not (tmp_path / "x").exists() and not (tmp_path / "x.part").exists()
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    caplog.clear()
+    assert cli.main(["export", "--ros2", str(imported), str(blocked / "bag")]) == 2  # no directory under a file
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "cannot be written" in errors[0] and "\n" not in errors[0], errors
 
 
 # -- Foxglove's decoders -------------------------------------------------------------------------------------------

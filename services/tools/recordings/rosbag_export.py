@@ -40,6 +40,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+import shutil
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -289,7 +290,11 @@ def export_ros2(src: Path, out: Path, *, description: str | None = None, rate_hz
             for record in records:
                 write(convert.convert(record))
     except OSError as exc:
+        shutil.rmtree(partial, ignore_errors=True)
         raise ConfigError(f"{out} cannot be written: {exc.strerror or exc}") from exc
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)  # nothing half-written is left behind
+        raise
     # rosbags names the storage file after the directory: name both after OUT.
     (partial / f"{partial.name}.mcap").rename(partial / f"{out.name}.mcap")
     meta = partial / "metadata.yaml"
