@@ -1,7 +1,7 @@
 """A real skin's pressure array -> the robot's pads: the pad mapping and each message's checks.
 
 One piece of code for the live ROS 1 source (:mod:`nwr.services.gateway.sources.ros1`)
-and ``nwr import`` of ROS 1 bags (:mod:`nwr.services.tools.recordings.rosbag_import`).
+and ``nwr import`` of ROS 1 and ROS 2 bags (:mod:`nwr.services.tools.recordings.rosbag_import`).
 Pure: no ROS, no clock, no I/O.
 
 A device reports ``n`` values (AIRSKIN: 11); the mapping (``gateway.ros1.pads``)

@@ -39,6 +39,7 @@ COMMAND_MODULES: list[str] = [
     "nwr.services.tools.recordings.replay",
     "nwr.services.tools.recordings.compare",
     "nwr.services.tools.recordings.rosbag_import",
+    "nwr.services.tools.recordings.export",
     "nwr.services.tools.recordings.verify",
     "nwr.services.tools.study.main",
     "nwr.services.tools.bench.main",

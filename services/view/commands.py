@@ -1,4 +1,5 @@
-"""The view's subcommands of ``nwr``: ``view [FILE]`` and ``export --foxglove IN OUT``.
+"""The view's subcommand of ``nwr``: ``view [FILE]`` (``nwr export --foxglove IN OUT``, the view's scene
+written into a recording, is :mod:`nwr.services.tools.recordings.export`).
 
 ``nwr view`` is the live service (as ``nwr run view``). ``nwr view FILE``
 serves a recording with the same channels over the same server, with
@@ -21,8 +22,8 @@ from foxglove.websocket import Capability, PlaybackCommand, PlaybackState, Playb
 
 from nwr.services.profile import profile_for
 from nwr.services.view import main as view_main
-from nwr.services.view.core import DEFAULT_RATE_HZ, Output
-from nwr.services.view.export import ExportError, export_foxglove, load_records, make_core, recording_timeline
+from nwr.services.view.core import Output
+from nwr.services.view.export import ExportError, load_records, make_core, recording_timeline
 from nwr.services.view.playback import Player
 from nwr.services.view.server import ViewServer
 
@@ -45,29 +46,6 @@ def register(subparsers: Any) -> None:
     view.add_argument("--play", action="store_true", help="FILE: start playing at once (default: paused)")
     view.add_argument("--speed", type=float, default=1.0, help="FILE: initial playback speed (default: 1)")
     view.set_defaults(handler=_view)
-
-    export = subparsers.add_parser(
-        "export", help="add the view's 3D scene and signals to a recording (for Foxglove)",
-        description="Write OUT: every record of the recording IN plus the robot description, link transforms, "
-                    "pad/contact/reflex scene updates and plottable signals, so that Foxglove shows the 3D scene "
-                    "of a recording without the view running.",
-    )
-    export.add_argument("--foxglove", nargs=2, metavar=("IN", "OUT"), required=True,
-                        help="recording to read and file to write")
-    export.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ,
-                        help=f"scene rate, Hz of log time (default: {DEFAULT_RATE_HZ:g})")
-    export.set_defaults(handler=_export)
-
-
-def _export(args: argparse.Namespace) -> int:
-    if not args.rate > 0:
-        raise ExportError(f"--rate {args.rate}: expected a positive scene rate, e.g. 30")
-    src, dst = (Path(p) for p in args.foxglove)
-    profile = profile_for(args)
-    report = export_foxglove(src, dst, rate_hz=args.rate, description=profile.robot.description or None)
-    print(f"{dst}: {report.format()}")
-    return 0
-
 
 def _view(args: argparse.Namespace) -> int:
     profile = profile_for(args)
