@@ -97,6 +97,9 @@ class Backend(ABC):
     # The following lag of the arm behind position setpoints (a first-order time constant), s: the bridge's
     # model of where the arm should be (checks.StateCheck). The simulated arm is where its setpoint put it.
     lag_s: float = 0.0
+    # Whether the bridge believes the backend's reports (set before each setpoint: False in state_implausible). A
+    # backend whose stop waits for an acknowledgement through those reports (ur_rtde) does not wait for it then.
+    believed: bool = True
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env
