@@ -373,8 +373,11 @@ class BridgeSection(Plugged):
     # pipeline cheap; raise it for finer recorded arm motion.
     state_rate_hz: Annotated[float, msgspec.Meta(gt=0, le=1000)] = 50.0
     # Real-time scheduling of the bridge's threads: SCHED_FIFO at this priority
-    # (1-99); 0 = off. As planner.realtime_priority.
-    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 0
+    # (1-99); 0 = off. On by default: a bridge starved of CPU for 1 / watchdog_hz
+    # has the controller stop the arm, and on a loaded machine it keeps the
+    # control cycle on time (docs/bridge.md). Where it is not permitted, a
+    # warning at start and the normal scheduler. As planner.realtime_priority.
+    realtime_priority: Annotated[int, msgspec.Meta(ge=0, le=99)] = 20
     # The only planner whose commands move the arm.
     active_planner: Name = "cartesian"
     # No command for this long: decelerate to rest and hold, s (10 control

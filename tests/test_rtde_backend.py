@@ -286,6 +286,73 @@ def test_a_slow_reconnection_runs_in_its_thread_and_the_loop_goes_on(setup):
     assert backend.get_observation().fault is None and backend.connected and backend.reconnects == 1
 
 
+def test_a_stop_the_controller_does_not_answer_leaves_the_loop_running(setup):
+    """A frozen data stream delays servoStop's acknowledgement: while the reports are not believed, the stop waits in
+    a thread of its own while the loop reads, paces and publishes on, sending the controller nothing else (no
+    setpoint, no kick) until it is answered."""
+    import threading
+
+    backend, robot, clock, made, q0 = setup
+    answer = threading.Event()
+
+    class Frozen(FakeControl):
+        def servoStop(self, a, /):
+            answer.wait(10.0)  # as ur_rtde waiting for the script's acknowledgement through the frozen stream
+            return super().servoStop(a)
+
+    backend.stop_in_thread = True
+    backend.believed = False  # state_implausible: the bridge does not believe the reports the answer comes through
+    backend.factory = lambda ip, hz: (Frozen(robot), FakeReceive(robot))
+    backend.connect()
+    pacer = backend.pacer(500.0)
+    backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    started = time.monotonic()
+    backend.send_action(Setpoint("hold", q0, np.zeros(6), np.zeros(6), DT))
+    assert backend.stopping() and backend.stops_waited == 1
+    robot.calls.clear()
+    for _ in range(20):  # 20 cycles (40 ms) of holding while the stop waits: none of them waits for it
+        assert pacer.sleep()
+        assert backend.get_observation().fault is None
+        backend.send_action(Setpoint("hold", q0, np.zeros(6), np.zeros(6), DT))
+    assert time.monotonic() - started < 1.0
+    assert not {"servoJ", "speedJ", "kickWatchdog", "servoStop"} & set(names(robot)), names(robot)
+    # A motion setpoint waits for the stop's answer (the arm never lags behind what the bridge commanded).
+    threading.Timer(0.1, answer.set).start()
+    waited = time.monotonic()
+    backend.send_action(Setpoint("position", q0 + 0.001, np.zeros(6), np.zeros(6), DT))
+    assert time.monotonic() - waited >= 0.05 and not backend.stopping()
+    sent = [n for n in names(robot) if n != "isProgramRunning"]  # (the reads of the observations)
+    assert sent == ["servoStop", "servoJ"], sent  # the stop answered, then the motion
+    robot.calls.clear()
+    assert pacer.sleep()
+    assert "kickWatchdog" in names(robot)  # the controller is watched again
+
+
+def test_lost_interfaces_are_kept_not_destroyed_while_the_bridge_runs(setup):
+    """ur_rtde's destructor holds the GIL for about 0.5 s: the lost interfaces are disconnected and kept (at most
+    KEPT_LOST), released at shutdown."""
+    import weakref
+
+    from nwr.services.bridge.backends.ur_rtde import KEPT_LOST
+
+    backend, robot, clock, made, q0 = setup
+    backend.connect()
+    first = weakref.ref(backend.control)
+    for i in range(KEPT_LOST):  # KEPT_LOST / 2 + ... drops: each loses two interfaces
+        robot.connected = False
+        clock.t = 100.0 * (i + 1)
+        assert backend.get_observation().fault == "disconnected"
+        robot.connected = True
+        clock.t += 50.0
+        assert backend.get_observation().fault is None
+        if 2 * (i + 1) <= KEPT_LOST:
+            assert first() is not None, i  # kept: never destroyed by the loop or the reconnection
+    assert len(backend._lost_interfaces) == KEPT_LOST and first() is None  # the oldest went, beyond the bound
+    assert "receive.disconnect" in names(robot)  # disconnected before it was kept
+    backend.disconnect()
+    assert backend._lost_interfaces == []
+
+
 def test_a_non_finite_report_is_passed_on_not_taken_for_a_lost_connection(setup):
     backend, robot, _, _, q0 = setup
     backend.connect()

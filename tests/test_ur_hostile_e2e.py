@@ -38,6 +38,7 @@ from nwr.services.tools.hardware import ur_arm, ur_controller
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 ELBOW = 2
+WATCHDOG_HZ = 2.0  # the controller's watchdog in tests/test_ur_bridge_e2e.py's profile
 # A reflex every 10 s (forearm_top, PL 3: the Cartesian reflex, a speedJ stream).
 SCRIPT = "duration_s = 150.0\n" + "".join(
     f'[[touch]]\npad = "forearm_top"\nstart_s = {s:.1f}\nduration_s = 0.4\npeak_hpa = 9.0\n' for s in range(6, 150, 10))
@@ -62,10 +63,22 @@ def pad_speed(track: list[list[float]], model: RobotModel) -> float:
     return float((np.linalg.norm(np.diff(points, axis=0), axis=2) / (2 * ur_arm.DT)).max())
 
 
+# A case whose true arm never moved faster than this (rad/s) found the arm held by the pipeline as it began (the
+# loaded machine): it measures nothing, and is run again, up to ATTEMPTS times. (A frozen stream that begins while
+# the arm is held after a stop can also hold the bridge's loop until it flows again: any ur_rtde command waits for
+# the control script's readiness through the stream; docs/bridge.md.)
+HELD_RAD_S = 1e-3
+ATTEMPTS = 2
+
+
 def hostile_cases(emulator: Emulator) -> list[tuple[str, dict[str, Any]]]:
     """The hostile reports (CASES), one after the other: each fault as the emulator recorded it."""
     faults: list[tuple[str, dict[str, Any]]] = []
-    for name, command in CASES:
+    for name, command in [(name, command) for name, command in CASES for _ in range(ATTEMPTS)]:
+        if faults and faults[-1][0] == name and max(faults[-1][1]["peak_qd"]) >= HELD_RAD_S:
+            continue  # measured
+        if faults and faults[-1][0] == name:
+            faults.pop()  # the arm was held throughout (a hold on the loaded machine as it began): again
         before = emulator.wait("the arm moving", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
         answer = emulator(command)
         assert not answer.startswith("error"), answer
@@ -77,18 +90,23 @@ def hostile_cases(emulator: Emulator) -> list[tuple[str, dict[str, Any]]]:
         state = emulator.wait(f"{name}: its end", lambda s, end=end: s["t"] > end + 0.1, 30)
         fault = _hostile(state, since)
         assert fault is not None
-        faults.append((name, {**fault, "command_changes": state["command_changes"]}))
+        watchdog = [f["t"] for f in state["faults"] if f["fault"] == "watchdog" and f["t"] >= since]
+        faults.append((name, {**fault, "command_changes": state["command_changes"], "watchdog": watchdog}))
         # the pipeline moves the arm again (the reports believed again: at rest, where it was stopped)
         emulator.wait(f"{name}: moving again", lambda s: not s["at_rest"] and s["script_running"], timeout=60)
         time.sleep(1.0)
     return faults
 
 
+# The longest gap between two published states in any case: the state goes on at its rate (20 ms) whatever the
+# controller does, with a loaded machine's scheduling on top (a frozen stream's stop held it about 1 s, a dropped
+# connection's lost interfaces as long; docs/bridge.md), s.
+MAX_GAP_S = 0.75
 SILENCES = [
     # (name, the control port's command, the fault the emulator records, how long it lasts, s, the status expected,
     #  the longest gap between two states allowed, s: 20 ms at 50 Hz and a loaded machine's scheduling; after a
-    #  dropped connection, ur_rtde's destructor of the lost interfaces holds the GIL for a second, docs/bridge.md)
-    ("connection dropped, refused for 2 s", "drop 2", "drop", 2.0, "disconnected", 1.5),
+    #  dropped connection, ur_rtde's constructors of the new interfaces hold the GIL for tens of ms, docs/bridge.md)
+    ("connection dropped, refused for 2 s", "drop 2", "drop", 2.0, "disconnected", MAX_GAP_S),
     ("joint 3 reported NaN (position and speed) for 1 s", "nan 3 1", "nan", 1.0, "state_implausible", 0.25),
 ]
 
@@ -181,7 +199,13 @@ def test_a_hostile_controller_is_not_believed(session: Session) -> None:
         track = f["track"]
         stop_commands = (ur_controller.CMD_SERVO_STOP, ur_controller.CMD_SPEED_STOP)
         stops = [t for t, v in f["command_changes"] if t >= t0 and v in stop_commands]
+        # A frozen stream's stop may never reach the controller while it is frozen (ur_rtde sends it once the
+        # frozen reports show the control script ready): the bridge then stops kicking the watchdog, whose trip
+        # stops the script.
+        tripped = [t for t in f.get("watchdog", []) if t >= t0]
+        stops = sorted(stops[:1] + tripped[:1])
         during = [s for s in states if t0 * 1e9 <= s.stamp_ns <= end * 1e9]
+        stamps = np.array([s.stamp_ns * 1e-9 for s in during])
         implausible = [s.stamp_ns * 1e-9 for s in during if s.status == "state_implausible"]
         told = [d for d in diags if t0 * 1e9 <= d.stamp_ns <= end * 1e9 and d.code == "state_implausible"]
         rest = None
@@ -199,15 +223,17 @@ def test_a_hostile_controller_is_not_believed(session: Session) -> None:
             "rest_ms": None if rest is None else 1e3 * (rest - t0),
             "state_ms": 1e3 * (implausible[0] - t0) if implausible else None,
             "statuses": sorted({s.status for s in during}), "diag": told[0].message if told else None,
+            "gap_ms": 1e3 * float(np.max(np.diff(stamps))) if len(stamps) > 1 else float("inf"),
         }
         results.append(result)
         def ms(value: float | None) -> str:
             return "never" if value is None else f"{value:.0f} ms"
 
         print(f"{name}: true arm's fastest joint {result['joint_peak']:.2f} rad/s (elbow {result['elbow_peak']:.2f}, "
-              f"moved {result['elbow_moved']:.3f} rad), fastest pad {result['pad_peak']:.2f} m/s; stop command "
-              f"{ms(result['stop_ms'])}, at rest {ms(result['rest_ms'])}, state_implausible {ms(result['state_ms'])} "
-              f"after the fault; statuses {result['statuses']}; diag: {result['diag']}")
+              f"moved {result['elbow_moved']:.3f} rad), fastest pad {result['pad_peak']:.2f} m/s; stop (command or "
+              f"watchdog) {ms(result['stop_ms'])}, at rest {ms(result['rest_ms'])}, state_implausible "
+              f"{ms(result['state_ms'])} after the fault; statuses {result['statuses']}; the longest gap between "
+              f"states {result['gap_ms']:.0f} ms; diag: {result['diag']}")
     restarts = [line for line in log.splitlines() if "restarted bridge" in line or "exited unexpectedly" in line]
     print("the bridge's process was restarted:" if restarts else "the bridge's process ran throughout", *restarts,
           sep="\n  ")
@@ -216,10 +242,14 @@ def test_a_hostile_controller_is_not_believed(session: Session) -> None:
         assert r["diag"] is not None, r
         # A few cycles on a loaded machine after the check can tell: at once for a jump, after the profile's
         # report_frozen_s for a stream that stops changing.
-        allowed = 150.0 + (1e3 * Profile().bridge.report_frozen_s if "frozen" in r["name"] else 0.0)
+        allowed = 150.0 + (1e3 * (Profile().bridge.report_frozen_s + 1.0 / WATCHDOG_HZ) if "frozen" in r["name"]
+                           else 0.0)
+        assert r["elbow_moved"] < 0.15, r  # the true elbow never follows the false report
+        assert r["gap_ms"] < 1e3 * MAX_GAP_S, r  # never silent: a frozen stream's stop waits in a thread of its own
+        if r["joint_peak"] < HELD_RAD_S:  # held in every attempt (a late command on the loaded machine): no stop
+            continue
         assert r["stop_ms"] is not None and r["stop_ms"] < allowed, r
         assert r["rest_ms"] is not None and r["rest_ms"] < 1000.0, r
-        assert r["elbow_moved"] < 0.15, r  # the true elbow never follows the false report
     # never a false alarm: every state_implausible of the session lies within a case (its clearing after it
     # included), of this part or the silences
     windows = session.windows()

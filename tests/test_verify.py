@@ -100,8 +100,26 @@ def test_a_missing_input_or_batch_makes_a_run_unverifiable(session, tmp_path):
     trimmed = [r for r in records if r is not first and r is not later]
     results = {r.service: r for r in verify(rewrite(trimmed, tmp_path / "b.mcap"))}
     assert results["bridge"].verdict == "unverifiable" and "first batch" in results["bridge"].detail
-    assert results["gain"].verdict == "unverifiable" and "missing" in results["gain"].detail
+    assert results["gain"].verdict == "unverifiable" and "never reached the recorder" in results["gain"].detail
     assert results["gateway"].verdict == "identical"
+
+
+def test_journal_batches_a_stalled_recorder_lost_are_named_with_their_time(session, tmp_path):
+    """A recorder stalled (or its link dropped) loses batches: verify names the service, the batches, when in its
+    run they were, and why it cannot re-run it; the other services are verified all the same."""
+    records, _ = read_recording(session)
+    lost = [r for r in records if r.key == "journal/planner-cartesian" and 10 <= r.message.seq <= 14]
+    assert len(lost) == 5
+    run_ns = lost[0].message.run_ns
+    kept = [r for r in records if not any(r is x for x in lost)]
+    results = {r.service: r for r in verify(rewrite(kept, tmp_path / "stalled.mcap"))}
+    planner = results["planner-cartesian"]
+    assert planner.verdict == "unverifiable", planner.format()
+    before = next(r.message for r in records if r.key == "journal/planner-cartesian" and r.message.seq == 9)
+    assert "5 of its journal batches never reached the recorder: 10-14 (" in planner.detail, planner.detail
+    assert f"({(before.stamp_ns - run_ns) * 1e-9:.1f}-" in planner.detail and "recorder was stalled" in planner.detail
+    assert planner.format().startswith("planner-cartesian") and "cannot be verified" in planner.format()
+    assert all(r.verdict == "identical" for name, r in results.items() if name != "planner-cartesian"), results
 
 
 def test_a_recording_without_journals_says_why(session, tmp_path, caplog):

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 UR_PORTS = (30004, 29999, 30003)
+EMULATOR_PRIORITY = 30  # SCHED_FIFO
 
 
 def skip_unless_free(*extra: int) -> None:
@@ -28,11 +29,14 @@ def skip_unless_free(*extra: int) -> None:
 
 @contextlib.contextmanager
 def emulator_process(log_path: Path, *args: str) -> Iterator[subprocess.Popen[str]]:
-    """``python -m nwr.services.tools.hardware.ur_emulator --host 127.0.0.1 ARGS``, ready (it printed ``ready``),
-    then ended."""
+    """``python -m nwr.services.tools.hardware.ur_emulator --host 127.0.0.1 --realtime-priority 30 ARGS``, ready (it
+    printed ``ready``), then ended."""
     log = open(log_path, "w")  # its log: a pipe nobody drains would block it
+    # The controller real-time (where permitted): a real one is a machine of its own, and an emulator starved beside
+    # the loaded pipeline trips its own watchdog (docs/bridge.md).
     process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.hardware.ur_emulator", "--host", "127.0.0.1",
-                                *args], stdout=subprocess.PIPE, stderr=log, text=True)
+                                "--realtime-priority", str(EMULATOR_PRIORITY), *args], stdout=subprocess.PIPE,
+                               stderr=log, text=True)
     try:
         assert process.stdout is not None
         line = process.stdout.readline()

@@ -99,6 +99,9 @@ class Backend(ABC):
     lag_s: float = 0.0
     # A world the bridge hosts (physics): it takes the touch script's touches (on_touch) and advances each cycle.
     touched: bool = False
+    # Whether the bridge believes the backend's reports (set before each setpoint: False in state_implausible). A
+    # backend whose stop waits for an acknowledgement through those reports (ur_rtde) does not wait for it then.
+    believed: bool = True
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env

@@ -27,9 +27,26 @@
   (``setWatchdog``, ``servoStop``, ``stopScript``) from a controller whose
   connection dropped meanwhile, and its own reconnection thread may end the
   process. A guard thread exits the process (code ``EXIT_STALLED``) when the
-  loop has made no progress for ``stall_exit_s``, so that the supervisor
-  (``nwr up``, compose) starts a fresh bridge; the controller holds the arm
-  meanwhile (no command arrives) or has stopped it (its watchdog).
+  loop has made no progress for ``stall_exit_s`` (or a stop has been under
+  way that long), so that the supervisor (``nwr up``, compose) starts a fresh
+  bridge; the controller holds the arm meanwhile (no command arrives) or has
+  stopped it (its watchdog).
+- Never silent: a stream's stop (``servoStop`` / ``speedStop``) waits for the
+  control script's acknowledgement, which comes through the controller's data
+  stream. While the bridge believes that stream, the stop is waited for in the
+  loop, as any call; once it does not (``state_implausible``: a frozen stream,
+  say, which delays the acknowledgement until it flows again), the stop runs
+  in a thread of its own, waited for :data:`STOP_WAIT_S`, and while it is
+  under way the loop sends the
+  controller nothing else (no watchdog kick: a stop the controller has not
+  acknowledged within ``1 / watchdog_hz`` has its watchdog stop the script, a
+  stop too) and goes on reading and publishing the state; a motion setpoint
+  after it (a fresh command after a hold) waits for the acknowledgement, as
+  before.
+  A reconnection runs in a thread of its own; the lost interfaces are
+  disconnected there and kept, not destroyed, while the bridge runs (ur_rtde's
+  destructor holds the GIL for about 0.5 s each, which stood the whole
+  process still): at most :data:`KEPT_LOST` of them, released at shutdown.
 
 ``rtde_control`` / ``rtde_receive`` are imported only when this backend
 connects, so the simulated bridge and the tests never need them: the tests
@@ -116,6 +133,13 @@ STALL_EXIT_S = 20.0
 EXIT_STALLED = 75  # EX_TEMPFAIL: try again, i.e. start a fresh bridge
 # At release, a reconnection attempt under way is waited for this long (what it connects is released too), s.
 RECONNECT_JOIN_S = 10.0
+# A stream's stop not acknowledged within this long goes on in its own thread, the loop meanwhile going on, s.
+STOP_WAIT_S = 0.005
+# ... and one answered later than this is reported, s.
+SLOW_STOP_S = 0.1
+# Lost interfaces kept undestroyed while the bridge runs (each reconnection loses two; beyond this, the oldest are
+# destroyed, a pause of about 0.5 s each: see the module's docstring).
+KEPT_LOST = 16
 # Before a reconnection, the controller's RTDE port must accept a connection within this long, s.
 PROBE_TIMEOUT_S = 1.0
 # ... and keep it open this long, s.
@@ -172,7 +196,9 @@ class RtdePacer:
         self.backend.take_over()  # the loop kicks the watchdog from now on
         self.backend.progress_at = time.monotonic()  # a cycle went through: nothing hung (the stall guard)
         control = self.backend.control
-        if control is not None and self.backend.connected:
+        # A stop under way in its own thread: nothing else goes to the controller meanwhile (the loop paces
+        # itself; a stop unacknowledged for 1 / watchdog_hz has the controller's watchdog stop the script).
+        if control is not None and self.backend.connected and not self.backend.stopping():
             try:
                 if self._t is not None:
                     control.waitPeriod(self._t)
@@ -220,10 +246,13 @@ class URRtdeBackend(Backend):
         clock: Callable[[], float] = time.monotonic,
         stall_exit_s: float | None = None,
         reconnect_in_thread: bool | None = None,
+        stop_in_thread: bool | None = None,
     ) -> None:
         """``stall_exit_s``: the stall guard's limit (default :data:`STALL_EXIT_S` with the real ur_rtde;
         none with a test double's ``factory`` unless given); ``reconnect_in_thread``: reconnection attempts in a
-        thread of their own, the control loop going on meanwhile (default: with the real ur_rtde only)."""
+        thread of their own, the control loop going on meanwhile (default: with the real ur_rtde only);
+        ``stop_in_thread``: a stream's stop in a thread of its own, waited for :data:`STOP_WAIT_S` (default: with
+        the real ur_rtde only)."""
         super().__init__(env, dt)
         if not robot_ip:
             raise RobotConnectionError("the ur_rtde backend needs the robot's IP address (--robot-ip)")
@@ -263,6 +292,11 @@ class URRtdeBackend(Backend):
         self.reconnect_in_thread = reconnect_in_thread if reconnect_in_thread is not None else \
             factory is rtde_factory
         self._connector: threading.Thread | None = None
+        self.stop_in_thread = stop_in_thread if stop_in_thread is not None else factory is rtde_factory
+        self._stopper: threading.Thread | None = None  # a stream's stop under way
+        self._stop_started = 0.0  # when it began (monotonic s)
+        self.stops_waited = 0  # stops that outlasted STOP_WAIT_S: the loop went on without them
+        self._lost_interfaces: list[Any] = []  # disconnected, kept undestroyed (KEPT_LOST)
         self._attempt_at = 0.0  # when the last reconnection attempt began (the clock's), s
         self._connected_pair: tuple[Any, Any] | None = None
         self._connect_error: BaseException | None = None
@@ -313,6 +347,8 @@ class URRtdeBackend(Backend):
         def watch() -> None:
             while not self._guard_stop.wait(min(1.0, self.stall_exit_s / 4)):
                 stalled = time.monotonic() - self.progress_at
+                if self.stopping():  # a stop under way in its thread hangs as well as the loop could
+                    stalled = max(stalled, time.monotonic() - self._stop_started)
                 if stalled > self.stall_exit_s:
                     log.critical("a call into ur_rtde has not returned for %.0f s (the connection to %s dropped "
                                  "while it waited for the controller?): exiting so that a fresh bridge is started; "
@@ -393,7 +429,7 @@ class URRtdeBackend(Backend):
             self._finish_reconnect()
             return
         now = self.clock()
-        if now < self.next_attempt:
+        if now < self.next_attempt or self.stopping():  # (the lost interfaces are in use until the stop ends)
             return
         self.reconnects += 1
         self._attempt_at = now
@@ -413,13 +449,15 @@ class URRtdeBackend(Backend):
     def _attempt(self, old: list[Any]) -> None:
         """One connection attempt (possibly in its own thread): the lost interfaces closed, fresh ones made.
 
-        The lost interfaces are dropped here, in this thread: ur_rtde's destructors take a second, holding the
-        GIL, and whatever holds the last reference runs them (an error's traceback did, in the control loop).
+        The lost interfaces are disconnected here, in this thread (it takes about 0.5 s each, the GIL released),
+        and kept: ur_rtde's destructor holds the GIL for about 0.5 s each, whichever thread runs it
+        (:meth:`_keep_lost`).
         """
         self._connected_pair = None
         self._connect_error = None
         try:
             self._discard(*old)
+            self._keep_lost(old)
             old.clear()
             if self.factory is rtde_factory:
                 # ur_rtde's constructors hold the GIL while they retry a refused connection (a second and
@@ -430,6 +468,16 @@ class URRtdeBackend(Backend):
         except (RuntimeError, OSError) as exc:
             old.clear()
             self._connect_error = exc.with_traceback(None)
+
+    def _keep_lost(self, interfaces: list[Any]) -> None:
+        """Keep disconnected interfaces undestroyed (at most :data:`KEPT_LOST`; the oldest beyond are destroyed
+        here, a pause of the whole process)."""
+        self._lost_interfaces.extend(i for i in interfaces if i is not None)
+        excess = len(self._lost_interfaces) - KEPT_LOST
+        if excess > 0:
+            log.warning("releasing %d lost ur_rtde interface(s) of earlier connections: ur_rtde's destructor stands "
+                        "the bridge still for about 0.5 s each", excess)
+            del self._lost_interfaces[:excess]
 
     def _finish_reconnect(self) -> None:
         """The attempt's outcome, in the control loop: the watchdog armed and the connection used, or backoff."""
@@ -481,9 +529,13 @@ class URRtdeBackend(Backend):
             if self._connected_pair is not None and self.control is None:
                 self.control, self.receive = self._connected_pair
                 self._connected_pair = None
+        stopper = self._stopper
+        if stopper is not None:  # a stop under way: it ends first (the stall guard watches it)
+            stopper.join()
+            self._stopper = None
         control, receive = self.control, self.receive
         if control is not None:
-            for call in (self._end_stream, control.stopScript, control.disconnect):
+            for call in (lambda: self._end_stream(wait=False), control.stopScript, control.disconnect):
                 try:
                     call()
                 except RuntimeError as exc:
@@ -496,6 +548,7 @@ class URRtdeBackend(Backend):
         self.control = self.receive = None
         self.connected = False
         self.streaming = None
+        self._lost_interfaces.clear()  # their destructors, now that the loop has ended
         self._stop_guard()
 
     # -- observation ------------------------------------------------------------------
@@ -535,7 +588,7 @@ class URRtdeBackend(Backend):
             if not self.control.isProgramRunning():
                 self.streaming = None
                 self.watchdog_armed = False  # the watchdog lives in the script
-                if self.clock() >= self.next_attempt:
+                if self.clock() >= self.next_attempt and not self.stopping():
                     # Uploading the script moves nothing; the bridge sends a
                     # setpoint only after the fault has cleared and the
                     # script runs with the watchdog armed (below).
@@ -554,7 +607,7 @@ class URRtdeBackend(Backend):
                 return Observation(q, dq, "script_not_running",
                                    "the ur_rtde control script is not running (remote control mode? program stopped "
                                    "on the pendant?): re-uploading it with backoff")
-            if not self.watchdog_armed:
+            if not self.watchdog_armed and not self.stopping():
                 # A re-uploaded script that started after all: ur_rtde's
                 # reuploadScript() does not wait for it to run, and
                 # setWatchdog() fails until it does (so may stopScript()).
@@ -575,14 +628,57 @@ class URRtdeBackend(Backend):
         return Observation(q, dq, stamp_s=stamp)
 
     # -- commands ---------------------------------------------------------------------
-    def _end_stream(self) -> None:
-        if self.streaming == "servo":
-            self.control.servoStop(self.acceleration)
-        elif self.streaming == "speed":
-            self.control.speedStop(self.acceleration)
+    def stopping(self) -> bool:
+        """A stream's stop is under way in its own thread (the controller has not acknowledged it yet)."""
+        stopper = self._stopper
+        if stopper is None:
+            return False
+        if stopper.is_alive():
+            return True
+        self._stopper = None
+        return False
+
+    def _end_stream(self, *, wait: bool = True) -> None:
+        """End the stream (``servoStop`` / ``speedStop``): while the reports are not believed (``wait``: the loop
+        runs, and with the stop in a thread), in a thread of its own, waited for :data:`STOP_WAIT_S`; else here until
+        it returns."""
+        if self.streaming is None or self.stopping():
+            return
+        stop = self.control.servoStop if self.streaming == "servo" else self.control.speedStop
         self.streaming = None
+        if not (wait and self.stop_in_thread and not self.believed):
+            stop(self.acceleration)  # the reports are believed: their acknowledgement comes within a few cycles
+            return
+
+        def run() -> None:
+            try:
+                ok = stop(self.acceleration)
+            except RuntimeError as exc:
+                log.warning("ending the stream: %s", exc)
+                return
+            took = time.monotonic() - self._stop_started
+            if not ok or took > SLOW_STOP_S:
+                log.warning("the controller answered the stream's stop after %.0f ms (%s); the control loop went on "
+                            "meanwhile, sending nothing else", took * 1e3, "acknowledged" if ok else
+                            "not acknowledged: the control script stopped meanwhile?")
+
+        self._stop_started = time.monotonic()
+        self._stopper = threading.Thread(target=run, name="rtde-stop", daemon=True)
+        self._stopper.start()
+        self._stopper.join(STOP_WAIT_S)
+        if self._stopper.is_alive():
+            self.stops_waited += 1
 
     def _send(self, setpoint: Setpoint) -> None:
+        if self.stopping():
+            if setpoint.mode == "hold":
+                return  # the arm is being stopped: nothing else is sent until the controller has acknowledged it
+            # Motion after a stop (a fresh command after a hold): it waits for the stop's acknowledgement, as it
+            # did before the stop had a thread of its own, so that the arm never lags behind what the bridge
+            # believes it commanded (the stall guard watches this wait too).
+            stopper = self._stopper
+            if stopper is not None:
+                stopper.join()
         if not self.connected or self.control is None:
             return
         try:

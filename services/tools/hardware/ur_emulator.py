@@ -93,6 +93,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from nwr.common.pacing import realtime
 from nwr.services.tools.hardware.rtde import (
     CONTROL_PACKAGE_PAUSE,
     CONTROL_PACKAGE_SETUP_INPUTS,
@@ -580,10 +581,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="fault injection: a line-based control port on 127.0.0.1 (see the docstring)")
     parser.add_argument("--protective-unlock-delay", type=float, default=PROTECTIVE_UNLOCK_DELAY_S, metavar="S",
                         help="'unlock protective stop' is refused this long after the stop (e-Series: 5 s)")
+    parser.add_argument("--realtime-priority", type=int, default=0, metavar="P",
+                        help="run under SCHED_FIFO at priority P (1-99; 0: off): a real controller is a machine of "
+                             "its own, and an emulator starved beside a loaded pipeline trips its own watchdog")
     parser.add_argument("--verbose", "-v", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(threadName)s: %(message)s")
+    if not 0 <= args.realtime_priority <= 99:
+        parser.error(f"--realtime-priority {args.realtime_priority}: give 1-99, or 0 for the normal scheduler")
+    realtime(args.realtime_priority, "ur emulator")  # before its threads start: they inherit it
     emulator = Emulator(args.host, args.rtde_port, args.dashboard_port, args.script_port or [30003],
                         Controller(ur10e_arm(args.q0), protective_unlock_delay_s=args.protective_unlock_delay),
                         control_port=args.control_port)

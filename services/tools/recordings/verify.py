@@ -190,6 +190,23 @@ def recorded_run_quiet() -> Iterator[None]:
         logging.disable(previous)
 
 
+def _missing_batches(run: _Run, holes: list[tuple[m.Journal, m.Journal]]) -> str:
+    """Which journal batches of a run the recording lacks, when in the run, and what it means."""
+    missing = sum(b.seq - prev.seq - 1 for prev, b in holes)
+
+    def span(prev: m.Journal, b: m.Journal) -> str:
+        first, last = prev.seq + 1, b.seq - 1
+        seqs = str(first) if first == last else f"{first}-{last}"
+        start, end = (prev.stamp_ns - run.run_ns) * 1e-9, (b.stamp_ns - run.run_ns) * 1e-9
+        return f"{seqs} ({start:.1f}-{end:.1f} s into the run)"
+
+    shown = ", ".join(span(prev, b) for prev, b in holes[:3]) + (f" and {len(holes) - 3} more gaps" if len(holes) > 3
+                                                                  else "")
+    return (f"{missing} of its journal batches never reached the recorder: {shown}; the recorder was stalled or its "
+            "link dropped then (its log lists the sequence gaps), and a re-run needs every batch, so this run cannot "
+            "be re-run (the other services' runs are verified on their own)")
+
+
 def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[str, list[Any]], *,
                number: int, runs: int, until_ns: int | None, roots: Sequence[Path] = (PACKAGED_ROBOTS,),
                reported_gaps: dict[str, int] | None = None) -> RunResult:
@@ -201,9 +218,9 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
         result.detail = (f"the journal's first batch (with the service's configuration) is not in the recording "
                          f"(first: batch {batches[0].seq}): the recorder started after the service")
         return result
-    missing = [b.seq for prev, b in zip(batches, batches[1:], strict=False) if b.seq != prev.seq + 1]
-    if missing:
-        result.detail = f"journal batch(es) before {missing[:5]} are missing from the recording: the re-run needs all"
+    holes = [(prev, b) for prev, b in zip(batches, batches[1:], strict=False) if b.seq != prev.seq + 1]
+    if holes:
+        result.detail = _missing_batches(run, holes)
         return result
     try:
         config = json.loads(batches[0].config)
