@@ -249,6 +249,7 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
     if not skin_path.is_file():
         raise ConfigError(f"{robot_path}: skin file {skin_path} does not exist")
     pads = _load_pads(skin_path, links, urdf_path)
+    _check_pads_on_links(model, pads, skin_path)
     reflex_range = _vector(doc.get("reflex_range_deg", [0.0] * n), n, robot_path, "reflex_range_deg")
     if not np.all((reflex_range >= 0.0) & (reflex_range <= 180.0)):
         raise ConfigError(f"{robot_path}: reflex_range_deg = {reflex_range.tolist()}; expected 0 to 180 deg per joint")
@@ -469,6 +470,42 @@ def _load_pads(skin_path: Path, links: set[str], urdf_path: Path) -> tuple[Pad, 
             "(ids index arrays of pad readings)"
         )
     return tuple(sorted(pads, key=lambda pad: pad.id))
+
+
+# A pad's point is on its link's body: within this distance of the link's skeleton (the segments from the
+# link's origin to the joints and links it carries). The UR10e's farthest pad (elbow_outer, on the elbow
+# housing's lid) is 0.266 m off its link's skeleton: past 0.3 m a point is on another link or a typo.
+MAX_PAD_OFFSET_M = 0.3
+
+
+def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    length2 = float(ab @ ab)
+    t = 0.0 if length2 == 0.0 else min(1.0, max(0.0, float((point - a) @ ab) / length2))
+    return float(np.linalg.norm(point - (a + t * ab)))
+
+
+def _check_pads_on_links(model: pin.Model, pads: tuple[Pad, ...], skin_path: Path) -> None:
+    """Every pad's point within :data:`MAX_PAD_OFFSET_M` of its link's skeleton; else ConfigError naming it."""
+    for pad in pads:
+        frame = model.frames[model.getFrameId(pad.link)]
+        joint = frame.parentJoint
+        # In the frame of the joint that moves the link: the link's origin, the joints it carries and the
+        # links fixed to it.
+        ends = [model.jointPlacements[child].translation for child in range(1, model.njoints)
+                if model.parents[child] == joint]
+        ends += [other.placement.translation for other in model.frames
+                 if other.parentJoint == joint and other.type == pin.FrameType.BODY]
+        origin = frame.placement.translation
+        point = frame.placement.act(pad.point)
+        offset = min([_segment_distance(point, origin, end) for end in ends], default=float(np.linalg.norm(
+            point - origin)))
+        if offset > MAX_PAD_OFFSET_M:
+            raise ConfigError(
+                f"{skin_path}: pad {pad.name!r}: point = {pad.point.tolist()} is {offset:.3f} m from link "
+                f"{pad.link!r} (its origin and the joints it carries); expected at most {MAX_PAD_OFFSET_M} m: "
+                "is the point in the frame of another link, or in mm?"
+            )
 
 
 # --------------------------------------------------------------------------- kinematics

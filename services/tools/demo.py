@@ -96,7 +96,7 @@ def run_demo(args: argparse.Namespace) -> int:
     if args.fast:
         return run_demo_fast(args)
     profile = profile_for(args)
-    load_script(args.script)
+    load_script(args.script, profile.robot.description)
     recording = None if args.no_record else output_path(args, profile)
     layout = layout_for(args, profile, recording)
     code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True,
