@@ -75,7 +75,7 @@ class RobotSection(_Section):
     # Robot name: the key prefix is nwr/<name>/, so two arms can share a LAN.
     name: Name = "ur10e"
     # The robot description (URDF + skin + limits): a packaged robot's name (a
-    # folder of common/robots/, e.g. "ur10e") or a robot.toml's path; empty =
+    # folder of common/robots/: "ur10e", "fr3") or a robot.toml's path; empty =
     # the packaged UR10e.
     description: str = ""
 
