@@ -24,6 +24,7 @@ default, hard bound and safe range):
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -74,7 +75,7 @@ class RobotSection(_Section):
     # Robot name: the key prefix is nwr/<name>/, so two arms can share a LAN.
     name: Name = "ur10e"
     # The robot description (URDF + skin + limits): a packaged robot's name (a
-    # folder of common/robots/, e.g. "ur10e") or a robot.toml's path; empty =
+    # folder of common/robots/: "ur10e", "fr3") or a robot.toml's path; empty =
     # the packaged UR10e.
     description: str = ""
 
@@ -233,13 +234,13 @@ class PlannerSection(Plugged):
     # interpolates). Reflexes and returns stream one command per cycle.
     # 1 = one command per cycle in the task too. At most 0.1 s of cycles.
     task_ahead_cycles: Annotated[int, msgspec.Meta(ge=1, le=50)] = 10
-    # Joint-space reflexes: the paper's human range of motion q_max, degrees,
-    # per joint (base, shoulder, elbow, wrist 1-3; one per joint, 0-180). UR
-    # adds uniform_fraction of it (the paper's 1/2), LR adds G(p) W(PL, region)
+    # Joint-space reflexes: the human range of motion q_max, degrees, one per
+    # joint (0-180); empty = the robot's reflex_range_deg (robot.toml; the
+    # UR10e's is the paper's [40, 70, 146, 73, 0, 0]). UR adds
+    # uniform_fraction of it (the paper's 1/2), LR adds G(p) W(PL, region)
     # q_max; both in the robot description's reflex_direction, clipped to the
     # joint limits.
-    q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = msgspec.field(
-        default_factory=lambda: [40.0, 70.0, 146.0, 73.0, 0.0, 0.0])
+    q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = []
     # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
     # motion would move the touched pad toward the contact, and report it.
     guarded: bool = False
@@ -710,9 +711,9 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
     n = len(desc.joints)
     robot = f"robot {desc.name!r} has {n} joints ({', '.join(desc.joints)})"
     per_joint: tuple[tuple[str, list[float] | list[int], bool], ...] = (
-        ("planner.q_max_deg", planner.q_max_deg, False),
-        ("planner.task.amplitude_rad", task.amplitude_rad, False),
-        ("planner.task.double_frequency", task.double_frequency, False),
+        ("planner.q_max_deg", planner.q_max_deg, True),
+        ("planner.task.amplitude_rad", task.amplitude_rad, True),
+        ("planner.task.double_frequency", task.double_frequency, True),
         ("bridge.q_min", bridge.q_min, True),
         ("bridge.q_max", bridge.q_max, True),
         ("bridge.v_max", bridge.v_max, True),
@@ -874,8 +875,34 @@ def _get(obj: Any, dotted: str) -> Any:
     return obj
 
 
-def _default(name: str) -> Any:
-    """The documented default of a safety-relevant field (a pad's override: the profile-wide default)."""
+# The per-joint fields whose default (empty) is the robot's own value, robot.toml's attribute of it.
+ROBOT_HELD: dict[str, str] = {
+    "planner.q_max_deg": "reflex_range_deg",
+    "planner.task.amplitude_rad": "task_amplitude_rad",
+    "planner.task.double_frequency": "task_double_frequency",
+}
+
+
+@functools.lru_cache(maxsize=8)
+def _robot_values(description: str) -> dict[str, list[Any]]:
+    """The robot-held defaults (:data:`ROBOT_HELD`) of the robot a profile's robot.description names."""
+    from nwr.common.robot import load_description
+
+    desc = load_description(description or None)
+    return {field: list(getattr(desc, attribute)) for field, attribute in ROBOT_HELD.items()}
+
+
+def robot_default(profile: Profile, name: str) -> list[Any]:
+    """The value a robot-held field (:data:`ROBOT_HELD`) of ``profile`` takes where the profile leaves it empty:
+    the robot's own (robot.toml)."""
+    return list(_robot_values(profile.robot.description)[name])
+
+
+def _default(name: str, profile: Profile | None = None) -> Any:
+    """The documented default of a safety-relevant field (a pad's override: the profile-wide default; a
+    robot-held one: the robot's value, the profile's robot or else the default robot's)."""
+    if name in ROBOT_HELD:
+        return robot_default(profile or _DEFAULT, name)
     pattern = _pattern(name)
     if pattern == "gain.overrides.<pad>.thresholds_hpa":
         value = _DEFAULT.gain.thresholds_hpa
@@ -967,6 +994,9 @@ def guarded(profile: Profile) -> list[Guarded]:
             for region, values in profile.gain.effective_mass.regions.items():
                 name = pattern.replace("<region>", region)
                 found.append(Guarded(name, _get(values, name.rpartition(".")[2]), _default(name), guard))
+        elif pattern in ROBOT_HELD:
+            found.append(Guarded(pattern, _get(profile, pattern) or robot_default(profile, pattern),
+                                 _default(pattern, profile), guard))
         else:
             found.append(Guarded(pattern, _get(profile, pattern), _default(pattern), guard))
     return found

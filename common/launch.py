@@ -47,13 +47,21 @@ class TouchScript(_Section):
     touch: list[Touch] = []
 
 
-def resolve_script(name_or_path: str) -> Path:
-    """A touch script given by packaged name ("demo") or by path."""
+def resolve_script(name_or_path: str, robot: str = "") -> Path:
+    """A touch script given by packaged name ("demo") or by path. Scripts name pads, so a packaged name is
+    first the robot's own (``scripts/`` beside its robot.toml; ``robot``: a profile's robot.description), then
+    the packaged scripts (the UR10e's pads)."""
+    from nwr.common.robot import resolve_description
+
+    own = resolve_description(robot or None).parent / "scripts"
+    if robot and Path(name_or_path).suffix != ".toml" and (own / f"{name_or_path}.toml").is_file():
+        return own / f"{name_or_path}.toml"
     return packaged_or_path(name_or_path, SCRIPTS_DIR, "touch script")
 
 
-def load_script(name_or_path: str) -> TouchScript:
-    script = _decode(resolve_script(name_or_path), TouchScript)
+def load_script(name_or_path: str, robot: str = "") -> TouchScript:
+    """The touch script by packaged name (the robot's own first, :func:`resolve_script`) or path."""
+    script = _decode(resolve_script(name_or_path, robot), TouchScript)
     assert isinstance(script, TouchScript)
     for touch in script.touch:
         if touch.start_s + touch.duration_s + 2 * touch.ramp_s > script.duration_s:

@@ -14,7 +14,8 @@ under its service's section (``[bridge.ur_rtde]``, ``[gateway.sim]``,
 (:meth:`Plugins.check`); its ``GUARDS`` name the fields that are
 safety-relevant beside a person (``[safety]`` acknowledges them like any
 other, :mod:`nwr.common.config`), and an optional ``check_settings(settings,
-profile, desc)`` the cross-checks that need the profile or the robot.
+profile, desc)`` the cross-checks that need the profile or the robot; an optional ``robot_settings(desc)``
+the defaults a robot gives it (its safety-relevant fields are guarded against those).
 """
 
 from __future__ import annotations
@@ -89,7 +90,9 @@ class Plugins:
             check = getattr(declared, "check_settings", None)
             if check is not None:
                 check(settings, profile, desc)
-            default = self.settings_class(name)()
+            # A plug-in whose defaults are the robot's (robot_settings(desc)) is guarded against those.
+            robot_settings = getattr(declared, "robot_settings", None)
+            default = robot_settings(desc) if robot_settings is not None else self.settings_class(name)()
             for field, guard in _guards(declared).items():
                 guarded.extend(_guarded(f"{self.section}.{name}.{field}", settings, default, field, guard))
         return guarded
@@ -113,6 +116,8 @@ def _guarded(dotted: str, settings: Section, default: Section, field: str, guard
     if row:
         if row in value:
             yield Guarded(dotted, value[row], base.get(row, value[row]), guard)
+        elif row in base:  # a row the profile leaves to the default (the robot's): held at it
+            yield Guarded(dotted, base[row], base[row], guard)
     else:
         yield Guarded(dotted, value, base, guard)
 

@@ -49,6 +49,9 @@ from nwr.common.errors import ConfigError
 log = logging.getLogger(__name__)
 
 REGIONS: tuple[str, ...] = ("shoulder", "upper_arm", "elbow", "forearm", "wrist")
+# The paper's joint groups of its joint-space reflexes (Table II's columns): every joint of a robot belongs to one
+# (robot.toml's reflex_group); a joint's location weight is its group's.
+JOINT_GROUPS: tuple[str, ...] = ("base", "shoulder", "elbow", "wrist")
 
 #: The description shipped with the package.
 # The packaged robots, one folder each (robots/<name>/robot.toml, its URDF and its skin file): a profile names one
@@ -86,7 +89,10 @@ _ROBOT_KEYS: frozenset[str] = frozenset(
     {"name", "urdf", "skin", "base_frame", "tool_frame", "joints", "max_acceleration", "max_jerk", "home",
      "reflex_direction"}
 )
-_OPTIONAL_ROBOT_KEYS: frozenset[str] = frozenset({"elbow_frame", "max_point_speed"})
+_OPTIONAL_ROBOT_KEYS: frozenset[str] = frozenset(
+    {"elbow_frame", "max_point_speed", "reflex_range_deg", "reflex_group", "location", "task", "figure_pads"})
+_TASK_KEYS: frozenset[str] = frozenset({"amplitude_rad", "double_frequency"})
+_LEVELS: tuple[str, ...] = ("pl3", "pl4")
 _PAD_KEYS: frozenset[str] = frozenset({"id", "name", "region", "link", "point", "normal"})
 
 
@@ -135,6 +141,23 @@ class RobotDescription:
     reflex_direction: np.ndarray
     elbow_frame: str | None = None  # the frame whose origin is the elbow (a speed-limited point), if named
     max_point_speed: float = 1.0  # m/s: the fastest any point of the arm moves (a Cartesian limit never exceeds it)
+    # The joint-space reflexes' range q_max per joint, degrees (planner.q_max_deg when the profile gives none).
+    reflex_range_deg: tuple[float, ...] = ()
+    # Per joint, the index in JOINT_GROUPS of the location weight it takes.
+    reflex_group: tuple[int, ...] = ()
+    # The location reflex's weight table: "pl3"/"pl4" -> region -> [w_base, w_shoulder, w_elbow, w_wrist]
+    # (planner.location when the profile gives none).
+    location: dict[str, dict[str, list[float]]] | None = None
+    # The task's figure-eight around home (planner.task.amplitude_rad / double_frequency when the profile gives
+    # none), one per joint.
+    task_amplitude_rad: tuple[float, ...] = ()
+    task_double_frequency: tuple[int, ...] = ()
+    # Three pads on three regions that the figures and the benchmark touch, by name.
+    figure_pads: tuple[str, ...] = ()
+
+    def joint_weights(self, weights: list[float]) -> np.ndarray:
+        """A location weight row [w_base, w_shoulder, w_elbow, w_wrist] as one weight per joint (its group's)."""
+        return np.array([weights[group] for group in self.reflex_group], dtype=float)
 
     def pad(self, key: int | str) -> Pad:
         """Return a pad by id (int) or by name (str); raise ConfigError otherwise."""
@@ -226,6 +249,25 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
     if not skin_path.is_file():
         raise ConfigError(f"{robot_path}: skin file {skin_path} does not exist")
     pads = _load_pads(skin_path, links, urdf_path)
+    _check_pads_on_links(model, pads, skin_path)
+    reflex_range = _vector(doc.get("reflex_range_deg", [0.0] * n), n, robot_path, "reflex_range_deg")
+    if not np.all((reflex_range >= 0.0) & (reflex_range <= 180.0)):
+        raise ConfigError(f"{robot_path}: reflex_range_deg = {reflex_range.tolist()}; expected 0 to 180 deg per joint")
+    group = _groups(doc.get("reflex_group", list(JOINT_GROUPS[:3]) + ["wrist"] * max(0, n - 3)), n, robot_path)
+    location = _location(doc["location"], robot_path, {pad.region for pad in pads}) if "location" in doc else None
+    task = doc.get("task", {})
+    if not isinstance(task, dict):
+        raise ConfigError(f"{robot_path}: task = {task!r}; expected a table [task]")
+    _check_keys(task, frozenset(), _TASK_KEYS, robot_path, "[task]")
+    amplitude = _vector(task.get("amplitude_rad", [0.0] * n), n, robot_path, "task.amplitude_rad")
+    double = _vector(task.get("double_frequency", [0] * n), n, robot_path, "task.double_frequency")
+    if not np.all(np.isin(double, (0.0, 1.0))):
+        raise ConfigError(f"{robot_path}: task.double_frequency = {double.tolist()}; expected 0 or 1 per joint")
+    figure_pads = doc.get("figure_pads", [pad.name for pad in pads[:3]])
+    names = {pad.name for pad in pads}
+    if not isinstance(figure_pads, list) or len(figure_pads) != 3 or any(p not in names for p in figure_pads):
+        raise ConfigError(f"{robot_path}: figure_pads = {figure_pads!r}; expected three of its pads' names "
+                          f"({', '.join(sorted(names))})")
     log.debug("loaded robot %r: %d joints, %d pads", name, n, len(pads))
     return RobotDescription(
         name=name,
@@ -244,7 +286,46 @@ def load_description(path: str | Path | None = None) -> RobotDescription:
         reflex_direction=direction,
         elbow_frame=elbow_frame,
         max_point_speed=float(max_point_speed),
+        reflex_range_deg=tuple(float(v) for v in reflex_range),
+        reflex_group=group,
+        location=location,
+        task_amplitude_rad=tuple(float(v) for v in amplitude),
+        task_double_frequency=tuple(int(v) for v in double),
+        figure_pads=tuple(figure_pads),
     )
+
+
+def _groups(value: Any, n: int, path: Path) -> tuple[int, ...]:
+    if not isinstance(value, list) or len(value) != n or any(v not in JOINT_GROUPS for v in value):
+        raise ConfigError(f"{path}: reflex_group = {value!r}; expected one of {', '.join(JOINT_GROUPS)} per joint "
+                          f"({n} joints)")
+    return tuple(JOINT_GROUPS.index(v) for v in value)
+
+
+def _location(value: Any, path: Path, regions: set[str]) -> dict[str, dict[str, list[float]]]:
+    """The location reflex's table [location.pl3] / [location.pl4]: a row of four weights in [0, 1] per body
+    region, every region of the skin's pads with its row."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path}: location = {value!r}; expected the tables [location.pl3] and [location.pl4]")
+    _check_keys(value, frozenset(_LEVELS), frozenset(_LEVELS), path, "[location]")
+    table: dict[str, dict[str, list[float]]] = {}
+    for level in _LEVELS:
+        rows = value[level]
+        if not isinstance(rows, dict):
+            raise ConfigError(f"{path}: location.{level} = {rows!r}; expected a table of body regions")
+        unknown = sorted(set(rows) - set(REGIONS))
+        missing = sorted(regions - set(rows))
+        if unknown or missing:
+            raise ConfigError(f"{path}: location.{level} has rows {sorted(rows)}; expected one per region of the "
+                              f"skin's pads {sorted(regions)}, each one of {', '.join(REGIONS)}")
+        table[level] = {}
+        for region, row in rows.items():
+            weights = _vector(row, len(JOINT_GROUPS), path, f"location.{level}.{region}")
+            if not np.all((weights >= 0.0) & (weights <= 1.0)):
+                raise ConfigError(f"{path}: location.{level}.{region} = {row!r}; expected four weights in [0, 1] "
+                                  f"[{', '.join(JOINT_GROUPS)}]")
+            table[level][region] = [float(w) for w in weights]
+    return table
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -389,6 +470,42 @@ def _load_pads(skin_path: Path, links: set[str], urdf_path: Path) -> tuple[Pad, 
             "(ids index arrays of pad readings)"
         )
     return tuple(sorted(pads, key=lambda pad: pad.id))
+
+
+# A pad's point is on its link's body: within this distance of the link's skeleton (the segments from the
+# link's origin to the joints and links it carries). The UR10e's farthest pad (elbow_outer, on the elbow
+# housing's lid) is 0.266 m off its link's skeleton: past 0.3 m a point is on another link or a typo.
+MAX_PAD_OFFSET_M = 0.3
+
+
+def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    length2 = float(ab @ ab)
+    t = 0.0 if length2 == 0.0 else min(1.0, max(0.0, float((point - a) @ ab) / length2))
+    return float(np.linalg.norm(point - (a + t * ab)))
+
+
+def _check_pads_on_links(model: pin.Model, pads: tuple[Pad, ...], skin_path: Path) -> None:
+    """Every pad's point within :data:`MAX_PAD_OFFSET_M` of its link's skeleton; else ConfigError naming it."""
+    for pad in pads:
+        frame = model.frames[model.getFrameId(pad.link)]
+        joint = frame.parentJoint
+        # In the frame of the joint that moves the link: the link's origin, the joints it carries and the
+        # links fixed to it.
+        ends = [model.jointPlacements[child].translation for child in range(1, model.njoints)
+                if model.parents[child] == joint]
+        ends += [other.placement.translation for other in model.frames
+                 if other.parentJoint == joint and other.type == pin.FrameType.BODY]
+        origin = frame.placement.translation
+        point = frame.placement.act(pad.point)
+        offset = min([_segment_distance(point, origin, end) for end in ends], default=float(np.linalg.norm(
+            point - origin)))
+        if offset > MAX_PAD_OFFSET_M:
+            raise ConfigError(
+                f"{skin_path}: pad {pad.name!r}: point = {pad.point.tolist()} is {offset:.3f} m from link "
+                f"{pad.link!r} (its origin and the joints it carries); expected at most {MAX_PAD_OFFSET_M} m: "
+                "is the point in the frame of another link, or in mm?"
+            )
 
 
 # --------------------------------------------------------------------------- kinematics

@@ -31,24 +31,30 @@ class TaskSection(Section):
     # UR10e by default) must stay within bridge.limits.speed_m_s.
     period_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 12.0
     # Joint amplitudes of the figure-eight around the home pose, rad, one per
-    # joint: the base swings at the task frequency, shoulder and elbow at twice
-    # it, which draws an eight with the tool. Within the joint limits.
-    amplitude_rad: list[Annotated[float, msgspec.Meta(ge=-math.pi, le=math.pi)]] = msgspec.field(
-        default_factory=lambda: [0.35, 0.10, -0.12, 0.0, 0.0, 0.0])
-    # Twice-frequency joints (1) versus task-frequency joints (0), one per joint.
-    double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = msgspec.field(
-        default_factory=lambda: [0, 1, 1, 0, 0, 0])
+    # joint; empty = the robot's (robot.toml [task]; the UR10e's: the base
+    # swings at the task frequency, shoulder and elbow at twice it, which draws
+    # an eight with the tool). Within the joint limits.
+    amplitude_rad: list[Annotated[float, msgspec.Meta(ge=-math.pi, le=math.pi)]] = []
+    # Twice-frequency joints (1) versus task-frequency joints (0), one per
+    # joint; empty = the robot's.
+    double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = []
     # Time to ease in and out of the task when it resumes or pauses, s.
     ramp_s: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
 
 
 class FigureEight:
-    def __init__(self, cfg: TaskSection, home: np.ndarray) -> None:
-        if len(cfg.amplitude_rad) != len(home):
-            raise ValueError(f"planner.task.amplitude_rad has {len(cfg.amplitude_rad)} joints, the robot {len(home)}")
-        self.home = np.asarray(home, dtype=float)
-        self.amplitude = np.asarray(cfg.amplitude_rad, dtype=float)
-        self.multiple = np.where(np.asarray(cfg.double_frequency) > 0, 2.0, 1.0)
+    def __init__(self, cfg: TaskSection, desc: RobotDescription) -> None:
+        """The figure-eight of ``cfg`` around ``desc``'s home; its amplitudes and frequencies the robot's
+        (robot.toml [task]) where ``cfg`` leaves them empty."""
+        amplitude = cfg.amplitude_rad or list(desc.task_amplitude_rad)
+        double = cfg.double_frequency or list(desc.task_double_frequency)
+        n = len(desc.home)
+        if len(amplitude) != n or len(double) != n:
+            raise ValueError(f"planner.task.amplitude_rad / double_frequency have {len(amplitude)} / {len(double)} "
+                             f"joints, robot {desc.name!r} {n}")
+        self.home = np.asarray(desc.home, dtype=float)
+        self.amplitude = np.asarray(amplitude, dtype=float)
+        self.multiple = np.where(np.asarray(double) > 0, 2.0, 1.0)
         self.omega = 2.0 * np.pi / cfg.period_s
         self.ramp_s = cfg.ramp_s
 
@@ -77,11 +83,11 @@ def check_task(task: TaskSection, desc: RobotDescription, model: RobotModel, q_l
     """The task on robot ``desc`` stays within the joint ranges ``q_lo``..``q_hi`` the bridge enforces, and its
     fastest point within the robot's max_point_speed and ``speed_limit_m_s`` (bridge.limits.speed_m_s); else a
     ConfigError naming the field (the profile's load checks it)."""
-    figure = FigureEight(task, desc.home)
+    figure = FigureEight(task, desc)
     lo, hi = figure.range()
     for i, joint in enumerate(desc.joints):
         if lo[i] < q_lo[i] or hi[i] > q_hi[i]:
-            raise ConfigError(f"planner.task.amplitude_rad[{i}] = {task.amplitude_rad[i]} swings {joint} over "
+            raise ConfigError(f"planner.task.amplitude_rad[{i}] = {figure.amplitude[i]:g} swings {joint} over "
                               f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around home, beyond its limits "
                               f"[{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it")
     peak = peak_point_speed(figure, task.period_s, model)
@@ -91,9 +97,9 @@ def check_task(task: TaskSection, desc: RobotDescription, model: RobotModel, q_l
     ):
         if peak > bound:
             raise ConfigError(
-                f"planner.task.period_s = {task.period_s} s with amplitude_rad = {task.amplitude_rad} moves the task's "
-                f"fastest point at {peak:.3g} m/s, above {name} = {bound} m/s ({why}): lengthen period_s or shrink "
-                "amplitude_rad"
+                f"planner.task.period_s = {task.period_s} s with amplitude_rad = {figure.amplitude.tolist()} moves "
+                f"the task's fastest point at {peak:.3g} m/s, above {name} = {bound} m/s ({why}): lengthen period_s or "
+                "shrink amplitude_rad"
             )
 
 

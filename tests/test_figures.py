@@ -49,7 +49,7 @@ def test_reflex_end_poses_differ_as_the_paper_says():
     desc = load_description()
     model = RobotModel(desc)
     ends = {(s, p): figures.reflex_end_pose(s, desc, model, p)[1] for s in ("uniform", "location")
-            for p in figures.TOUCHES}
+            for p in desc.figure_pads}
     # UR is stereotypical: the same end pose whatever was touched; LR depends on the region.
     np.testing.assert_allclose(ends[("uniform", "upper_arm_top")], ends[("uniform", "wrist_2")], atol=1e-6)
     assert np.abs(ends[("location", "upper_arm_top")] - ends[("location", "wrist_2")]).max() > 0.1
@@ -109,7 +109,7 @@ def test_the_smoothed_cartesian_panel_shows_what_the_smoothing_changed():
         assert len(speed) == 2
         cr, smooth = speed
         assert "dashed: Cartesian (CR)" in smooth.get_title()
-        pink = figures.TOUCH_COLORS[figures.TOUCHES.index("wrist_2")]
+        pink = figures.TOUCH_COLORS[load_description().figure_pads.index("wrist_2")]
 
         def curve(ax, ls: str) -> np.ndarray:
             return next(line.get_ydata() for line in ax.get_lines()

@@ -75,7 +75,7 @@ def forger(put_status: Callable[[m.PlannerStatus], None], put_switch: Callable[[
 def _task_path(profile: Profile) -> tuple[np.ndarray, float]:
     """The task's own path (one period, finely sampled) and its fastest point's speed, m/s (the bridge's figure)."""
     desc = load_description()
-    task = FigureEight(profile.planner.task, desc.home)
+    task = FigureEight(profile.planner.task, desc)
     s = np.linspace(0.0, profile.planner.task.period_s, 2400, endpoint=False)
     limiter = CartesianLimiter(MODEL, Limits.of(profile.bridge.limits, MODEL, "bridge.limits"))
     return np.array([task.position(x) for x in s]), task_peak_speed(task, profile.planner.task.period_s, limiter)

@@ -95,7 +95,7 @@ def stream(hold: tuple[float, float] | None, *, reduced: bool = False, seconds: 
     bridge.on_token(name, True)
     if reduced:
         bridge.on_safety(m.SafetyModeRequest(seq=0, stamp_ns=clock.t_ns, mode="reduced", requested_by="test"))
-    task = FigureEight(profile.planner.task, DESC.home)
+    task = FigureEight(profile.planner.task, DESC)
     period = 1.0 / profile.bridge.rate_hz
     skin = m.SkinPressure(seq=0, stamp_ns=0, absolute_hpa=[1000.0] * 10, baseline_hpa=[1000.0] * 10,
                           change_hpa=[0.0] * 10, contact=[False] * 10, valid=[True] * 10, source="test")

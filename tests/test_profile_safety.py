@@ -32,7 +32,7 @@ from nwr.common.errors import ConfigError
 from nwr.common.recordings import read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.gain.core import continuous_gain, scaled_sigmoid, sigmoid
-from nwr.services.planner.strategies.location import LocationSettings
+from nwr.services.planner.strategies.location import robot_settings
 from nwr.services.profile import check_plugins, kinds, load_profile, loosened_safety
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,6 +42,7 @@ REASON = "bench test without a person in the cell, 2026-11-23, J. Doe"
 
 
 DESC = load_description()
+WEIGHTS = robot_settings(DESC)  # the location reflex's defaults on the default robot: its table
 
 
 def plugin_guards(profile: Profile | None = None) -> list[Guarded]:
@@ -72,7 +73,7 @@ def toml_of(field: str, value: Any) -> str:
     """A profile table that sets the dotted ``field`` to ``value`` (a location-weights row: in its full table)."""
     table, _, key = field.rpartition(".")
     if table.startswith("planner.location."):
-        rows = dict(msgspec.to_builtins(getattr(LocationSettings(), table.rsplit(".", 1)[1])))
+        rows = dict(msgspec.to_builtins(getattr(WEIGHTS, table.rsplit(".", 1)[1])))
         rows[key] = value
         return f"[{table}]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in rows.items())
     return f"[{table}]\n{key} = {toml_value(value)}\n"
@@ -105,7 +106,7 @@ LOOSENED: dict[str, Any] = {
     "planner.uniform.fraction": 0.6,
     **{f"planner.location.{level}.{region}": [min(1.0, w + 0.1) for w in row]
        for level in ("pl3", "pl4")
-       for region, row in getattr(LocationSettings(), level).items()},
+       for region, row in getattr(WEIGHTS, level).items()},
     "planner.v_max_m_s": 0.3,
     "planner.reflex_duration_s": 0.6,
     "planner.speed_fraction": 0.95,
@@ -319,7 +320,7 @@ def test_the_robot_checks_take_the_description_given() -> None:
     desc = load_description()
     check_against_robot(Profile(), desc)
     profile = Profile()
-    profile.planner.q_max_deg = profile.planner.q_max_deg + [0.0]
+    profile.planner.q_max_deg = list(desc.reflex_range_deg) + [0.0]
     with pytest.raises(ConfigError, match=r"planner.q_max_deg has 7 values"):
         check_against_robot(profile, desc)
 
@@ -430,6 +431,8 @@ def _fields() -> dict[str, tuple[Any, str]]:
             if field.name == "plugins":  # the plug-ins' tables: each one's Settings below
                 continue
             name, t, value = f"{prefix}{field.name}", field.type, getattr(default, field.name)
+            if name in config.ROBOT_HELD:  # documented as the default robot's value
+                value = config.robot_default(DEFAULT, name)
             if isinstance(t, mi.StructType):
                 walk(f"{name}.", t, value)
             elif isinstance(t, mi.DictType) and isinstance(t.value_type, mi.StructType):
@@ -452,7 +455,8 @@ def _fields() -> dict[str, tuple[Any, str]]:
             cls = kind.settings_class(plugin)
             settings = mi.type_info(cls)
             assert isinstance(settings, mi.StructType)
-            walk(f"{kind.section}.{plugin}.", settings, cls())
+            robot = getattr(kind.declared(plugin), "robot_settings", None)  # its defaults: the robot's
+            walk(f"{kind.section}.{plugin}.", settings, robot(DESC) if robot else cls())
     return found
 
 
@@ -541,7 +545,7 @@ def test_a_profile_written_before_the_plug_in_tables_loads_as_its_current_form(t
     assert old.safety.acknowledge == ["bridge.ur_rtde.watchdog_hz", "planner.whole-arm.duration_s"]
     assert old.planner.plugins["uniform"]["fraction"] == 0.4
     assert old.planner.plugins["location"]["pl3"]["shoulder"] == [0.1, 0.8, 0.6, 0.0]
-    assert old.planner.plugins["location"]["pl4"]["wrist"] == [0.0, 0.6, 0.8, 1.0]  # the rest: its defaults
+    assert old.planner.plugins["location"]["pl4"] == {}  # the rest: its default, the robot's table
     # a session's journaled profile (JSON, as a recording keeps it) decodes the same, either form
     journaled = json.loads(msgspec.json.encode(new))
     assert config.decode_profile(journaled, "journal") == new

@@ -478,5 +478,89 @@ def test_a_packaged_robot_is_named_by_its_folder() -> None:
     assert "ur10e" in packaged_robots()
     assert resolve_description("ur10e") == resolve_description(None) == ROBOTS_DIR / "ur10e" / "robot.toml"
     assert load_description("ur10e").name == load_description().name == "ur10e"
-    with pytest.raises(ConfigError, match=r"robot.description = 'ur11' is no packaged robot \(ur10e"):
+    with pytest.raises(ConfigError, match=r"robot.description = 'ur11' is no packaged robot \(fr3, ur10e\)"):
         load_description("ur11")
+
+
+# ---------------------------------------------------------------- every packaged robot; the FR3's data
+
+
+@pytest.mark.parametrize("name", ["ur10e", "fr3"])
+def test_every_packaged_robot_loads_with_its_pads_on_its_links(name: str) -> None:
+    from nwr.common.robot import packaged_robots
+
+    assert name in packaged_robots()
+    desc = load_description(name)
+    model = RobotModel(desc)
+    n = len(desc.joints)
+    assert len(desc.reflex_range_deg) == len(desc.reflex_group) == len(desc.task_amplitude_rad) == n
+    assert len(desc.pads) == 10 and {pad.region for pad in desc.pads} == set(REGIONS)
+    assert desc.location is not None and set(desc.location["pl4"]) == set(REGIONS)
+    skeleton = model.joint_positions(desc.home)
+    points, normals = model.pad_points(desc.home), model.pad_normals(desc.home)
+    for pad in desc.pads:  # on the arm's surface, facing away from its chain
+        distance = segment_distance(points[pad.id], skeleton)
+        assert 0.04 <= distance <= 0.3, f"{name}: pad {pad.name} is {distance:.3f} m from the chain"
+        assert segment_distance(points[pad.id] + 0.005 * normals[pad.id], skeleton) > distance, pad.name
+
+
+def test_the_fr3s_limits_are_frankas_published_ones() -> None:
+    desc = load_description("fr3")
+    np.testing.assert_array_equal(desc.q_min, [-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159])
+    np.testing.assert_array_equal(desc.q_max, [2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159])
+    np.testing.assert_array_equal(desc.v_max, [2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26])
+    np.testing.assert_array_equal(desc.a_max, [10.0] * 7)
+    np.testing.assert_array_equal(desc.j_max, [5000.0] * 7)
+    # The uniform reflex draws the flange in toward the base axis, as the UR10e's does.
+    model = RobotModel(desc)
+    q = np.clip(desc.home + desc.reflex_direction * np.radians(desc.reflex_range_deg) / 2, desc.q_min, desc.q_max)
+    assert np.hypot(*model.tool_position(q)[:2]) < np.hypot(*model.tool_position(desc.home)[:2]) - 0.05
+
+
+def copy_fr3(tmp_path: Path) -> Path:
+    target = tmp_path / "fr3"
+    shutil.copytree(PACKAGE_DIR.parent / "fr3", target)
+    return target
+
+
+@pytest.mark.parametrize(
+    ("file", "old", "new", "expected"),
+    [
+        pytest.param("skin.toml", "point = [0.07, 0.0, 0.077]", "point = [70.0, 0.0, 77.0]",
+                     ["skin.toml", "wrist_flange", "m from link 'link7'", "at most 0.3 m"], id="pad-off-its-link"),
+        pytest.param("skin.toml", 'link = "link7"', 'link = "link9"', ["wrist_flange", "'link9'", "link7"],
+                     id="pad-on-no-link"),
+        pytest.param("skin.toml", "normal = [-0.70710678, -0.70710678, 0.0]", "normal = [-0.7, -0.7, 0.0]",
+                     ["elbow_outer", "unit vector"], id="non-unit-normal"),
+        pytest.param("robot.toml", '"joint6", "joint7"]', '"joint6"]', ["joints", "chain order", "joint7"],
+                     id="joints-not-the-urdfs"),
+        pytest.param("robot.toml", 'tool_frame = "link8"', 'tool_frame = "flange"',
+                     ["tool_frame = 'flange'", "not a frame of fr3.urdf"], id="frame-not-the-urdfs"),
+        pytest.param("robot.toml", "max_jerk = [5000.0, 5000.0, 5000.0, 5000.0, 5000.0, 5000.0, 5000.0]",
+                     "max_jerk = [5000.0, 5000.0, 5000.0, 5000.0, 5000.0, 5000.0]", ["max_jerk", "list of 7"],
+                     id="limits-for-six-joints"),
+        pytest.param("robot.toml", "home = [0.0, -0.7854, 0.0, -2.3562, 0.0, 1.5708, 0.7854]",
+                     "home = [0.0, -0.7854, 0.0, 0.0, 0.0, 1.5708, 0.7854]", ["home is outside", "joint4 = 0.0"],
+                     id="home-outside-the-limits"),
+        pytest.param("robot.toml", '"elbow", "wrist", "wrist"]', '"elbow", "hand", "wrist"]',
+                     ["reflex_group", "base, shoulder, elbow, wrist"], id="unknown-joint-group"),
+        pytest.param("robot.toml", "reflex_range_deg = [40.0, 70.0, 0.0, 146.0, 0.0, 73.0, 0.0]",
+                     "reflex_range_deg = [40.0, 70.0, 0.0, 246.0, 0.0, 73.0, 0.0]", ["reflex_range_deg", "0 to 180"],
+                     id="reflex-range-past-180"),
+        pytest.param("robot.toml", "wrist = [0.0, 0.3, 0.6, 0.8]\n", "",
+                     ["location.pl3", "'wrist'"], id="location-row-missing"),
+        pytest.param("robot.toml", "double_frequency = [0, 1, 0, 1, 0, 0, 0]",
+                     "double_frequency = [0, 2, 0, 1, 0, 0, 0]", ["task.double_frequency", "0 or 1"],
+                     id="task-frequency-not-0-or-1"),
+    ],
+)
+def test_a_broken_fr3_description_raises_a_helpful_config_error(
+    tmp_path: Path, file: str, old: str, new: str, expected: list[str]
+) -> None:
+    copy = copy_fr3(tmp_path)
+    edit(copy / file, old, new)
+    with pytest.raises(ConfigError) as error:
+        load_description(copy / "robot.toml")
+    message = str(error.value)
+    for fragment in expected:
+        assert fragment in message, f"{fragment!r} missing from: {message}"

@@ -212,7 +212,7 @@ def test_a_takeover_mid_reflex_returns_where_it_saw_the_arm_leave_the_task():
 
 
 def test_the_task_time_at_a_pose_tells_the_eight_s_crossing_apart():
-    task = FigureEight(PlannerSection().task, DESC.home)
+    task = FigureEight(PlannerSection().task, DESC)
     period = PlannerSection().task.period_s
     for s0 in (0.0, period / 2, 1.3, 7.9):  # home twice a period: the direction of motion tells which
         q, dq = task.position(s0), task.velocity(s0)

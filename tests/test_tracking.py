@@ -162,7 +162,7 @@ def test_a_withdrawal_stream_is_followed_closely_within_the_jerk_limit(profile: 
     last 10 % of the jerk limit to correct with), at rest where it ends, its onset a cycle after the command's."""
     run = bench.BridgeRun(profile, None)
     env = run.bridge.env
-    task = FigureEight(profile.planner.task, DESC.home)
+    task = FigureEight(profile.planner.task, DESC)
     ahead = profile.planner.task_ahead_cycles
     ddqs, errors = [], []
     for k in range(300):

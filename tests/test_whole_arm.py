@@ -35,7 +35,7 @@ from nwr.services.planner.strategies.whole_arm import (
 DESC = load_description()
 MODEL = RobotModel(DESC)
 NAMES = [pad.name for pad in DESC.pads]
-TASK = FigureEight(TaskSection(), DESC.home)
+TASK = FigureEight(TaskSection(), DESC)
 POSES = {"home": DESC.home.copy(), "lap 1/4": TASK.position(3.0), "lap 5/8": TASK.position(7.5)}
 GAINS = (0.175, 0.58, 1.0)  # the survey script's 9, 15 and 25 hPa
 # Pads whose joints move them along their normals with nothing coming toward the contact: they withdraw

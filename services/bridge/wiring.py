@@ -108,7 +108,7 @@ class BridgeWiring(Wiring):
         self.diag = diag
         limiter = CartesianLimiter(model, Limits.of(cfg.limits, model, "bridge.limits"), a_max=env.a_max,
                                    j_max=env.j_max)
-        task = FigureEight(profile.planner.task, desc.home)
+        task = FigureEight(profile.planner.task, desc)
         journal.begin("start")
         self.core = BridgeCore(
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,

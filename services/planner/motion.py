@@ -76,7 +76,7 @@ class Motion:
         n = len(desc.joints)
         self.v_limit = cfg.speed_fraction * desc.v_max
         self.a_limit = cfg.speed_fraction * desc.a_max
-        self.task = FigureEight(cfg.task, desc.home)
+        self.task = FigureEight(cfg.task, desc)
         self.clock = TaskClock(cfg.task.ramp_s)
         self.model = model
         self.strategy = strategies.build(cfg, desc, model, self.v_limit)

@@ -71,9 +71,10 @@ class JointReflex(ReflexStrategy):
     def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
         super().__init__(cfg, desc, model, v_limit)
         n = len(desc.joints)
-        if len(cfg.q_max_deg) != n:
-            raise ConfigError(f"planner.q_max_deg has {len(cfg.q_max_deg)} values, the robot has {n} joints")
-        self.q_max = np.radians(cfg.q_max_deg)
+        q_max_deg = cfg.q_max_deg or list(desc.reflex_range_deg)  # empty: the robot's (robot.toml)
+        if len(q_max_deg) != n:
+            raise ConfigError(f"planner.q_max_deg has {len(q_max_deg)} values, the robot has {n} joints")
+        self.q_max = np.radians(q_max_deg)
         self.sign = desc.reflex_direction
         self.q_min, self.q_lim = desc.q_min + JOINT_MARGIN_RAD, desc.q_max - JOINT_MARGIN_RAD
         self.guarded = cfg.guarded

@@ -83,13 +83,13 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
     from nwr.common.robot import load_description
     from nwr.services.bridge.backends import KIND
     from nwr.services.worlds.hosted import check_script
-    from nwr.services.worlds.physics import PhysicsSettings
+    from nwr.services.worlds.settings import PhysicsSettings
 
     script = getattr(args, "script", None) or sim_settings(profile.gateway).script
     if script:
         desc = load_description(profile.robot.description or None)
         q0 = profile.bridge.initial_q or desc.home
-        check_script(load_script(script), KIND.settings(profile.bridge, "physics", PhysicsSettings), desc,
+        check_script(load_script(script, profile.robot.description), KIND.settings(profile.bridge, "physics", PhysicsSettings), desc,
                      np.asarray(q0, dtype=float))
     return world
 
@@ -144,7 +144,7 @@ def run_demo(args: argparse.Namespace) -> int:
     if args.fast:
         return run_demo_fast(args)
     profile = profile_for(args)
-    load_script(args.script)
+    load_script(args.script, profile.robot.description)
     recording = None if args.no_record else output_path(args, profile)
     layout = layout_for(args, profile, recording)
     code = supervisor.launch(layout, profile, args.profile, args.log_level, until_script_end=True,

@@ -38,8 +38,8 @@ from nwr.services.tools.recordings.analysis import contact_motion
 
 CONTINUOUS_COLOR = "#d62728"
 DISCRETE_COLOR = "#1f77b4"
-TOUCHES = ("upper_arm_top", "forearm_top", "wrist_2")  # one pad on each of three regions
-TOUCH_COLORS = ("#2ca02c", "#9467bd", "#e377c2")  # upper arm green, forearm purple, wrist pink (as the paper)
+TOUCH_COLORS = ("#2ca02c", "#9467bd", "#e377c2")  # the robot's figure_pads: upper arm green, forearm purple, wrist
+# pink (as the paper)
 
 
 def _pyplot() -> Any:
@@ -155,10 +155,10 @@ class ReflexRun:
 def reflex_runs(strategies: tuple[str, ...], desc: RobotDescription, model: RobotModel,
                 cfg: PlannerSection | None = None, limits: CartesianLimits | None = None
                 ) -> dict[tuple[str, str], ReflexRun]:
-    """Every strategy's reflex on every pad of ``TOUCHES``, keyed (strategy, pad)."""
+    """Every strategy's reflex on each of the robot's figure pads (robot.toml figure_pads), keyed (strategy, pad)."""
     runs = {}
     for strategy in strategies:
-        for pad in TOUCHES:
+        for pad in desc.figure_pads:
             t, poses = reflex_motion(strategy, desc, model, pad, cfg, limits)
             away, _, _ = contact_motion(model, poses, desc.pad(pad).id, poses[0])
             runs[(strategy, pad)] = ReflexRun(t, poses, 1e3 * away, np.gradient(away, t))
@@ -190,6 +190,7 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
     withdrawal along its normal and its speed over time."""
     desc = load_description()
     model = RobotModel(desc)
+    touches = desc.figure_pads
     runs = reflex_runs(strategies, desc, model, cfg, limits)
     plt = _pyplot()
     fig = plt.figure(figsize=(4.0 * len(strategies), 9.4), dpi=130, layout="constrained")
@@ -197,8 +198,8 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
     rows: tuple[list[Any], list[Any]] = ([], [])  # the withdrawal and the speed panels, left to right
     for i, strategy in enumerate(strategies):
         ax = fig.add_subplot(grid[0, i], projection="3d")
-        start = runs[(strategy, TOUCHES[0])].poses[0]
-        ends = [runs[(strategy, pad)].poses[-1] for pad in TOUCHES]
+        start = runs[(strategy, touches[0])].poses[0]
+        ends = [runs[(strategy, pad)].poses[-1] for pad in touches]
         for group in coinciding(ends):
             for k, touch in enumerate(group):  # poses drawn on one another: interleaved dashes, every colour shows
                 if len(group) == 1:
@@ -207,15 +208,15 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
                     lw = 3.0
                     ls = (k * STRIPE / lw, (STRIPE / lw, (len(group) - 1) * STRIPE / lw))
                     _draw_arm(ax, model, ends[touch], TOUCH_COLORS[touch], lw, 1.0, ls)
-        for pad, color in zip(TOUCHES, TOUCH_COLORS):
+        for pad, color in zip(touches, TOUCH_COLORS):
             point, normal = model.pad_point(start, desc.pad(pad).id), model.pad_normal(start, desc.pad(pad).id)
             ax.scatter(*point, s=60, facecolors="none", edgecolors=color, linewidths=2)
             ax.quiver(*point, *(0.15 * normal), color=color, arrow_length_ratio=0.3)
         _draw_arm(ax, model, start, "0.55", 3.5)
         same = [g for g in coinciding(ends) if len(g) > 1]
         if same:
-            which = "all three touches" if len(same[0]) == len(TOUCHES) else \
-                " and ".join(TOUCHES[k] for k in same[0])
+            which = "all three touches" if len(same[0]) == len(touches) else \
+                " and ".join(touches[k] for k in same[0])
             ax.text2D(0.5, 0.97, f"{which}: the same end pose\n(drawn striped in their colours)",
                       transform=ax.transAxes, ha="center", va="top", fontsize=9, fontweight="bold",
                       bbox={"boxstyle": "round", "fc": "#fff8dc", "ec": "0.6"})
@@ -238,11 +239,11 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
         rows[1].append(ax_v)
         reference = REFERENCE.get(strategy)
         if reference in strategies:
-            for pad, color in zip(TOUCHES, TOUCH_COLORS):
+            for pad, color in zip(touches, TOUCH_COLORS):
                 run = runs[(reference, pad)]
                 ax_d.plot(run.t, run.away_mm, "--", color=color, lw=1.0, alpha=0.7)
                 ax_v.plot(run.t, run.speed_m_s, "--", color=color, lw=1.0, alpha=0.7)
-        for pad, color in zip(TOUCHES, TOUCH_COLORS):
+        for pad, color in zip(touches, TOUCH_COLORS):
             run = runs[(strategy, pad)]
             ax_d.plot(run.t, run.away_mm, color=color, lw=1.8)
             ax_v.plot(run.t, run.speed_m_s, color=color, lw=1.8)
@@ -264,7 +265,7 @@ def draw_reflexes(strategies: tuple[str, ...] = strategy_names(), cfg: PlannerSe
         for axis in row:
             axis.axhspan(axis.get_ylim()[0], 0.0, color="#d62728", alpha=0.07, lw=0)
     handles = [plt.Line2D([], [], color="0.55", lw=3.5, label="initial pose")]
-    handles += [plt.Line2D([], [], color=c, lw=2, label=f"touch on {p}") for p, c in zip(TOUCHES, TOUCH_COLORS)]
+    handles += [plt.Line2D([], [], color=c, lw=2, label=f"touch on {p}") for p, c in zip(touches, TOUCH_COLORS)]
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=9)
     fig.suptitle("Each reflex for G(p) = 1 from the same pose: its end pose (circles: touch points, arrows: pad "
                  "normals) and how the touched pad withdraws", fontsize=11)

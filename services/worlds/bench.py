@@ -26,7 +26,7 @@ def measure(timestep_s: float, parts: int, seconds: float) -> float:
     world = PhysicsWorld(desc, PhysicsSettings(timestep_s=timestep_s))
     for index, (pad, kind, force) in enumerate(_PRESSES[:parts]):
         world.press(f"{kind}{index}", pad, force, kind=kind)  # type: ignore[arg-type]
-    task = FigureEight(TaskSection(), desc.home)
+    task = FigureEight(TaskSection(), desc)
     steps = round(seconds / timestep_s)
     commands = [task.position((i + 1) * timestep_s) for i in range(steps)]
     start = time.perf_counter()

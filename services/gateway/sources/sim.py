@@ -42,7 +42,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         cfg = profile.gateway = with_sim(cfg, closed_loop=True)
     sim = sim_settings(cfg)
     script_name = args.script or sim.script
-    script = load_script(script_name) if script_name else None
+    script = load_script(script_name, profile.robot.description) if script_name else None
     lock = threading.Lock()  # the state handler, the loop and the journal's batches
     with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway",
               door=Door.of(profile), exclusive=True) as node:

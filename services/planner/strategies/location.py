@@ -1,6 +1,7 @@
 """Location-dependent reflex (LR) of the paper: q_ref = G(p) W(PL, region) q_max.
 
-W = diag(w_b, w_s, w_e, w_w, w_w, w_w): the weights are the paper's Table II (``[planner.location]``), one
+W = diag(w per joint, its group's: on the UR10e w_b, w_s, w_e, w_w, w_w, w_w): the weights are the robot's
+table (robot.toml [location]; the UR10e's is the paper's Table II) or the profile's ``[planner.location]``, one
 table per pain level 3 and 4 (PL 1-2: no motion); the displacement is added
 to the pose as every joint-space reflex's
 (:class:`~nwr.services.planner.reflexes.JointReflex`).
@@ -28,32 +29,42 @@ if TYPE_CHECKING:
 Weights = Annotated[list[Annotated[float, msgspec.Meta(ge=0, le=1)]], msgspec.Meta(min_length=4, max_length=4)]
 
 
-def _w(*rows: list[float]) -> dict[str, list[float]]:
-    return dict(zip(REGIONS, rows))
-
-
 class LocationSettings(Section):
     """``[planner.location]``: the weights W."""
 
-    # The paper's Table II: [w_base, w_shoulder, w_elbow, w_wrist] per body
-    # region, for pain level 3 and 4 (PL 1-2: all zero, no motion). The wrist
-    # weight applies to all three wrist joints. Every region of the robot's
+    # [w_base, w_shoulder, w_elbow, w_wrist] per body region, for pain level 3
+    # and 4 (PL 1-2: all zero, no motion); empty = the robot's table
+    # (robot.toml [location]: the UR10e's is the paper's Table II). A joint
+    # takes its group's weight (robot.toml reflex_group: the UR10e's wrist
+    # weight applies to all three wrist joints). Every region of the robot's
     # pads needs its row.
-    pl3: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
-        [0.2, 0.8, 0.6, 0.0], [0.2, 0.8, 0.6, 0.0], [0.0, 0.6, 0.8, 0.2], [0.0, 0.6, 0.8, 0.2], [0.0, 0.3, 0.6, 0.8]))
-    pl4: dict[str, Weights] = msgspec.field(default_factory=lambda: _w(
-        [0.5, 1.0, 0.7, 0.1], [0.5, 1.0, 0.7, 0.1], [0.0, 0.8, 1.0, 0.4], [0.0, 0.8, 1.0, 0.4], [0.0, 0.6, 0.8, 1.0]))
+    pl3: dict[str, Weights] = {}
+    pl4: dict[str, Weights] = {}
+
+
+def robot_settings(desc: RobotDescription) -> LocationSettings:
+    """The robot's own table (robot.toml [location]) as the strategy's settings: the defaults on that robot."""
+    table = desc.location or {}
+    return LocationSettings(pl3=dict(table.get("pl3", {})), pl4=dict(table.get("pl4", {})))
+
+
+def resolved(weights: LocationSettings, desc: RobotDescription) -> LocationSettings:
+    """The profile's table, each level the robot's where the profile leaves it empty."""
+    own = robot_settings(desc)
+    return LocationSettings(pl3=weights.pl3 or own.pl3, pl4=weights.pl4 or own.pl4)
 
 
 class Location(JointReflex):
     name = "location"
     rank = 20
     Settings = LocationSettings
+    robot_settings = staticmethod(robot_settings)
     GUARDS = {f"{level}.{region}": Guard("above") for level in ("pl3", "pl4") for region in REGIONS}
 
     @staticmethod
     def check_settings(weights: LocationSettings, profile: Profile | None, desc: RobotDescription) -> None:
         """Every row a body region's, every region of the robot's pads with its row."""
+        weights = resolved(weights, desc)
         regions = sorted({pad.region for pad in desc.pads})
         for level in ("pl3", "pl4"):
             table = getattr(weights, level)
@@ -68,9 +79,8 @@ class Location(JointReflex):
 
     def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
         super().__init__(cfg, desc, model, v_limit)
-        n = len(desc.joints)
         self.weights: dict[int, dict[str, np.ndarray]] = {}
-        weights = KIND.settings(cfg, self.name, LocationSettings)
+        weights = resolved(KIND.settings(cfg, self.name, LocationSettings), desc)
         for level, table in ((3, weights.pl3), (4, weights.pl4)):
             self.weights[level] = {}
             for region, w in table.items():
@@ -79,8 +89,8 @@ class Location(JointReflex):
                         f"planner.location.pl{level}.{region} must be four weights in [0, 1] "
                         f"[base, shoulder, elbow, wrist], got {w}"
                     )
-                # One weight per base, shoulder, elbow; the wrist's for every wrist joint.
-                self.weights[level][region] = np.array([w[0], w[1], w[2]] + [w[3]] * (n - 3))
+                # One weight per joint: its group's (robot.toml reflex_group).
+                self.weights[level][region] = desc.joint_weights(w)
 
     def displacement(self, contact: m.Contact) -> np.ndarray:
         table = self.weights.get(contact.level)

@@ -86,7 +86,7 @@ def run(profile: Profile, print_row: Callable[[dict[str, Any]], None] = lambda _
     """One row per strategy (the baseline first): cycles timed, per-cycle and onset figures, us."""
     desc = load_description(profile.robot.description or None)
     model = RobotModel(desc)
-    task = FigureEight(profile.planner.task, desc.home)
+    task = FigureEight(profile.planner.task, desc)
     chosen = names or strategies.names()
     order = (BASELINE, *[s for s in chosen if s != BASELINE])
     cycles: dict[str, list[int]] = {s: [] for s in order}

@@ -63,7 +63,6 @@ from nwr.services.wiring import no_diag
 
 ONSET_MM = 1.0
 QUIET_S = 12.0  # the touch-free session
-ONSET_PAD = "forearm_top"
 WITHDRAWAL_M_S = 0.25  # the velocity reflex's pad speed
 WITHDRAWAL_M = 0.03  # how far the position reflex withdraws the pad
 PLANNER_FRACTION = 0.9  # of the envelope, as the planner plans its reflexes
@@ -221,7 +220,7 @@ def measure(profile: Profile, script: TouchScript, label: str, *, strategy: str 
     assert limiter is not None
     ddq = np.array(probe.ddq)
     h = np.array(probe.h)[1:, None]
-    task = FigureEight(chain.profile.planner.task, _description(profile).home)
+    task = FigureEight(chain.profile.planner.task, _description(profile))
     return Figures(
         label, cycles=len(probe.h), jerk=np.abs(np.diff(ddq, axis=0)) / h / env.j_max, acc=np.abs(ddq) / env.a_max,
         task=np.array(probe.task, dtype=bool), error=np.array(probe.error), track_ns=probe.track_ns,
@@ -298,7 +297,7 @@ def onset(profile: Profile, kind: str, *, tracker: type | None = None, at_s: flo
     model = RobotModel(desc)
     run = BridgeRun(profile, tracker)
     env = run.bridge.env
-    task = FigureEight(profile.planner.task, desc.home)
+    task = FigureEight(profile.planner.task, desc)
     dt = run.period_ns / 1e9
     ahead = profile.planner.task_ahead_cycles
     start = round(at_s / dt)
@@ -308,7 +307,7 @@ def onset(profile: Profile, kind: str, *, tracker: type | None = None, at_s: flo
                                   ahead=[task.position((k + i) * dt).tolist() for i in range(1, ahead + 1)]))
         else:
             run.cycle()
-    pad = desc.pad(ONSET_PAD).id
+    pad = desc.pad(desc.figure_pads[1]).id  # the forearm pad of the figures (the UR10e's forearm_top)
     q0, v0 = task.position((start - 1) * dt), task.velocity((start - 1) * dt)  # where the last cycle left it
     inward = -model.pad_normal(q0, pad)
     jacobian = model.pad_jacobian(q0, pad)[:3]

@@ -201,7 +201,7 @@ def simulate(profile: Profile, script_name: str, strategy: str, output: Path) ->
     from nwr.services.gateway.stepped import SimulatedSkin
 
     desc = load_description(profile.robot.description or None)
-    source = SimulatedSkin(profile, load_script(script_name), RobotModel(desc))
+    source = SimulatedSkin(profile, load_script(script_name, profile.robot.description), RobotModel(desc))
     labels = {"simulated": "lockstep", "script": script_name,
               "closed_loop": str(sim_settings(profile.gateway).closed_loop).lower(),
               "world": "physics" if profile.bridge.backend == "physics" else "scripted"}

@@ -117,7 +117,7 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
     from nwr.services.gain.core import GainEstimator
 
     estimator = GainEstimator(profile.gain, desc.pads)
-    script = load_script(script_name)
+    script = load_script(script_name, profile.robot.description)
     mismatches: list[str] = []
     differences: list[str] = []
     for touch in script.touch:
