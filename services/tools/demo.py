@@ -89,8 +89,8 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
     if script:
         desc = load_description(profile.robot.description or None)
         q0 = profile.bridge.initial_q or desc.home
-        check_script(load_script(script, profile.robot.description), KIND.settings(profile.bridge, "physics", PhysicsSettings), desc,
-                     np.asarray(q0, dtype=float))
+        check_script(load_script(script, profile.robot.description),
+                     KIND.settings(profile.bridge, "physics", PhysicsSettings), desc, np.asarray(q0, dtype=float))
     return world
 
 
