@@ -464,6 +464,63 @@ def test_the_study_table_carries_each_blocks_measured_figures(cartesian_session,
                                                                              quality.back_past)
     ur = next(r for r in rows if r["condition"] == "uniform")
     assert ur["recording_problem"] == "missing" and ur["touches"] is None and ur["item_animacy_1"] is not None
+    # The bridge during the block: the lockstep session rejected nothing and never stopped the arm.
+    assert (cr["commands_rejected"], cr["arm_stops"], cr["degraded"]) == (0, 0, False)
+    assert (ur["commands_rejected"], ur["degraded"]) == (None, None)
+
+
+def _state(status: str, rejected: int) -> object:
+    from nwr.common import messages as m
+
+    return m.RobotState(seq=0, stamp_ns=0, q=[0.0] * 6, dq=[0.0] * 6, status=status, owner="a", backend="sim",
+                        rejected=rejected)
+
+
+def test_a_block_whose_bridge_rejected_commands_or_stopped_the_arm_is_degraded():
+    from nwr.services.tools.recordings import analysis
+
+    # The recording starts after the bridge: its rejections are counted from the first state's count; a stop is
+    # a change from following commands to a status that stops the arm (the start's idle and the end's stop not).
+    states = [_state(s, n) for s, n in [("idle", 5), ("ok", 5), ("ok", 5), ("stale_skin", 5), ("ok", 5),
+                                        ("ok", 12), ("planner_lost", 12), ("stale_skin", 12), ("ok", 12),
+                                        ("stopped", 12)]]
+    health = analysis.bridge_health(states)
+    assert (health.rejected, health.stops, health.degraded) == (7, {"stale_skin": 1, "planner_lost": 1}, True)
+    assert health.describe() == "7 commands rejected, 1 x planner_lost, 1 x stale_skin"
+    quiet = analysis.bridge_health([_state("idle", 3), _state("ok", 3), _state("stopped", 3)])
+    assert not quiet.degraded and quiet.describe() == "none" and not analysis.bridge_health([]).degraded
+    # The session's end: the skin stops first and the bridge holds the arm to the end of the recording; a
+    # protective stop there is still one.
+    ending = analysis.bridge_health([_state("ok", 0), _state("stale_skin", 0), _state("stale_skin", 0)])
+    assert not ending.degraded
+    fault = analysis.bridge_health([_state("ok", 0), _state("protective_stop", 0), _state("stale_skin", 0)])
+    assert fault.stops == {"protective_stop": 1}
+
+
+def test_degraded_blocks_are_listed_and_can_be_left_out_of_the_tests(tmp_path, monkeypatch):
+    from nwr.services.tools.recordings import analysis
+
+    path = tmp_path / "study.sqlite"
+    forms = condition_forms(Q, np.random.default_rng(7), 4, {"cartesian": 1.0})
+    with Store(path) as store:
+        for form in forms:
+            store.submit(form)
+    bad = next(f for f in forms if f.participant == "P02" and f.condition == "location")
+
+    def measured(blocks, root, desc):
+        return [sa.BlockMeasures(p, b, c, r, health=analysis.BridgeHealth(
+            40 if (p, b) == (bad.participant, bad.block) else 0, {})) for p, b, c, r in blocks]
+
+    monkeypatch.setattr(sa, "measure_blocks", measured)
+    kept, report, _, tables = sa.run(path, tmp_path / "all", desc=lambda: None)
+    assert kept.complete == ["P01", "P02", "P03", "P04"]
+    text = report.read_text(encoding="utf-8")
+    assert "Degraded blocks" in text and f"P02 block {bad.block}: 40 commands rejected" in text
+    with open(tables[0], encoding="utf-8") as f:
+        flags = {(r["participant"], r["block"]): r["degraded"] for r in csv.DictReader(f)}
+    assert flags[("P02", str(bad.block))] == "true" and list(flags.values()).count("true") == 1
+    left, _, _, _ = sa.run(path, tmp_path / "without", desc=lambda: None, exclude_degraded=True)
+    assert left.complete == ["P01", "P03", "P04"] and "P02" in left.excluded
 
 
 # -- participant data stays out of git ----------------------------------------------------

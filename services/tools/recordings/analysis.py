@@ -341,6 +341,48 @@ def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray
     touch.past_after_mm = 1e3 * past
 
 
+# The bridge's statuses that stop the arm's motion (RobotStatus): a block during which the bridge went from
+# following commands ("ok") to one of these was degraded, whatever its reflexes looked like.
+ARM_STOPS = frozenset({"stale_command", "stale_skin", "planner_lost", "protective_stop", "emergency_stop",
+                       "script_not_running", "disconnected", "state_implausible"})
+
+
+@dataclass(frozen=True)
+class BridgeHealth:
+    """What the bridge refused or stopped for during a recording, from its robot states: the commands it
+    rejected (its own count, the last state's less the first's) and each time it went from following
+    commands to a status that stops the arm (:data:`ARM_STOPS`), by status."""
+
+    rejected: int
+    stops: dict[str, int]
+
+    @property
+    def degraded(self) -> bool:
+        return self.rejected > 0 or bool(self.stops)
+
+    def describe(self) -> str:
+        parts = [f"{self.rejected} commands rejected"] if self.rejected else []
+        parts += [f"{n} x {status}" for status, n in sorted(self.stops.items())]
+        return ", ".join(parts) or "none"
+
+
+# A recording ends as its pipeline stops: the skin, the planner or its commands go first, and the bridge holds
+# the arm for that. A stop of these kinds that lasts to the end of the recording is that ending, not a fault.
+SESSION_END = frozenset({"stale_skin", "stale_command", "planner_lost"})
+
+
+def bridge_health(states: list[m.RobotState]) -> BridgeHealth:
+    """The recording's :class:`BridgeHealth` from its robot states (in time order)."""
+    if not states:
+        return BridgeHealth(0, {})
+    last_ok = max((i for i, s in enumerate(states) if s.status == "ok"), default=-1)
+    stops: dict[str, int] = {}
+    for i, (before, after) in enumerate(zip(states, states[1:])):
+        if before.status == "ok" and after.status in ARM_STOPS and not (i >= last_ok and after.status in SESSION_END):
+            stops[after.status] = stops.get(after.status, 0) + 1
+    return BridgeHealth(max(0, states[-1].rejected - states[0].rejected), stops)
+
+
 @dataclass
 class Quality:
     """How one strategy's reflexes did over a session's touches (those that started a reflex)."""

@@ -342,6 +342,13 @@ class BlockMeasures:
     recording: str  # relative to the store's folder
     touches: list[Any] = field(default_factory=list)  # TouchSummary, every touch of the block
     problem: str = ""  # "": read; else "missing" or "unreadable (why)"
+    health: Any = None  # analysis.BridgeHealth: commands the bridge rejected, arm stops (None: not read)
+
+    @property
+    def degraded(self) -> bool:
+        """Whether the bridge rejected commands or stopped the arm during the block (its reflexes and task
+        were not what the participant would otherwise have met)."""
+        return self.health is not None and self.health.degraded
 
     @property
     def reflexes(self) -> list[Any]:
@@ -357,6 +364,7 @@ class ConditionMeasures:
     withdrawal_mm: list[float] = field(default_factory=list)
     peak_m_s: list[float] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)  # "P03 block 2: ... is missing"
+    degraded: list[str] = field(default_factory=list)  # "P03 block 2: 12 commands rejected, 1 x stale_skin"
 
 
 def measure_blocks(blocks: list[tuple[str, int, str, str]], root: Path, desc: Any) -> list[BlockMeasures]:
@@ -364,7 +372,7 @@ def measure_blocks(blocks: list[tuple[str, int, str, str]], root: Path, desc: An
     summarized; a recording that is missing or unreadable is noted in its ``problem``, not fatal. ``desc``: a
     RobotDescription, or a callable returning one (loaded only when a recording is there). The peak speed is
     the whole withdrawal's (``analysis.summarize``: a touch's own restarts go on with its withdrawal)."""
-    from nwr.common import recordings
+    from nwr.common import keys, recordings
     from nwr.common.robot import RobotModel
     from nwr.services.tools.recordings import analysis
 
@@ -383,6 +391,7 @@ def measure_blocks(blocks: list[tuple[str, int, str, str]], root: Path, desc: An
                 desc = desc()
             model = model or RobotModel(desc)
             bm.touches = analysis.summarize(records, desc, model)
+            bm.health = analysis.bridge_health([r.message for r in records if r.key == keys.ROBOT_STATE])
         except (NwrError, OSError) as exc:
             bm.problem = f"unreadable ({exc})"
     return out
@@ -397,6 +406,8 @@ def condition_measures(blocks: list[BlockMeasures]) -> dict[str, ConditionMeasur
             cm.problems.append(f"{bm.participant} block {bm.block}: {bm.recording} is {bm.problem}")
             continue
         cm.blocks += 1
+        if bm.degraded:
+            cm.degraded.append(f"{bm.participant} block {bm.block}: {bm.health.describe()}")
         reflexes = bm.reflexes
         cm.reflexes_per_block.append(len(reflexes))
         cm.onset_ms += [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
@@ -687,6 +698,14 @@ def report(result: Analysis, store: str, pictures: list[Path],
         problems = [p for cm in measures.values() for p in cm.problems]
         if problems:
             lines += ["Recordings not read:", "", *(f"- {p}" for p in problems), ""]
+        degraded = [d for cm in measures.values() for d in cm.degraded]
+        if degraded:
+            lines += ["**Degraded blocks**: the bridge rejected commands or stopped the arm, so the participant "
+                      "did not meet the condition as designed (column `degraded` of the study table; "
+                      "`nwr study analyze --exclude-degraded` leaves their answers out of the tests):", "",
+                      *(f"- {d}" for d in degraded), ""]
+        elif measures:
+            lines += ["No block was degraded: the bridge rejected no command and never stopped the arm.", ""]
     if tables:
         lines += ["## The whole study as one table", "",
                   f"{', '.join(f'`{t.name}`' for t in tables)} beside this report: one row per block, what its "
@@ -707,20 +726,30 @@ def report(result: Analysis, store: str, pictures: list[Path],
     return "\n".join(lines)
 
 
-def run(store_path: Path, out: Path, desc: Any = None) -> tuple[Analysis, Path, list[Path], list[Path]]:
+def run(store_path: Path, out: Path, desc: Any = None, *, exclude_degraded: bool = False
+        ) -> tuple[Analysis, Path, list[Path], list[Path]]:
     """Analyse the store at ``store_path`` into ``out``: report.md, the figures and the whole study as one
     table (``study.csv``, ``study.parquet``: :mod:`nwr.services.tools.study.table`); the analysis and the
     report's, the figures' and the tables' paths. ``desc``: the robot description for the recordings (a
-    callable is called when the first recording is read); None: the recordings are not read."""
+    callable is called when the first recording is read); None: the recordings are not read.
+    ``exclude_degraded``: the answers of degraded blocks (:attr:`BlockMeasures.degraded`) left out of the
+    statistics (a participant without every condition is then out of the within-subject tests)."""
     with Store(store_path, create=False) as store:
         ratings, finals, q, planned = store.ratings(), store.final_answers(), store.questionnaire, store.blocks()
     if not ratings:
         log.warning("%s holds no per-condition answers yet", store_path)
-    result = analyze(ratings, finals, q)
-    pictures = figures(result, out)
     rated = rated_blocks(ratings)
     everyone = sorted({(b.participant, b.block, b.condition, b.recording) for b in planned} | set(rated))
     measured = measure_blocks(everyone, store_path.parent, desc) if desc is not None else None
+    tested = ratings
+    if exclude_degraded and measured is not None:
+        degraded = {(bm.participant, bm.block) for bm in measured if bm.degraded}
+        tested = [r for r in ratings if (r.participant, r.block) not in degraded]
+        if degraded:
+            log.warning("%d degraded blocks left out of the tests: %s", len(degraded),
+                        ", ".join(f"{p} block {b}" for p, b in sorted(degraded)))
+    result = analyze(tested, finals, q)
+    pictures = figures(result, out)
     measures = None if measured is None else condition_measures(
         [bm for bm in measured if (bm.participant, bm.block, bm.condition, bm.recording) in set(rated)])
     rows = table.block_table(q, planned, ratings, finals,

@@ -291,7 +291,8 @@ def _analyze(args: argparse.Namespace) -> int:
     store = _store_path(args)
     out = Path(args.out) if args.out else store.parent / "study-analysis"
     description = profile_for(args).robot.description or None
-    result, report, pictures, tables = study_analysis.run(store, out, lambda: load_description(description))
+    result, report, pictures, tables = study_analysis.run(store, out, lambda: load_description(description),
+                                                          exclude_degraded=args.exclude_degraded)
     for participant, why in result.excluded.items():
         log.warning("participant %s excluded from the within-subject tests: %s", participant, why)
     print(f"{len(result.complete)} of {len(result.participants)} participants in the tests; report {report}; "
@@ -374,6 +375,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--store", metavar="PATH", help=store_help)
     a.add_argument("--out", metavar="DIR", help="where report.md and the figures go (default: study-analysis/ "
                                                  "beside the store)")
+    a.add_argument("--exclude-degraded", action="store_true",
+                   help="leave out of the tests the answers of blocks during which the bridge rejected commands or "
+                        "stopped the arm (the report and the study table list them either way)")
     a.set_defaults(handler=_analyze)
 
 

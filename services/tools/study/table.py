@@ -106,6 +106,16 @@ MEASURES: list[tuple[Column, Callable[[list[Any], Any], Any]]] = [
      lambda ts, q: q.back_past),
 ]
 
+# The bridge during the block (analysis.BridgeHealth), beside the touches' figures.
+HEALTH_COLUMNS = [
+    Column("commands_rejected", "int", "commands the bridge rejected during the block (jumps, out of order, "
+                                       "another planner's)"),
+    Column("arm_stops", "int", "times the bridge went from following commands to stopping the arm (stale skin "
+                               "or commands, a lost planner, a protective stop, a disconnection, ...)"),
+    Column("degraded", "bool", "commands rejected or the arm stopped: the block was not the condition as designed "
+                               "(nwr study analyze --exclude-degraded leaves its answers out of the tests)"),
+]
+
 BLOCK_COLUMNS = [
     Column("participant", "str", "the participant's code (pseudonymous)"),
     Column("order", "int", "the participant's counterbalanced order (nwr study --order)"),
@@ -129,7 +139,7 @@ def columns(q: Questionnaire) -> list[Column]:
     items = [Column(f"item_{i}", "int", f"item {i} as answered, 1..{q.points}") for i in q.rated_items()]
     choices = [Column(f"choice_{c.id}", "str", f"the participant's answer to {c.text!r}: a condition or "
                                                "'none'") for c in q.choice]
-    return [*BLOCK_COLUMNS, *(c for c, _ in MEASURES), *ANSWER_COLUMNS, *scales, *items, *choices]
+    return [*BLOCK_COLUMNS, *(c for c, _ in MEASURES), *HEALTH_COLUMNS, *ANSWER_COLUMNS, *scales, *items, *choices]
 
 
 def block_table(q: Questionnaire, planned: list[Block], ratings: list[Rating], finals: list[FinalAnswer],
@@ -167,6 +177,10 @@ def block_table(q: Questionnaire, planned: list[Block], ratings: list[Rating], f
             quality = analysis.quality(bm.touches, row["condition"])
             for column, measure in MEASURES:
                 row[column.name] = measure(bm.touches, quality)
+            if bm.health is not None:
+                row["commands_rejected"] = bm.health.rejected
+                row["arm_stops"] = sum(bm.health.stops.values())
+                row["degraded"] = bm.health.degraded
         answers = values.get(key, {})
         row["answered"] = bool(answers)
         if not answers:
