@@ -33,5 +33,7 @@ def test_the_wheel_builds_without_backend_warnings_and_carries_its_data(tmp_path
     names = set(zipfile.ZipFile(wheel).namelist())
     for data in ("nwr/common/profiles/default.toml", "nwr/common/scripts/demo.toml",
                  "nwr/common/robots/ur10e/robot.toml", "nwr/common/robots/ur10e/skin.toml",
-                 "nwr/common/robots/ur10e/ur10e.urdf", "nwr/common/study/questionnaire.toml"):
+                 "nwr/common/robots/ur10e/ur10e.urdf", "nwr/common/study/questionnaire.toml",
+                 "nwr/common/robots/fr3/robot.toml", "nwr/common/robots/fr3/skin.toml",
+                 "nwr/common/robots/fr3/scripts/demo.toml", "nwr/common/robots/fr3/LICENSE"):
         assert data in names, data
