@@ -15,7 +15,7 @@ default, hard bound and safe range):
 2. the robot: :func:`check_against_robot` checks every per-joint list, pad
    and region name, the task's range and its fastest point against the robot
    description the profile names;
-3. safety beside a person: a value of :data:`GUARDS` past its default, on the
+3. safety beside a person: a value of :data:`~nwr.common.guards.GUARDS` past its default, on the
    side that loosens it, must be acknowledged in ``[safety]`` (by its dotted
    name, with a reason); an acknowledgement of a value that is not loosened
    is refused too. Each acknowledged value is logged as a warning at load,
@@ -25,19 +25,18 @@ default, hard bound and safe range):
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
 import re
 import tomllib
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import msgspec
 
 from nwr.common.errors import ConfigError
+from nwr.common.guards import GUARDS, Guarded, Loosened, loosens, pattern_of, toml_value
 from nwr.common.section import Section
 from nwr.common.task import TaskSection, check_task
 
@@ -647,7 +646,7 @@ def _check_profile(profile: Profile) -> None:
     if gain.model == "effective-mass":
         em = gain.effective_mass
         for where in ("default_region", *(f"pad_regions.{pad}" for pad in em.pad_regions)):
-            region = _get(em, where)
+            region = dotted_get(em, where)
             if region not in em.regions:
                 raise ConfigError(f"gain.effective_mass.{where} = {region!r} is no body region of "
                                   f"gain.effective_mass.regions ({', '.join(sorted(em.regions))})")
@@ -775,104 +774,18 @@ def check_against_robot(profile: Profile, desc: RobotDescription) -> None:
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 
 
-# ------------------------------------------------------------------------------ safety beside a person
-
-
-@dataclass(frozen=True)
-class Guard:
-    """A safety-relevant field: the side of its default that loosens it, and its unit.
-
-    ``above``: a larger value (for a list: any element larger than the
-    default's); ``below``: a smaller one; ``wider``: a larger magnitude,
-    either sign; ``other``: any value but the default.
-    """
-
-    loosens: Literal["above", "below", "wider", "other"]
-    unit: str = ""
-
-
-# The safety-relevant fields beside a person, by dotted name (<pad>: a pad's
-# name): a value past the default on the side named must be acknowledged in
-# [safety]. docs/profile.md says why, one by one (tests/test_profile_safety.py
-# loosens each).
-GUARDS: dict[str, Guard] = {
-    # When a touch is felt and a press stays felt.
-    "gateway.contact_hpa": Guard("above", "hPa"),
-    "gateway.release_hpa": Guard("above", "hPa"),
-    "gateway.max_drift_hpa_s": Guard("above", "hPa/s"),
-    "gateway.max_contact_s": Guard("below", "s"),
-    "gain.thresholds_hpa": Guard("above", "hPa"),
-    "gain.overrides.<pad>.thresholds_hpa": Guard("above", "hPa"),
-    "planner.update_margin": Guard("above"),
-    # Reflex storms: how often a touch, or a forged skin stream, may restart a reflex.
-    "planner.restarts.gap_s": Guard("below", "s"),
-    "planner.restarts.escalate_at_once": Guard("above"),
-    "planner.restarts.pad_burst": Guard("above"),
-    "planner.restarts.pad_interval_s": Guard("below", "s"),
-    "planner.restarts.burst": Guard("above"),
-    "planner.restarts.interval_s": Guard("below", "s"),
-    # How far and how fast a reflex moves the arm.
-    "gain.pl3_gain": Guard("above"),
-    # The effective-mass model: how much more sensitive a moving pad becomes, and what it predicts.
-    "gain.effective_mass.floor": Guard("above"),
-    "gain.effective_mass.rest_speed_m_s": Guard("above", "m/s"),
-    "gain.effective_mass.state_timeout_s": Guard("above", "s"),
-    "gain.effective_mass.regions.<region>.k_n_m": Guard("below", "N/m"),
-    "gain.effective_mass.regions.<region>.mass_kg": Guard("below", "kg"),
-    "gain.effective_mass.regions.<region>.transient_n": Guard("above", "N"),
-    "planner.q_max_deg": Guard("above", "deg"),
-    "planner.v_max_m_s": Guard("above", "m/s"),
-    "planner.reflex_duration_s": Guard("above", "s"),
-    "planner.speed_fraction": Guard("above"),
-    # Sustained contact: when and how the arm comes back.
-    "planner.sustained_contact": Guard("other"),
-    "planner.release_s": Guard("below", "s"),
-    "planner.max_hold_s": Guard("below", "s"),
-    "planner.recent_contact_s": Guard("below", "s"),
-    "planner.contact_margin_m": Guard("above", "m"),
-    "planner.return_speed_m_s": Guard("above", "m/s"),
-    "planner.approach_speed_m_s": Guard("above", "m/s"),
-    "planner.approach_distance_m": Guard("below", "m"),
-    # The task.
-    "planner.task.period_s": Guard("below", "s"),
-    "planner.task.amplitude_rad": Guard("wider", "rad"),
-    "planner.task.double_frequency": Guard("above"),
-    "planner.task.ramp_s": Guard("below", "s"),
-    # The bridge: its timeouts and limits.
-    "bridge.command_timeout_s": Guard("above", "s"),
-    "bridge.skin_timeout_s": Guard("above", "s"),
-    "bridge.position_jump_rad": Guard("above", "rad"),
-    "bridge.following_error_rad": Guard("above", "rad"),
-    "bridge.following_lag_s": Guard("above", "s"),
-    "bridge.report_jump_rad": Guard("above", "rad"),
-    "bridge.report_speed_jump_rad_s": Guard("above", "rad/s"),
-    "bridge.report_frozen_s": Guard("above", "s"),
-    "bridge.blind_pad_s": Guard("above", "s"),
-    **{f"bridge.{mode}.{field}": Guard("above", unit)
-       for mode in ("limits", "reduced")
-       for field, unit in (("speed_m_s", "m/s"), ("withdrawal_speed_m_s", "m/s"), ("momentum_kg_m_s", "kg m/s"),
-                           ("power_w", "W"), ("stopping_time_s", "s"), ("stopping_distance_m", "m"))},
-}
-_DEFAULT = Profile()  # read only: the documented defaults
-
-
-def _pattern(name: str) -> str | None:
-    """The key of GUARDS that the dotted ``name`` stands for (None: no safety-relevant field)."""
-    if name in GUARDS:
-        return name
-    parts = name.split(".")
-    if len(parts) == 4 and parts[:2] == ["gain", "overrides"] and parts[3] == "thresholds_hpa" and parts[2]:
-        return "gain.overrides.<pad>.thresholds_hpa"
-    if len(parts) == 5 and parts[:3] == ["gain", "effective_mass", "regions"] and parts[3] and \
-            f"gain.effective_mass.regions.<region>.{parts[4]}" in GUARDS:
-        return f"gain.effective_mass.regions.<region>.{parts[4]}"
-    return None
-
-
-def _get(obj: Any, dotted: str) -> Any:
+def dotted_get(obj: Any, dotted: str) -> Any:
+    """The field of ``obj`` at a dotted name ("bridge.limits.speed_m_s"), through sections and tables."""
     for part in dotted.split("."):
         obj = obj[part] if isinstance(obj, dict) else getattr(obj, part)
     return obj
+
+
+# ------------------------------------------------------------------------------ safety beside a person
+# (the fields and what loosens them: nwr.common.guards; the profile's defaults and acknowledgements here)
+
+
+_DEFAULT = Profile()  # read only: the documented defaults
 
 
 # The per-joint fields whose default (empty) is the robot's own value, robot.toml's attribute of it.
@@ -903,7 +816,7 @@ def _default(name: str, profile: Profile | None = None) -> Any:
     robot-held one: the robot's value, the profile's robot or else the default robot's)."""
     if name in ROBOT_HELD:
         return robot_default(profile or _DEFAULT, name)
-    pattern = _pattern(name)
+    pattern = pattern_of(name)
     if pattern == "gain.overrides.<pad>.thresholds_hpa":
         value = _DEFAULT.gain.thresholds_hpa
     elif pattern is not None and "<region>" in pattern:
@@ -911,23 +824,8 @@ def _default(name: str, profile: Profile | None = None) -> Any:
         # the reference's must be acknowledged).
         value = getattr(BodyRegion(), name.rpartition(".")[2])
     else:
-        value = _get(_DEFAULT, name)
+        value = dotted_get(_DEFAULT, name)
     return list(value) if isinstance(value, list) else value  # a copy: the defaults stay the defaults
-
-
-def toml_value(value: Any) -> str:
-    """A value as a profile writes it."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + "}"
-    if value is None:
-        return "unset"
-    return repr(value)
 
 
 def safe_range(field: str | Guarded) -> str:
@@ -936,7 +834,7 @@ def safe_range(field: str | Guarded) -> str:
     if isinstance(field, Guarded):
         guard, default = field.guard, field.default
     else:
-        pattern = _pattern(field)
+        pattern = pattern_of(field)
         if pattern is None:
             raise KeyError(field)
         guard, default = GUARDS[pattern], _default(field)
@@ -947,38 +845,6 @@ def safe_range(field: str | Guarded) -> str:
     if guard.loosens == "wider":
         return f"{each}magnitude <= {toml_value([abs(v) for v in default])}{unit}"
     return f"{each}{'<=' if guard.loosens == 'above' else '>='} {toml_value(default)}{unit}"
-
-
-def _loosens(guard: Guard, value: Any, default: Any) -> bool:
-    if guard.loosens == "other":
-        return bool(value != default)
-    if not isinstance(value, list):
-        value, default = [value], [default]
-    # A robot with more joints than the UR10e: its extra joints' default is 0.
-    pairs = zip(value, list(default) + [0] * max(0, len(value) - len(default)))
-    if guard.loosens == "above":
-        return any(v > d for v, d in pairs)
-    if guard.loosens == "below":
-        return any(v < d for v, d in pairs)
-    return any(abs(v) > abs(d) for v, d in pairs)
-
-
-class Loosened(msgspec.Struct, frozen=True):
-    """A safety-relevant value past its default on the side that loosens it, as the session's metadata keeps it."""
-
-    field: str
-    value: Any
-    default: Any
-    reason: str
-
-
-class Guarded(NamedTuple):
-    """A safety-relevant field as a profile holds it: its dotted name, value, documented default and guard."""
-
-    field: str
-    value: Any
-    default: Any
-    guard: Guard
 
 
 def guarded(profile: Profile) -> list[Guarded]:
@@ -993,12 +859,12 @@ def guarded(profile: Profile) -> list[Guarded]:
         elif "<region>" in pattern:
             for region, values in profile.gain.effective_mass.regions.items():
                 name = pattern.replace("<region>", region)
-                found.append(Guarded(name, _get(values, name.rpartition(".")[2]), _default(name), guard))
+                found.append(Guarded(name, dotted_get(values, name.rpartition(".")[2]), _default(name), guard))
         elif pattern in ROBOT_HELD:
-            found.append(Guarded(pattern, _get(profile, pattern) or robot_default(profile, pattern),
+            found.append(Guarded(pattern, dotted_get(profile, pattern) or robot_default(profile, pattern),
                                  _default(pattern, profile), guard))
         else:
-            found.append(Guarded(pattern, _get(profile, pattern), _default(pattern), guard))
+            found.append(Guarded(pattern, dotted_get(profile, pattern), _default(pattern), guard))
     return found
 
 
@@ -1006,7 +872,7 @@ def loosened(profile: Profile, plugins: Iterable[Guarded] = ()) -> list[Loosened
     """Every safety-relevant value of ``profile`` (and of its plug-ins' tables, ``plugins``) past its default on
     the side that loosens it."""
     return [Loosened(item.field, item.value, item.default, profile.safety.reason)
-            for item in [*guarded(profile), *plugins] if _loosens(item.guard, item.value, item.default)]
+            for item in [*guarded(profile), *plugins] if loosens(item.guard, item.value, item.default)]
 
 
 def loosened_safety(profile: Profile, plugins: Iterable[Guarded] = ()) -> list[dict[str, Any]]:
@@ -1030,7 +896,7 @@ def check_acknowledgements(profile: Profile, plugins: Iterable[Guarded] = (),
     given = [name for name in safety.acknowledge if not _deferred(name, tuple(deferred))]
     held = {item.field: item for item in [*guarded(profile), *plugins]}
     for name in given:
-        if _pattern(name) is None and name not in held:
+        if pattern_of(name) is None and name not in held:
             raise ConfigError(f"safety.acknowledge names {name!r}, which is no safety-relevant field "
                               "(docs/profile.md lists them, e.g. \"bridge.skin_timeout_s\")")
     repeated = sorted({name for name in given if given.count(name) > 1})

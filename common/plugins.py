@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 
-from nwr.common.config import Guard, Guarded, Plugged
+from nwr.common.config import Plugged
 from nwr.common.errors import ConfigError
+from nwr.common.guards import Guard, Guarded
 from nwr.common.section import Section
 
 if TYPE_CHECKING:

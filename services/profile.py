@@ -17,7 +17,8 @@ import importlib
 from collections.abc import Iterable
 
 from nwr.common import config
-from nwr.common.config import Guarded, Profile
+from nwr.common.config import Profile
+from nwr.common.guards import Guarded
 from nwr.common.launch import apply_env_overrides
 from nwr.common.plugins import Plugins, check_all
 from nwr.common.robot import RobotDescription, load_description

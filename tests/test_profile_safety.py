@@ -18,17 +18,9 @@ import msgspec.inspect as mi
 import pytest
 
 from nwr.common import config
-from nwr.common.config import (
-    GUARDS,
-    PROFILES_DIR,
-    Guarded,
-    Loosened,
-    Profile,
-    check_acknowledgements,
-    check_against_robot,
-    toml_value,
-)
+from nwr.common.config import PROFILES_DIR, Profile, check_acknowledgements, check_against_robot
 from nwr.common.errors import ConfigError
+from nwr.common.guards import GUARDS, Guarded, Loosened, toml_value
 from nwr.common.recordings import read_recording, session_metadata
 from nwr.common.robot import load_description
 from nwr.services.gain.core import continuous_gain, scaled_sigmoid, sigmoid

@@ -68,8 +68,9 @@ from typing import TYPE_CHECKING, Annotated, Any
 import msgspec
 import numpy as np
 
-from nwr.common.config import BridgeSection, Guard, Profile
+from nwr.common.config import BridgeSection, Profile
 from nwr.common.errors import ConfigError, NwrError
+from nwr.common.guards import Guard
 from nwr.common.robot import RobotDescription
 from nwr.common.section import Section
 from nwr.services.bridge.backend import Backend, Observation

@@ -32,8 +32,9 @@ from typing import TYPE_CHECKING, ClassVar, Literal
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import Guard, PlannerSection
+from nwr.common.config import PlannerSection
 from nwr.common.errors import ConfigError
+from nwr.common.guards import Guard
 from nwr.common.plugins import NoSettings, Plugins
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.section import Section

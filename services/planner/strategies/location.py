@@ -15,8 +15,9 @@ import msgspec
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import Guard, PlannerSection
+from nwr.common.config import PlannerSection
 from nwr.common.errors import ConfigError
+from nwr.common.guards import Guard
 from nwr.common.robot import REGIONS, RobotDescription, RobotModel
 from nwr.common.section import Section
 from nwr.services.planner.reflexes import JointReflex

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from nwr.common import messages as m
-from nwr.common.config import Fraction, Guard, PlannerSection
+from nwr.common.config import Fraction, PlannerSection
+from nwr.common.guards import Guard
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.section import Section
 from nwr.services.planner.reflexes import JointReflex

@@ -68,8 +68,9 @@ import pinocchio as pin
 import quadprog
 
 from nwr.common import messages as m
-from nwr.common.config import Guard, PlannerSection
+from nwr.common.config import PlannerSection
 from nwr.common.errors import ConfigError
+from nwr.common.guards import Guard
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.section import Section
 from nwr.services.planner.reflexes import smooth_profile
