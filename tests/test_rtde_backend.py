@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from nwr.common.config import Profile
-from nwr.services.bridge.backends.ur_rtde import RobotConnectionError, URRtdeBackend
+from nwr.services.bridge.backends.ur_rtde import KICKS_PER_PERIOD, RobotConnectionError, URRtdeBackend
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.wiring import envelope_for
 
@@ -204,8 +204,10 @@ def test_pacing_uses_init_and_wait_period(setup):
     pacer = backend.pacer(500.0)
     robot.calls.clear()
     assert pacer.sleep() and pacer.sleep()
-    # The controller's watchdog is kicked every cycle.
-    assert names(robot) == ["initPeriod", "kickWatchdog", "waitPeriod", "initPeriod", "kickWatchdog"]
+    # The controller's watchdog is kicked KICKS_PER_PERIOD times per watchdog period, not every cycle.
+    assert names(robot) == ["initPeriod", "kickWatchdog", "waitPeriod", "initPeriod"]
+    time.sleep(1.0 / (KICKS_PER_PERIOD * backend.watchdog_hz))
+    assert pacer.sleep() and names(robot)[-1] == "kickWatchdog"
 
 
 def test_faults_are_reported(setup):
@@ -286,46 +288,72 @@ def test_a_slow_reconnection_runs_in_its_thread_and_the_loop_goes_on(setup):
     assert backend.get_observation().fault is None and backend.connected and backend.reconnects == 1
 
 
-def test_a_stop_the_controller_does_not_answer_leaves_the_loop_running(setup):
-    """A frozen data stream delays servoStop's acknowledgement: while the reports are not believed, the stop waits in
-    a thread of its own while the loop reads, paces and publishes on, sending the controller nothing else (no
-    setpoint, no kick) until it is answered."""
+@pytest.mark.parametrize("first", ["hold", "position"])
+def test_a_command_the_controller_does_not_answer_leaves_the_loop_running(setup, first):
+    """A frozen data stream holds ur_rtde's commands (a stop's acknowledgement, the script's readiness before any
+    command): they go from a thread of their own, the loop reading, pacing and publishing on, and nothing after the
+    unanswered one (no setpoint, no kick) reaches the controller until it is answered; then the newest setpoint."""
     import threading
+
+    from nwr.services.bridge.courier import Courier
 
     backend, robot, clock, made, q0 = setup
     answer = threading.Event()
+    entered = threading.Event()
 
     class Frozen(FakeControl):
-        def servoStop(self, a, /):
-            answer.wait(10.0)  # as ur_rtde waiting for the script's acknowledgement through the frozen stream
-            return super().servoStop(a)
+        def _call(self, name, *args):
+            if name in ("servoStop", "servoJ") and not answer.is_set() and robot.freeze:
+                entered.set()
+                answer.wait(10.0)  # ur_rtde waiting for the control script through the frozen stream
+            super()._call(name, *args)
 
-    backend.stop_in_thread = True
-    backend.believed = False  # state_implausible: the bridge does not believe the reports the answer comes through
+    robot.freeze = False
+    backend.commands_in_thread = True
+    backend.courier = Courier("rtde-commands", threaded=True)
     backend.factory = lambda ip, hz: (Frozen(robot), FakeReceive(robot))
     backend.connect()
     pacer = backend.pacer(500.0)
     backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    assert backend.courier.wait_idle(5.0)
+    robot.freeze = True
     started = time.monotonic()
-    backend.send_action(Setpoint("hold", q0, np.zeros(6), np.zeros(6), DT))
-    assert backend.stopping() and backend.stops_waited == 1
+    backend.send_action(Setpoint(first, q0, np.zeros(6), np.zeros(6), DT))
+    assert entered.wait(5.0)
     robot.calls.clear()
-    for _ in range(20):  # 20 cycles (40 ms) of holding while the stop waits: none of them waits for it
+    for i in range(20):  # 20 cycles (40 ms) while the command waits: none of them waits for it
         assert pacer.sleep()
         assert backend.get_observation().fault is None
-        backend.send_action(Setpoint("hold", q0, np.zeros(6), np.zeros(6), DT))
-    assert time.monotonic() - started < 1.0
+        backend.send_action(Setpoint("position", q0 + 1e-4 * (i + 1), np.zeros(6), np.zeros(6), DT))
+    assert time.monotonic() - started < 1.0 and backend.courier.busy_s() > 0.0
     assert not {"servoJ", "speedJ", "kickWatchdog", "servoStop"} & set(names(robot)), names(robot)
-    # A motion setpoint waits for the stop's answer (the arm never lags behind what the bridge commanded).
-    threading.Timer(0.1, answer.set).start()
-    waited = time.monotonic()
-    backend.send_action(Setpoint("position", q0 + 0.001, np.zeros(6), np.zeros(6), DT))
-    assert time.monotonic() - waited >= 0.05 and not backend.stopping()
-    sent = [n for n in names(robot) if n != "isProgramRunning"]  # (the reads of the observations)
-    assert sent == ["servoStop", "servoJ"], sent  # the stop answered, then the motion
+    answer.set()
+    assert backend.courier.wait_idle(5.0)
+    sent = [c for c in robot.calls if c[0] != "isProgramRunning" and c[0] not in ("initPeriod", "waitPeriod")]
+    # the answered command, then the newest kick and the newest setpoint (the 19 before it replaced)
+    assert [c[0] for c in sent] == [{"hold": "servoStop", "position": "servoJ"}[first], "kickWatchdog", "servoJ"], sent
+    assert sent[2][1] == pytest.approx((q0 + 2e-3).tolist())
+    assert backend.courier.replaced >= 19
     robot.calls.clear()
+    time.sleep(1.0 / (KICKS_PER_PERIOD * backend.watchdog_hz))
     assert pacer.sleep()
-    assert "kickWatchdog" in names(robot)  # the controller is watched again
+    assert backend.courier.wait_idle(5.0) and "kickWatchdog" in names(robot)  # the controller is watched again
+    backend.disconnect()
+
+
+def test_a_command_that_fails_in_the_courier_is_a_lost_connection(setup):
+    from nwr.services.bridge.courier import Courier
+
+    backend, robot, clock, made, q0 = setup
+    backend.courier = Courier("rtde-commands", threaded=True)
+    backend.connect()
+    robot.connected = False  # the double raises on the next command
+    backend.send_action(Setpoint("position", q0, np.zeros(6), np.zeros(6), DT))
+    assert backend.courier.wait_idle(5.0)
+    robot.connected = True  # (isConnected() says nothing: the error alone tells)
+    backend.get_observation()  # the error taken for a lost connection: fresh interfaces at once (the double's)
+    assert backend.reconnects == 1 and len(made) == 2 and "servoJ: not connected" in backend.fault_reason
+    backend.disconnect()
 
 
 def test_lost_interfaces_are_kept_not_destroyed_while_the_bridge_runs(setup):

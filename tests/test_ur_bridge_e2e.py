@@ -73,7 +73,9 @@ class Emulator:
 
 
 def _brief(state: dict[str, Any]) -> dict[str, Any]:
-    return {k: v for k, v in state.items() if k != "command_changes"}
+    """The state without its long lists (the command register's changes, the hostile faults' tracks)."""
+    faults = [{k: v for k, v in f.items() if k != "track"} for f in state.get("faults", [])]
+    return {k: v for k, v in state.items() if k != "command_changes"} | {"faults": faults}
 
 
 @contextmanager

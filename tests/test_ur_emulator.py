@@ -256,7 +256,7 @@ def test_offset_reports_a_joint_off_while_the_arm_moves_as_commanded() -> None:
     now = [0.0]
     controller = _running(now)
     names = ["input_int_register_0", *(f"input_double_register_{i}" for i in range(7))]
-    controller.offset(2, 0.3, 1.0, at_speedj=True)
+    controller.offset(2, 0.3, 1.0, at="speedj")
     assert controller.read_outputs(["actual_q"])[0] == pytest.approx(controller.arm.q.tolist())  # armed, not yet active
     # the reflex's first speedJ
     controller.write_inputs(names, [ur_controller.CMD_SPEEDJ, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 8.0])
@@ -286,7 +286,20 @@ def test_freeze_stops_the_rtde_output_for_a_while() -> None:
     e.controller = controller
     assert e.control("freeze 1 speedj").startswith("freezing RTDE output for 1 s from the next speedJ")
     assert e.control("offset 2 0.08 3").startswith("offset joint 2 by 0.08 rad for 3 s")
-    assert controller.armed == [("freeze", (1.0,))]
+    assert controller.armed == [("freeze", (1.0,), "speedj")]
+    assert e.control("freeze 2 stop").startswith("freezing RTDE output for 2 s from the next stop")
+    names = ["input_int_register_0", "input_double_register_0"]
+    now[0] = 1.0
+    controller.write_inputs(names, [ur_controller.CMD_SPEED_STOP, 4.0])
+    assert not controller.frozen() and len(controller.armed) == 2  # written, not yet answered
+    controller.tick()  # the script answers "done"
+    assert controller.output_int[0] == ur_controller.SCRIPT_DONE and not controller.frozen()
+    controller.write_inputs(names, [ur_controller.CMD_NONE, 0.0])  # the client read it and cleared the command
+    controller.tick()  # the freeze begins before the script's "ready" goes out
+    assert controller.frozen() and controller.armed == [("freeze", (1.0,), "speedj")]  # the speedJ's still armed
+    assert controller.faults[-1]["seconds"] == 2.0
+    now[0] += 2.0
+    assert not controller.frozen()
 
 
 def test_speed_is_acceleration_limited() -> None:

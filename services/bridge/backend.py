@@ -99,9 +99,6 @@ class Backend(ABC):
     lag_s: float = 0.0
     # A world the bridge hosts (physics): it takes the touch script's touches (on_touch) and advances each cycle.
     touched: bool = False
-    # Whether the bridge believes the backend's reports (set before each setpoint: False in state_implausible). A
-    # backend whose stop waits for an acknowledgement through those reports (ur_rtde) does not wait for it then.
-    believed: bool = True
 
     def __init__(self, env: Envelope, dt: float) -> None:
         self.env = env
@@ -140,6 +137,11 @@ class Backend(ABC):
     def on_touch(self, touch: m.SkinTouch, now_ns: int) -> str | None:
         """A touch of the touch script reaches a hosted world at ``now_ns``; why it was refused, or None."""
         return f"the {self.name} backend hosts no world: touch {touch.seq} ignored"
+
+    def drain(self, timeout_s: float) -> bool:
+        """Wait (at most ``timeout_s``) until what was sent has reached the robot and been answered (a backend
+        that sends from a thread of its own); whether it has. The bridge's last state at shutdown comes after."""
+        return True
 
     def resync(self, q: np.ndarray) -> None:
         """The core restarted from the measured pose ``q`` (after a fault)."""

@@ -234,7 +234,6 @@ class BridgeWiring(Wiring):
     def _cycle(self, now: int) -> None:
         setpoint = self.core.step(now)
         if self.core.fault is None:  # (state_implausible, the bridge's own fault, sends a hold: the backend's stop)
-            self.backend.believed = not self.core.implausible
             self.backend.send_action(setpoint)
 
     def _finite(self, obs: Observation) -> np.ndarray:

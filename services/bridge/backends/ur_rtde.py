@@ -31,18 +31,16 @@
   way that long), so that the supervisor (``nwr up``, compose) starts a fresh
   bridge; the controller holds the arm meanwhile (no command arrives) or has
   stopped it (its watchdog).
-- Never silent: a stream's stop (``servoStop`` / ``speedStop``) waits for the
-  control script's acknowledgement, which comes through the controller's data
-  stream. While the bridge believes that stream, the stop is waited for in the
-  loop, as any call; once it does not (``state_implausible``: a frozen stream,
-  say, which delays the acknowledgement until it flows again), the stop runs
-  in a thread of its own, waited for :data:`STOP_WAIT_S`, and while it is
-  under way the loop sends the
-  controller nothing else (no watchdog kick: a stop the controller has not
-  acknowledged within ``1 / watchdog_hz`` has its watchdog stop the script, a
-  stop too) and goes on reading and publishing the state; a motion setpoint
-  after it (a fresh command after a hold) waits for the acknowledgement, as
-  before.
+- Never silent: every ur_rtde command first waits for the control script's
+  readiness, and a stream's stop (``servoStop`` / ``speedStop``) for its
+  acknowledgement, both read through the controller's data stream: a stream
+  that freezes would hold any call. The setpoints, the stops and the watchdog's
+  kicks are therefore sent from a thread of their own
+  (:class:`~nwr.services.bridge.courier.Courier`): the loop posts them and goes
+  on reading and publishing the state at its rate. While one is under way,
+  nothing after it reaches the controller (a newer setpoint replaces one not
+  yet sent; no kick: a command unanswered for ``1 / watchdog_hz`` has the
+  controller's watchdog stop the script, and with it the arm).
   A reconnection runs in a thread of its own; the lost interfaces are
   disconnected there and kept, not destroyed, while the bridge runs (ur_rtde's
   destructor holds the GIL for about 0.5 s each, which stood the whole
@@ -57,6 +55,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import socket
 import sys
@@ -76,6 +75,7 @@ from nwr.common.section import Section
 from nwr.services.bridge.backend import Backend, Observation
 from nwr.services.bridge.backends import KIND
 from nwr.services.bridge.core import Setpoint
+from nwr.services.bridge.courier import Courier, Kind
 from nwr.services.bridge.envelope import Envelope
 
 if TYPE_CHECKING:
@@ -134,10 +134,11 @@ STALL_EXIT_S = 20.0
 EXIT_STALLED = 75  # EX_TEMPFAIL: try again, i.e. start a fresh bridge
 # At release, a reconnection attempt under way is waited for this long (what it connects is released too), s.
 RECONNECT_JOIN_S = 10.0
-# A stream's stop not acknowledged within this long goes on in its own thread, the loop meanwhile going on, s.
-STOP_WAIT_S = 0.005
-# ... and one answered later than this is reported, s.
-SLOW_STOP_S = 0.1
+# A command the controller answered later than this is reported, s.
+SLOW_COMMAND_S = 0.1
+# The loop kicks the controller's watchdog this many times per watchdog period (1 / watchdog_hz): 100 Hz at the
+# default 10 Hz, at most once per control cycle.
+KICKS_PER_PERIOD = 10
 # Lost interfaces kept undestroyed while the bridge runs (each reconnection loses two; beyond this, the oldest are
 # destroyed, a pause of about 0.5 s each: see the module's docstring).
 KEPT_LOST = 16
@@ -197,14 +198,14 @@ class RtdePacer:
         self.backend.take_over()  # the loop kicks the watchdog from now on
         self.backend.progress_at = time.monotonic()  # a cycle went through: nothing hung (the stall guard)
         control = self.backend.control
-        # A stop under way in its own thread: nothing else goes to the controller meanwhile (the loop paces
-        # itself; a stop unacknowledged for 1 / watchdog_hz has the controller's watchdog stop the script).
-        if control is not None and self.backend.connected and not self.backend.stopping():
+        # (initPeriod / waitPeriod read the local clock only; the kick goes through the courier, and reaches the
+        # controller only once a command under way has been answered.)
+        if control is not None and self.backend.connected:
             try:
                 if self._t is not None:
                     control.waitPeriod(self._t)
                 self._t = control.initPeriod()
-                control.kickWatchdog()
+                self.backend.kick()
             except RuntimeError:
                 self._t = None
                 self.backend.lost("waitPeriod failed")
@@ -247,13 +248,13 @@ class URRtdeBackend(Backend):
         clock: Callable[[], float] = time.monotonic,
         stall_exit_s: float | None = None,
         reconnect_in_thread: bool | None = None,
-        stop_in_thread: bool | None = None,
+        commands_in_thread: bool | None = None,
     ) -> None:
         """``stall_exit_s``: the stall guard's limit (default :data:`STALL_EXIT_S` with the real ur_rtde;
         none with a test double's ``factory`` unless given); ``reconnect_in_thread``: reconnection attempts in a
         thread of their own, the control loop going on meanwhile (default: with the real ur_rtde only);
-        ``stop_in_thread``: a stream's stop in a thread of its own, waited for :data:`STOP_WAIT_S` (default: with
-        the real ur_rtde only)."""
+        ``commands_in_thread``: the setpoints, stops and kicks sent from a thread of their own, the loop never
+        waiting on them (default: with the real ur_rtde only; a test double's answer at once)."""
         super().__init__(env, dt)
         if not robot_ip:
             raise RobotConnectionError("the ur_rtde backend needs the robot's IP address (--robot-ip)")
@@ -293,10 +294,13 @@ class URRtdeBackend(Backend):
         self.reconnect_in_thread = reconnect_in_thread if reconnect_in_thread is not None else \
             factory is rtde_factory
         self._connector: threading.Thread | None = None
-        self.stop_in_thread = stop_in_thread if stop_in_thread is not None else factory is rtde_factory
-        self._stopper: threading.Thread | None = None  # a stream's stop under way
-        self._stop_started = 0.0  # when it began (monotonic s)
-        self.stops_waited = 0  # stops that outlasted STOP_WAIT_S: the loop went on without them
+        self.commands_in_thread = commands_in_thread if commands_in_thread is not None else \
+            factory is rtde_factory
+        # Its thread starts in connect(): it inherits the real-time scheduling the bridge sets up after making its
+        # backend (under load, a thread of the normal scheduler beside a SCHED_FIFO loop missed most cycles).
+        self.courier = Courier("rtde-commands", threaded=False)
+        self.slow_commands = 0  # commands the controller answered later than SLOW_COMMAND_S
+        self._kicked_at = -math.inf  # when the loop last posted a watchdog kick (monotonic s)
         self._lost_interfaces: list[Any] = []  # disconnected, kept undestroyed (KEPT_LOST)
         self._attempt_at = 0.0  # when the last reconnection attempt began (the clock's), s
         self._connected_pair: tuple[Any, Any] | None = None
@@ -313,6 +317,8 @@ class URRtdeBackend(Backend):
     def connect(self) -> None:
         """Connect, or raise RobotConnectionError with what to check."""
         self._start_guard()
+        if self.courier.closed or self.courier.threaded != self.commands_in_thread:
+            self.courier = Courier("rtde-commands", threaded=self.commands_in_thread)
         try:
             self.control, self.receive = self.factory(self.robot_ip, 1.0 / self.dt)
             armed = self._arm_watchdog()
@@ -348,8 +354,7 @@ class URRtdeBackend(Backend):
         def watch() -> None:
             while not self._guard_stop.wait(min(1.0, self.stall_exit_s / 4)):
                 stalled = time.monotonic() - self.progress_at
-                if self.stopping():  # a stop under way in its thread hangs as well as the loop could
-                    stalled = max(stalled, time.monotonic() - self._stop_started)
+                stalled = max(stalled, self.courier.busy_s())  # a command under way hangs as well as the loop could
                 if stalled > self.stall_exit_s:
                     log.critical("a call into ur_rtde has not returned for %.0f s (the connection to %s dropped "
                                  "while it waited for the controller?): exiting so that a fresh bridge is started; "
@@ -414,6 +419,7 @@ class URRtdeBackend(Backend):
             log.error("connection to the UR controller at %s lost: %s", self.robot_ip, reason)
         self.connected = False
         self.streaming = None
+        self.courier.clear()  # nothing posted for this connection goes to the next one
         self.fault_reason = reason
         self.next_attempt = max(self.next_attempt, self.clock())
 
@@ -430,7 +436,7 @@ class URRtdeBackend(Backend):
             self._finish_reconnect()
             return
         now = self.clock()
-        if now < self.next_attempt or self.stopping():  # (the lost interfaces are in use until the stop ends)
+        if now < self.next_attempt or not self.courier.idle():  # (the lost interfaces are in use until it is)
             return
         self.reconnects += 1
         self._attempt_at = now
@@ -530,13 +536,14 @@ class URRtdeBackend(Backend):
             if self._connected_pair is not None and self.control is None:
                 self.control, self.receive = self._connected_pair
                 self._connected_pair = None
-        stopper = self._stopper
-        if stopper is not None:  # a stop under way: it ends first (the stall guard watches it)
-            stopper.join()
-            self._stopper = None
         control, receive = self.control, self.receive
+        if control is not None and self.connected:
+            self._end_stream()
+        self.courier.close()  # what is under way and waiting ends first (the stall guard watches it)
+        if (error := self.courier.error()) is not None:
+            log.warning("while releasing the robot: %s", error)
         if control is not None:
-            for call in (lambda: self._end_stream(wait=False), control.stopScript, control.disconnect):
+            for call in (control.stopScript, control.disconnect):
                 try:
                     call()
                 except RuntimeError as exc:
@@ -561,6 +568,8 @@ class URRtdeBackend(Backend):
             return self._observe()
 
     def _observe(self) -> Observation:
+        if self.connected and (error := self.courier.error()) is not None:
+            self.lost(str(error))  # a command failed in the courier's thread: as it failed here before
         if not self.connected or self.receive is None or self.control is None:
             self._try_reconnect()
             if not self.connected:
@@ -589,7 +598,7 @@ class URRtdeBackend(Backend):
             if not self.control.isProgramRunning():
                 self.streaming = None
                 self.watchdog_armed = False  # the watchdog lives in the script
-                if self.clock() >= self.next_attempt and not self.stopping():
+                if self.clock() >= self.next_attempt and self.courier.idle():
                     # Uploading the script moves nothing; the bridge sends a
                     # setpoint only after the fault has cleared and the
                     # script runs with the watchdog armed (below).
@@ -608,7 +617,7 @@ class URRtdeBackend(Backend):
                 return Observation(q, dq, "script_not_running",
                                    "the ur_rtde control script is not running (remote control mode? program stopped "
                                    "on the pendant?): re-uploading it with backoff")
-            if not self.watchdog_armed and not self.stopping():
+            if not self.watchdog_armed and self.courier.idle():
                 # A re-uploaded script that started after all: ur_rtde's
                 # reuploadScript() does not wait for it to run, and
                 # setWatchdog() fails until it does (so may stopScript()).
@@ -629,77 +638,61 @@ class URRtdeBackend(Backend):
         return Observation(q, dq, stamp_s=stamp)
 
     # -- commands ---------------------------------------------------------------------
-    def stopping(self) -> bool:
-        """A stream's stop is under way in its own thread (the controller has not acknowledged it yet)."""
-        stopper = self._stopper
-        if stopper is None:
-            return False
-        if stopper.is_alive():
-            return True
-        self._stopper = None
-        return False
+    def _post(self, kind: Kind, what: str, call: Callable[..., Any], *args: Any) -> None:
+        """Send ``call(*args)`` through the courier; a refusal (False) or a late answer is reported."""
 
-    def _end_stream(self, *, wait: bool = True) -> None:
-        """End the stream (``servoStop`` / ``speedStop``): while the reports are not believed (``wait``: the loop
-        runs, and with the stop in a thread), in a thread of its own, waited for :data:`STOP_WAIT_S`; else here until
-        it returns."""
-        if self.streaming is None or self.stopping():
+        def send() -> None:
+            started = time.monotonic()
+            ok = call(*args)
+            took = time.monotonic() - started
+            if took > SLOW_COMMAND_S:
+                self.slow_commands += 1
+                log.warning("the controller answered %s after %.0f ms (its data stream stalled?); the control loop "
+                            "went on meanwhile, sending nothing else", what, took * 1e3)
+            if ok is False:
+                log.warning("the controller refused %s (script not running?)", what)
+
+        self.courier.post(kind, send)
+
+    def kick(self) -> None:
+        """Kick the controller's watchdog: called each control cycle, sent :data:`KICKS_PER_PERIOD` times per
+        watchdog period (each kick is a wake of the courier's thread; the controller needs one per period)."""
+        now = time.monotonic()
+        if now - self._kicked_at < 1.0 / (KICKS_PER_PERIOD * self.watchdog_hz):
+            return
+        self._kicked_at = now
+        self._post("kick", "a watchdog kick", self.control.kickWatchdog)
+
+    def _end_stream(self) -> None:
+        """End the stream (``servoStop`` / ``speedStop``)."""
+        if self.streaming is None:
             return
         stop = self.control.servoStop if self.streaming == "servo" else self.control.speedStop
         self.streaming = None
-        if not (wait and self.stop_in_thread and not self.believed):
-            stop(self.acceleration)  # the reports are believed: their acknowledgement comes within a few cycles
-            return
-
-        def run() -> None:
-            try:
-                ok = stop(self.acceleration)
-            except RuntimeError as exc:
-                log.warning("ending the stream: %s", exc)
-                return
-            took = time.monotonic() - self._stop_started
-            if not ok or took > SLOW_STOP_S:
-                log.warning("the controller answered the stream's stop after %.0f ms (%s); the control loop went on "
-                            "meanwhile, sending nothing else", took * 1e3, "acknowledged" if ok else
-                            "not acknowledged: the control script stopped meanwhile?")
-
-        self._stop_started = time.monotonic()
-        self._stopper = threading.Thread(target=run, name="rtde-stop", daemon=True)
-        self._stopper.start()
-        self._stopper.join(STOP_WAIT_S)
-        if self._stopper.is_alive():
-            self.stops_waited += 1
+        self._post("stop", "the stream's stop", stop, self.acceleration)
 
     def _send(self, setpoint: Setpoint) -> None:
-        if self.stopping():
-            if setpoint.mode == "hold":
-                return  # the arm is being stopped: nothing else is sent until the controller has acknowledged it
-            # Motion after a stop (a fresh command after a hold): it waits for the stop's acknowledgement, as it
-            # did before the stop had a thread of its own, so that the arm never lags behind what the bridge
-            # believes it commanded (the stall guard watches this wait too).
-            stopper = self._stopper
-            if stopper is not None:
-                stopper.join()
         if not self.connected or self.control is None:
             return
         try:
             if setpoint.mode == "hold":
                 self._end_stream()
-                return
-            if setpoint.mode == "position":
+            elif setpoint.mode == "position":
                 # ur_rtde's Python servoJ takes positional arguments only:
                 # (q, speed, acceleration, time, lookahead_time, gain); speed
                 # and acceleration are not used by the controller in servoj.
-                ok = self.control.servoJ(setpoint.q.tolist(), self.speed, self.acceleration, self.dt,
-                                         self.lookahead_s, self.gain)
+                self._post("motion", "a position setpoint", self.control.servoJ, setpoint.q.tolist(), self.speed,
+                           self.acceleration, self.dt, self.lookahead_s, self.gain)
                 self.streaming = "servo"
             else:
-                ok = self.control.speedJ(setpoint.dq.tolist(), self.acceleration, self.dt)
+                self._post("motion", "a velocity setpoint", self.control.speedJ, setpoint.dq.tolist(),
+                           self.acceleration, self.dt)
                 self.streaming = "speed"
-            if not ok:
-                log.warning("the controller refused a %s setpoint (script not running?)", setpoint.mode)
-        except RuntimeError as exc:
+        except RuntimeError as exc:  # (sent at once, without the courier's thread)
             self.lost(str(exc))
+
+    def drain(self, timeout_s: float) -> bool:
+        return self.courier.wait_idle(timeout_s)
 
     def resync(self, q: np.ndarray) -> None:
         super().resync(q)

@@ -60,6 +60,11 @@ CMD_SET_WATCHDOG = 35  # minimum frequency in 0
 CMD_WATCHDOG = 99  # kickWatchdog: no branch in the script, the write itself is the kick
 CMD_STOP_SCRIPT = 255
 SCRIPT_READY, SCRIPT_DONE = 1, 2
+#: What an armed hostile report waits for: the client's next write of a command of these ids ("write"), or the
+#: client's acknowledgement of the control script's answer "done" to one ("done": the client has read the answer
+#: and cleared the command; the report begins before the script's "ready" goes out).
+ARMED_AT = {"speedj": ("write", frozenset({CMD_SPEEDJ})),
+            "stop": ("done", frozenset({CMD_SERVO_STOP, CMD_SPEED_STOP, CMD_STOPJ}))}
 #: Commands the script processes every cycle and answers "ready" (no done
 #: handshake); read from the uploaded script when it lists them.
 REALTIME_COMMANDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
@@ -106,6 +111,7 @@ class Controller:
         self.script_running = False
         self.register_offset = 0
         self.executing = False
+        self.executed = 0  # the last non-real-time command the script executed
         self.realtime = REALTIME_COMMANDS
         self.watchdog_hz = 0.0
         self.watchdog_variable = ""
@@ -117,14 +123,15 @@ class Controller:
         self.protective_since = 0.0
         self.power_off_at_rest = False
         self.stall_until = 0.0
-        # Hostile reports: (joint, rad, seconds) of an offset, seconds of a freeze, armed for the next speedJ.
+        # Hostile reports: (joint, rad, seconds) of an offset, seconds of a freeze; armed ones wait for the next
+        # command of theirs (ARMED_AT) the client writes.
         self.offset_joint = 0
         self.offset_rad = 0.0
         self.offset_until = 0.0
         self.freeze_until = 0.0
         self.nan_joint = 0
         self.nan_until = 0.0
-        self.armed: list[tuple[str, tuple[float, ...]]] = []
+        self.armed: list[tuple[str, tuple[float, ...], str]] = []  # (report, its arguments, ARMED_AT key)
         self.faults: list[dict[str, Any]] = []
         # (receipt time, value) of every change of the command register, and motion commands received
         self.command_changes: collections.deque[tuple[float, int]] = collections.deque(maxlen=20000)
@@ -247,25 +254,29 @@ class Controller:
             self.stall_until = self.clock() + seconds
             self.fault("stall")
 
-    def offset(self, joint: int, rad: float, seconds: float, at_speedj: bool = False) -> None:
-        """Report joint ``joint``'s position ``rad`` off for ``seconds`` (the arm itself is not moved)."""
+    def offset(self, joint: int, rad: float, seconds: float, at: str = "") -> None:
+        """Report joint ``joint``'s position ``rad`` off for ``seconds`` (the arm itself is not moved); ``at`` (a
+        key of :data:`ARMED_AT`): from the client's next such command rather than now."""
         if not 0 <= joint < 6 or not math.isfinite(rad) or not 0.0 < seconds < 600.0:
             raise ValueError(f"offset: joint 0-5, a finite offset and 0-600 s (got {joint}, {rad}, {seconds})")
         with self.lock:
-            if at_speedj:
-                self.armed.append(("offset", (joint, rad, seconds)))
+            if at:
+                self.armed.append(("offset", (joint, rad, seconds), _armed_at(at)))
                 return
             self.offset_joint, self.offset_rad = joint, rad
             self.offset_until = self.clock() + seconds
             self._hostile("offset", seconds, joint=joint, rad=rad)
 
-    def freeze(self, seconds: float, at_speedj: bool = False) -> None:
-        """Send no RTDE data for ``seconds``, the connections open."""
+    def freeze(self, seconds: float, at: str = "") -> None:
+        """Send no RTDE data for ``seconds``, the connections open; ``at`` as for :meth:`offset`
+        (``stop``: once the client has read the control script's answer to a stop, before the script's "ready"
+        goes out: its last report says busy, and ur_rtde's next command waits for its readiness through the
+        frozen stream)."""
         if not 0.0 < seconds < 600.0:
             raise ValueError(f"freeze: 0-600 s (got {seconds})")
         with self.lock:
-            if at_speedj:
-                self.armed.append(("freeze", (seconds,)))
+            if at:
+                self.armed.append(("freeze", (seconds,), _armed_at(at)))
                 return
             self.freeze_until = self.clock() + seconds
             self._hostile("freeze", seconds)
@@ -325,19 +336,26 @@ class Controller:
     def _log_command(self, now: float, value: int) -> None:
         if not self.command_changes or self.command_changes[-1][1] != value:
             self.command_changes.append((now, value))
-        if value == CMD_SPEEDJ and self.armed:
-            armed, self.armed = self.armed, []
-            for name, args in armed:
-                if name == "offset":
-                    self.offset(int(args[0]), args[1], args[2])
-                else:
-                    self.freeze(args[0])
+        self._fire("write", value)
         if value in (CMD_SERVOJ, CMD_SPEEDJ):
             self.motion_writes += 1
             for fault in self.faults:
                 if fault["cleared_t"] is None:
                     fault["motion_writes"] += 1
                     fault["last_motion_t"] = now
+
+    def _fire(self, event: str, command: int) -> None:
+        """The armed hostile reports waiting for ``event`` ("write" or "done") of ``command`` begin."""
+        fired = [(name, args) for name, args, at in self.armed if ARMED_AT[at][0] == event and command in
+                 ARMED_AT[at][1]]
+        if not fired:
+            return
+        self.armed = [a for a in self.armed if not (ARMED_AT[a[2]][0] == event and command in ARMED_AT[a[2]][1])]
+        for name, args in fired:
+            if name == "offset":
+                self.offset(int(args[0]), args[1], args[2])
+            else:
+                self.freeze(args[0])
 
     def state(self) -> dict[str, Any]:
         """The controller's state for a test or an operator (the control port's ``state``)."""
@@ -445,11 +463,14 @@ class Controller:
             self._process(cmd)
             self.output_int[o] = SCRIPT_READY
         elif cmd == CMD_NONE:
+            if self.executing:  # the client read the answer to the command just done and cleared it
+                self._fire("done", self.executed)
             self.executing = False
             self.output_int[o] = SCRIPT_READY
         elif not self.executing:
             keep = self._process(cmd)
             self.executing = True
+            self.executed = cmd
             if keep:
                 self.output_int[o] = SCRIPT_DONE
             else:
@@ -480,6 +501,12 @@ class Controller:
         elif cmd != CMD_WATCHDOG:
             log.debug("control script command %d acknowledged without effect", cmd)
         return True
+
+
+def _armed_at(at: str) -> str:
+    if at not in ARMED_AT:
+        raise ValueError(f"armed at {at!r}: one of {', '.join(ARMED_AT)}")
+    return at
 
 
 def _bits(bits: Sequence[bool]) -> int:

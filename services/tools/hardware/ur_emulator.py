@@ -46,8 +46,13 @@ elsewhere), one answer line per command line:
   reported position (``actual_q``) offset by X rad for S seconds while the
   arm itself moves as commanded; with ``speedj``, from the next speedJ the
   client sends (a velocity reflex's onset) rather than now.
-* ``freeze S [speedj]``: no RTDE data sent to any client for S seconds, the
-  connections open (a controller whose data stream stalls).
+* ``freeze S [speedj|stop]``: no RTDE data sent to any client for S seconds,
+  the connections open (a controller whose data stream stalls); with
+  ``speedj`` from the next speedJ the client sends, with ``stop`` once the
+  client has seen the control script's answer to its next stop
+  (``servoStop``, ``speedStop``, ``stopJ``): the script's last report says
+  busy, and ur_rtde's next command waits for its readiness until the data
+  flows again.
 * ``nan J S``: joint J's reported position and speed not a number for S
   seconds.
   Each records a fault (``offset`` / ``freeze``) with the true arm's fastest
@@ -438,13 +443,13 @@ class Emulator:
             if words[:1] == ["drop"]:
                 return f"dropped {self.drop(float(words[1]) if len(words) > 1 else 0.0)}"
             if words[:1] == ["offset"] and len(words) in (4, 5) and words[4:] in ([], ["speedj"]):
-                c.offset(int(words[1]), float(words[2]), float(words[3]), at_speedj=len(words) == 5)
+                c.offset(int(words[1]), float(words[2]), float(words[3]), at="".join(words[4:]))
                 return f"offset joint {words[1]} by {float(words[2]):g} rad for {float(words[3]):g} s" + (
                     " from the next speedJ" if len(words) == 5 else "")
-            if words[:1] == ["freeze"] and len(words) in (2, 3) and words[2:] in ([], ["speedj"]):
-                c.freeze(float(words[1]), at_speedj=len(words) == 3)
+            if words[:1] == ["freeze"] and len(words) in (2, 3) and words[2:] in ([], ["speedj"], ["stop"]):
+                c.freeze(float(words[1]), at="".join(words[2:]))
                 return f"freezing RTDE output for {float(words[1]):g} s" + (
-                    " from the next speedJ" if len(words) == 3 else "")
+                    f" from the next {'speedJ' if words[2] == 'speedj' else 'stop'}" if len(words) == 3 else "")
             if words[:1] == ["nan"] and len(words) == 3:
                 c.nan(int(words[1]), float(words[2]))
                 return f"joint {words[1]} reported NaN for {float(words[2]):g} s"
