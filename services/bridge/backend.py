@@ -138,9 +138,11 @@ class Backend(ABC):
         """A touch of the touch script reaches a hosted world at ``now_ns``; why it was refused, or None."""
         return f"the {self.name} backend hosts no world: touch {touch.seq} ignored"
 
-    def drain(self, timeout_s: float) -> bool:
-        """Wait (at most ``timeout_s``) until what was sent has reached the robot and been answered (a backend
-        that sends from a thread of its own); whether it has. The bridge's last state at shutdown comes after."""
+    def wind_down(self, timeout_s: float) -> bool:
+        """The control loop has ended (the arm stopped, :meth:`disconnect` to come): wait (at most ``timeout_s``)
+        until what was sent has reached the robot and been answered (a backend that sends from a thread of its
+        own), and keep a controller that watches the bridge fed until :meth:`disconnect`; whether everything
+        was answered. The bridge's last state comes after."""
         return True
 
     def resync(self, q: np.ndarray) -> None:

@@ -131,7 +131,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                     pacer.sleep(None)
                     with lock:
                         bridge.tick()
-                if not backend.drain(SHUTDOWN_SLACK_S):  # the stream's stop answered before the last state
+                if not backend.wind_down(SHUTDOWN_SLACK_S):  # the stream's stop answered before the last state
                     log.warning("the robot had not answered the bridge's last commands within %.1f s of its stop",
                                 SHUTDOWN_SLACK_S)
                 with lock:

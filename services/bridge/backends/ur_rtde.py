@@ -375,7 +375,8 @@ class URRtdeBackend(Backend):
             self._guard = None
 
     def _start_keepalive(self) -> None:
-        """Kick the watchdog from a thread until the control loop's first cycle (:meth:`take_over`)."""
+        """Kick the watchdog from a thread while no control loop does: from connect() to the loop's first cycle,
+        and from the loop's end to disconnect() (both end with :meth:`take_over`)."""
         self._keepalive_stop.clear()
         period = min(0.25 / self.watchdog_hz, 0.02)
 
@@ -387,14 +388,15 @@ class URRtdeBackend(Backend):
                             self.control.kickWatchdog()
                             self.progress_at = time.monotonic()
                     except RuntimeError as exc:
-                        log.warning("kicking the RTDE watchdog before the control loop: %s", exc)
+                        log.warning("kicking the RTDE watchdog outside the control loop: %s", exc)
                         return
 
         self._keepalive = threading.Thread(target=kick, name="rtde-watchdog-keepalive", daemon=True)
         self._keepalive.start()
 
     def take_over(self) -> None:
-        """The control loop runs: stop the keepalive thread (the pacer kicks the watchdog every cycle)."""
+        """The control loop runs, or the robot is released: stop the keepalive thread (the pacer kicks the
+        watchdog)."""
         if self._keepalive is not None:
             self._keepalive_stop.set()
             self._keepalive.join()
@@ -691,8 +693,13 @@ class URRtdeBackend(Backend):
         except RuntimeError as exc:  # (sent at once, without the courier's thread)
             self.lost(str(exc))
 
-    def drain(self, timeout_s: float) -> bool:
-        return self.courier.wait_idle(timeout_s)
+    def wind_down(self, timeout_s: float) -> bool:
+        answered = self.courier.wait_idle(timeout_s)
+        if self.connected and self.factory is rtde_factory:
+            # The Zenoh session closes before disconnect(): kicked from a thread meanwhile, the controller's
+            # watchdog does not stop the script on its own (a fault on its log) before disconnect() does.
+            self._start_keepalive()
+        return answered
 
     def resync(self, q: np.ndarray) -> None:
         super().resync(q)
