@@ -35,6 +35,9 @@ def test_the_ratio_of_a_row():
     row = ImpactRow(touch=0, pad="wrist_1", kind="finger", t_s=0.0, speed_m_s=0.1, into_m_s=0.1, basis="state",
                     mass_kg=8.0, predicted_n=50.0, measured_n=5.0, pushed_mm=1.0)
     assert row.ratio == pytest.approx(0.1)
+    assert row.ran_into
+    assert not ImpactRow(**{**row.__dict__, "pushed_mm": 0.5}).ran_into  # a press on a pad that barely moved
+    assert not ImpactRow(**{**row.__dict__, "into_m_s": -0.1}).ran_into  # the pad moving away from the part
     assert ImpactRow(**{**row.__dict__, "predicted_n": 0.0}).ratio == math.inf
     assert ImpactRow(**{**row.__dict__, "predicted_n": 0.0, "measured_n": 0.0}).ratio == 0.0
 
@@ -108,7 +111,7 @@ def test_the_arm_running_into_a_finger_measures_less_than_predicted_and_more_tha
     rows = impact_rows(records, DESC, ROBOT)
     assert len(rows) == 1, rows
     row = rows[0]
-    assert row.pad == "wrist_1" and row.kind == "finger" and row.basis == "state"
+    assert row.pad == "wrist_1" and row.kind == "finger" and row.basis == "state" and row.ran_into
     assert row.into_m_s > 0.08  # the task drives the pad into the finger
     preload = finger_force(load_script("in_the_way").touch[0].peak_hpa, SETTINGS)
     assert row.measured_n > 3.0 * preload and row.pushed_mm > 2.0  # the arm's motion made the press, not the finger

@@ -24,7 +24,10 @@ They are not the same quantity, and a close match is not expected:
   and the preload, a few newtons, where the stiff contact of the prediction
   gives tens.
 
-So the prediction is an upper bound on the measurement, by a factor that
+The comparison means something only where the arm ran into the part
+(:attr:`ImpactRow.ran_into`); a touch script's finger that presses a pad at
+rest measures its owner's own push. Where the arm ran into it, the
+prediction is an upper bound on the measurement, by a factor that
 grows with ``sqrt(k m_H)`` of the prediction over the world's softer,
 lighter person (:func:`world_free_collision_n` gives the same formula with
 the world's finger, for scale). A measured force above the prediction would
@@ -42,6 +45,9 @@ from nwr.common import keys
 from nwr.common.recordings import Recorded
 from nwr.common.robot import RobotDescription, RobotModel
 
+# How far the arm must push a body part back from where it met the pad for its peak force to count as the arm's, mm.
+RAN_INTO_MM = 1.0
+
 
 @dataclass(frozen=True)
 class ImpactRow:
@@ -58,6 +64,13 @@ class ImpactRow:
     predicted_n: float  # the predicted impact force, N
     measured_n: float  # the peak contact force on the body part, N
     pushed_mm: float  # how far the arm pushed it back from where it met the pad, mm
+
+    @property
+    def ran_into(self) -> bool:
+        """Whether the arm ran into the part: its pad moved into it at first contact and pushed it back at least
+        RAN_INTO_MM. Elsewhere the force is the person's own press on a pad at rest or moving away, which the
+        prediction (a collision caused by the arm's speed) says nothing about."""
+        return self.into_m_s > 0.0 and self.pushed_mm >= RAN_INTO_MM
 
     @property
     def ratio(self) -> float:
@@ -120,13 +133,13 @@ def format_rows(rows: list[ImpactRow], stiffness_n_m: float, person_kg: dict[str
     """The rows as a table; beside them the same formula with the world's person (``stiffness_n_m``, the mass of
     each kind of body part)."""
     head = (f"{'t (s)':>6} {'pad':>16} {'part':>7} {'speed':>6} {'into':>6} {'mass':>6} {'predicted':>9} "
-            f"{'measured':>8} {'ratio':>6} {'pushed':>6} {'world k, m_H':>12}\n"
+            f"{'measured':>8} {'ratio':>6} {'pushed':>6} {'ran into':>8} {'world k, m_H':>12}\n"
             f"{'':>6} {'':>16} {'':>7} {'(m/s)':>6} {'(m/s)':>6} {'(kg)':>6} {'(N)':>9} {'(N)':>8} {'':>6} "
-            f"{'(mm)':>6} {'(N)':>12}")
+            f"{'(mm)':>6} {'':>8} {'(N)':>12}")
     lines = [head]
     for r in rows:
         world = world_free_collision_n(r.into_m_s, r.mass_kg, stiffness_n_m, person_kg.get(r.kind, 0.6))
         lines.append(f"{r.t_s:>6.2f} {r.pad:>16} {r.kind:>7} {r.speed_m_s:>6.3f} {r.into_m_s:>6.3f} "
-                     f"{r.mass_kg:>6.2f} {r.predicted_n:>9.1f} {r.measured_n:>8.1f} {r.ratio:>6.2f} "
-                     f"{r.pushed_mm:>6.1f} {world:>12.1f}")
+                     f"{r.mass_kg:>6.4g} {r.predicted_n:>9.1f} {r.measured_n:>8.1f} {r.ratio:>6.2f} "
+                     f"{r.pushed_mm:>6.1f} {'yes' if r.ran_into else 'no':>8} {world:>12.1f}")
     return "\n".join(lines)
