@@ -395,6 +395,37 @@ def test_the_gain_wiring_reads_the_robot_state_only_for_the_effective_mass_model
     assert sorted(i.name for i in wiring(em).subscriptions()) == ["pressure", "state"]
 
 
+def test_a_prediction_lost_and_regained_is_said_once_each_time():
+    """No state yet, a state, then none for longer than the timeout: one warning per loss, one note per return,
+    not one per skin sample; every pain message meanwhile at the floor, none NaN."""
+    from nwr.common.clock import ManualClock
+    from nwr.common.journal import Recording
+    from nwr.services.gain.wiring import GainWiring
+
+    clock = ManualClock(1_000_000_000)
+    said: list[tuple[str, str]] = []
+    pains: list[m.SkinPain] = []
+    wiring = GainWiring(Profile(gain=GainSection(model="effective-mass")), journal=Recording(clock),
+                        out=lambda key, msg: pains.append(msg), diag=lambda level, code, *a, **k: said.append(
+                            (level, code)))
+
+    def samples(count: int) -> None:
+        for _ in range(count):
+            clock.advance(0.04)
+            wiring.on_pressure(pressure([4.0] * N, seq=len(pains)))
+
+    samples(3)  # no robot state yet
+    wiring.on_state(state(clock.now_ns()))
+    samples(2)  # 40 and 80 ms after the state: within the 0.1 s timeout
+    samples(3)  # the state is now 120 ms and more old: stale
+    wiring.on_state(state(clock.now_ns()))
+    samples(1)
+    assert said == [("warning", "impact_unknown"), ("info", "impact_predicted"), ("warning", "impact_unknown"),
+                    ("info", "impact_predicted")]
+    assert [p.impact_basis for p in pains] == [NO_STATE] * 3 + [MEASURED] * 2 + [STALE_STATE] * 3 + [MEASURED]
+    assert all(p.threshold_scale == [pytest.approx(0.6)] * N for p in pains if p.impact_basis != MEASURED)
+    assert all(math.isfinite(x) for p in pains for x in [*p.impact_n, *p.effective_mass_kg, *p.gain])
+
 # -- a lockstep session with the model: recorded, summarised, re-run bit for bit -------------------------------
 
 @pytest.mark.slow
