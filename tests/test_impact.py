@@ -119,6 +119,82 @@ def test_a_direction_the_arm_cannot_be_pushed_in_reports_the_mass_cap():
     assert impact.mass_kg[DESC.pad("shoulder_back").id] == MASS_CAP_KG
 
 
+def test_a_planar_two_link_arm_by_hand():
+    """Two links of 0.5 m with 2 kg at each end, the elbow at 90 degrees (link 1 along x, link 2 along y):
+    M = [[m1 l1^2 + m2 (l1^2 + l2^2), m2 l2^2], [m2 l2^2, m2 l2^2]] = [[1.5, 0.5], [0.5, 0.5]] (cos q2 = 0);
+    the tip's Jacobian [[-l2, -l2], [l1, 0]]; J M^-1 J^T = diag(0.5, 0.25): 2 kg across link 2 (x), 4 kg along it
+    (y, the whole arm turning about the base with the elbow free), 1 / ((0.5 + 0.25) / 2) = 2.67 kg at 45 deg."""
+    mass_matrix = np.array([[1.5, 0.5], [0.5, 0.5]])
+    jacobian = np.array([[-0.5, -0.5], [0.5, 0.0], [0.0, 0.0]])
+    diagonal = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
+    inverse = inverse_masses(mass_matrix, np.array([jacobian] * 3),
+                             np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], diagonal]))
+    assert 1.0 / inverse == pytest.approx([2.0, 4.0, 8.0 / 3.0])
+    # 0.3 m/s across link 2 into a hand: 82.158 / sqrt(1/2 + 1/5.6) = 82.158 / 0.82376 = 99.74 N
+    assert impact_forces(np.array([0.3]), inverse[:1], np.array([K]), np.array([MH]))[0] == pytest.approx(99.74,
+                                                                                                           abs=0.01)
+
+
+def _mass_matrix_from_link_inertias(q: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """M = sum over links of m J_c^T J_c + J_w^T (R I R^T) J_w from the URDF's inertias, each link's centre-of-mass
+    and angular Jacobians by central differences of its placement: forward kinematics only, none of pinocchio's
+    dynamics or Jacobians."""
+    import pinocchio as pin
+
+    model, data = ROBOT.model, ROBOT.model.createData()
+
+    def placements(x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        pin.forwardKinematics(model, data, x)
+        return [(data.oMi[i].translation + data.oMi[i].rotation @ model.inertias[i].lever, data.oMi[i].rotation.copy())
+                for i in range(1, model.njoints)]
+
+    n = len(q)
+    jc = np.zeros((model.njoints - 1, 3, n))
+    jw = np.zeros((model.njoints - 1, 3, n))
+    for j in range(n):
+        step = np.zeros(n)
+        step[j] = h
+        for link, ((c_plus, r_plus), (c_minus, r_minus)) in enumerate(zip(placements(q + step), placements(q - step))):
+            jc[link, :, j] = (c_plus - c_minus) / (2 * h)
+            turn = r_plus @ r_minus.T
+            jw[link, :, j] = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]]) / (
+                4 * h)
+    rotations = [r for _, r in placements(q)]
+    out = np.diag(np.asarray(model.armature, dtype=float))
+    for link in range(model.njoints - 1):
+        inertia = model.inertias[link + 1]
+        world = rotations[link] @ inertia.inertia @ rotations[link].T
+        out += inertia.mass * jc[link].T @ jc[link] + jw[link].T @ world @ jw[link]
+    return out
+
+
+@pytest.mark.parametrize(("q", "dq"), [
+    (DESC.home, np.array([0.3, -0.2, 0.4, 0.5, -0.6, 0.8])),
+    (np.array([0.4, -1.2, 1.1, -1.5, -1.2, 0.3]), np.array([-0.5, 0.3, 0.2, -0.4, 0.7, 0.1])),
+])
+def test_the_ur10e_at_two_poses_against_an_independent_computation(q, dq):
+    """Every pad's speed, effective mass and force against numpy alone: the mass matrix from the link inertias
+    (above), the pads' Jacobians by central differences of their points."""
+    h = 1e-6
+    mass_matrix = _mass_matrix_from_link_inertias(q)
+    assert mass_matrix == pytest.approx(ROBOT.mass_matrix(q), rel=1e-6, abs=1e-7)
+    jacobians = np.zeros((N, 3, 6))
+    for j in range(6):
+        step = np.zeros(6)
+        step[j] = h
+        jacobians[:, :, j] = (ROBOT.pad_points(q + step) - ROBOT.pad_points(q - step)) / (2 * h)
+    impact = model().at(q, dq)
+    assert impact.basis == MEASURED
+    for pad in range(N):
+        v = jacobians[pad] @ dq
+        speed = float(np.linalg.norm(v))
+        assert impact.speed_m_s[pad] == pytest.approx(speed, rel=1e-6, abs=1e-9)
+        u = v / speed
+        mass = 1.0 / float(u @ jacobians[pad] @ np.linalg.inv(mass_matrix) @ jacobians[pad].T @ u)
+        assert impact.mass_kg[pad] == pytest.approx(mass, rel=1e-5)
+        force = speed * math.sqrt(K) / math.sqrt(1.0 / mass + 1.0 / MH)
+        assert impact.force_n[pad] == pytest.approx(force, rel=1e-5)
+
 # -- bad input: a defined, conservative answer, never a NaN ----------------------------------------------------
 
 @pytest.mark.parametrize(("q", "dq"), [
@@ -318,6 +394,37 @@ def test_the_gain_wiring_reads_the_robot_state_only_for_the_effective_mass_model
     em = Profile(gain=GainSection(model="effective-mass"))
     assert sorted(i.name for i in wiring(em).subscriptions()) == ["pressure", "state"]
 
+
+def test_a_prediction_lost_and_regained_is_said_once_each_time():
+    """No state yet, a state, then none for longer than the timeout: one warning per loss, one note per return,
+    not one per skin sample; every pain message meanwhile at the floor, none NaN."""
+    from nwr.common.clock import ManualClock
+    from nwr.common.journal import Recording
+    from nwr.services.gain.wiring import GainWiring
+
+    clock = ManualClock(1_000_000_000)
+    said: list[tuple[str, str]] = []
+    pains: list[m.SkinPain] = []
+    wiring = GainWiring(Profile(gain=GainSection(model="effective-mass")), journal=Recording(clock),
+                        out=lambda key, msg: pains.append(msg), diag=lambda level, code, *a, **k: said.append(
+                            (level, code)))
+
+    def samples(count: int) -> None:
+        for _ in range(count):
+            clock.advance(0.04)
+            wiring.on_pressure(pressure([4.0] * N, seq=len(pains)))
+
+    samples(3)  # no robot state yet
+    wiring.on_state(state(clock.now_ns()))
+    samples(2)  # 40 and 80 ms after the state: within the 0.1 s timeout
+    samples(3)  # the state is now 120 ms and more old: stale
+    wiring.on_state(state(clock.now_ns()))
+    samples(1)
+    assert said == [("warning", "impact_unknown"), ("info", "impact_predicted"), ("warning", "impact_unknown"),
+                    ("info", "impact_predicted")]
+    assert [p.impact_basis for p in pains] == [NO_STATE] * 3 + [MEASURED] * 2 + [STALE_STATE] * 3 + [MEASURED]
+    assert all(p.threshold_scale == [pytest.approx(0.6)] * N for p in pains if p.impact_basis != MEASURED)
+    assert all(math.isfinite(x) for p in pains for x in [*p.impact_n, *p.effective_mass_kg, *p.gain])
 
 # -- a lockstep session with the model: recorded, summarised, re-run bit for bit -------------------------------
 
