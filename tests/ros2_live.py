@@ -29,11 +29,16 @@ def _config(mode: str, listen: list[str], connect: list[str]) -> zenoh.Config:
     return conf
 
 
+def router_config(endpoint: str) -> zenoh.Config:
+    """A Zenoh router listening on ``endpoint``, multicast scouting off: what rmw_zenohd is."""
+    return _config("router", [endpoint], [])
+
+
 @contextmanager
 def rmw_router() -> Iterator[tuple[str, zenoh.Session]]:
     """A Zenoh router on a free loopback port, as ``rmw_zenohd`` is one: its endpoint and its session."""
     endpoint = f"tcp/127.0.0.1:{free_base_port(1)}"
-    with zenoh.open(_config("router", [endpoint], [])) as session:
+    with zenoh.open(router_config(endpoint)) as session:
         yield endpoint, session
 
 

@@ -16,7 +16,7 @@ import pytest
 import zenoh
 from pamoja import ros2 as pamoja
 from pipeline import WAIT_S, Pipeline, free_base_port
-from ros2_live import attachment, foxglove_decode, parse_token, rmw_router, ros_client
+from ros2_live import attachment, foxglove_decode, parse_token, rmw_router, ros_client, router_config
 from rosbags.typesys import get_types_from_msg
 
 from nwr.common import keys
@@ -30,7 +30,7 @@ from nwr.common.launch import apply_env_overrides
 from nwr.common.node import Node
 from nwr.common.robot import load_description
 from nwr.common.ros2 import typestore
-from nwr.common.ros2_msgs import JOINT_STATES, REFLEX, SKIN_ABSOLUTE, SKIN_CHANGE
+from nwr.common.ros2_msgs import JOINT_STATES, REFLEX, SKIN_ABSOLUTE, SKIN_CHANGE, Ros2Builder
 from nwr.common.skinmap import pad_map
 from nwr.services.gateway.sources import ros2 as source
 from nwr.services.gateway.wiring import GatewayWiring
@@ -355,3 +355,48 @@ def test_a_ros2_skin_drives_the_gateway_and_comes_back_as_ros2_topics(pipeline: 
         assert ours == fox["data"] and len(ours) == len(PADS)
     assert [None if v is None else round(v, 3) for v in fox["data"]] == \
         [round(v, 3) if ok else None for v, ok in zip(pressures[-1].absolute_hpa, pressures[-1].valid, strict=True)]
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "humble"])
+def test_the_messages_serialize_with_either_distributions_definitions(distro: str) -> None:
+    types = typestore(distro)
+    build = Ros2Builder(types, DESC.joints, offset_ns=10**18)
+    status = m.PlannerStatus(seq=1, stamp_ns=5, name="cartesian", strategy="cartesian", mode="REFLEX",
+                             task_time_s=0.0)
+    for msg, msgtype in ((build.joint_state(state(1)), "sensor_msgs/msg/JointState"),
+                         (build.skin(pressure(1))[1], "std_msgs/msg/Float64MultiArray"),
+                         (build.reflex(status, DESC.base_frame), "visualization_msgs/msg/MarkerArray")):
+        again = types.deserialize_cdr(bytes(types.serialize_cdr(msg, msgtype)), msgtype)
+        assert type(again).__name__ == type(msg).__name__
+    assert build.reflex(status, DESC.base_frame) is None  # no change, no marker
+    string = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"  # the design document's
+    assert rz.type_hash(types, "std_msgs/msg/String", humble=distro == "humble") == (
+        rz.TYPE_HASH_NOT_SUPPORTED if distro == "humble" else string)
+
+
+@pytest.mark.e2e
+def test_a_router_that_is_not_there_yet_is_reported_and_joined_when_it_comes() -> None:
+    from nwr.common.ros2 import Ros2Link
+
+    port = free_base_port(1)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    diags: list[tuple[str, str]] = []
+    link = Ros2Link(rz.Ros2Section(enabled=True, router=[endpoint]), "bridge",
+                    lambda level, code, text, **kw: diags.append((level, code)))
+    try:
+        pub = link.publisher(JOINT_STATES, "sensor_msgs/msg/JointState")
+        build_state = Ros2Builder(link.types, DESC.joints).joint_state(state(1))
+        pub.publish(build_state)
+        assert diags == [("error", "ros2_router_unreachable")] and (pub.sent, pub.dropped) == (0, 1)
+        with zenoh.open(router_config(endpoint)) as router:
+            got: list[zenoh.Sample] = []
+            sub = router.declare_subscriber("0/**", got.append)
+            deadline = time.monotonic() + WAIT_S
+            while not got and time.monotonic() < deadline:
+                pub.publish(build_state)
+                time.sleep(0.2)
+            sub.undeclare()
+        assert got and str(got[0].key_expr) == pub.key and pub.token.endswith("/::,:,:,:,,")
+        assert rz.Attachment.decode(got[0].attachment.to_bytes()).gid == rz.gid_of(pub.token)
+    finally:
+        link.close()
