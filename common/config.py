@@ -37,6 +37,7 @@ import msgspec
 
 from nwr.common.errors import ConfigError
 from nwr.common.guards import GUARDS, Guarded, Loosened, loosens, pattern_of, toml_value
+from nwr.common.rmw_zenoh import Ros2Section
 from nwr.common.section import Section
 from nwr.common.task import TaskSection, check_task
 
@@ -110,7 +111,8 @@ class GatewaySection(Plugged):
     rate_hz: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 25.0
     # The skin source, a module of services/gateway/sources/ (checked where the
     # gateway starts): "sim", the simulated skin; "ros1", a real skin's
-    # pressures on a ROS 1 topic ([gateway.ros1]).
+    # pressures on a ROS 1 topic ([gateway.ros1]); "ros2", on a ROS 2 topic
+    # through rmw_zenoh ([gateway.ros2], [ros2]).
     source: Name = "sim"
     # A change above this marks the pad as touched and freezes its baseline.
     # Below every pad's PL 2 threshold: a press the gain feels must freeze it.
@@ -483,6 +485,7 @@ class Profile(_Section):
     bridge: BridgeSection = msgspec.field(default_factory=BridgeSection)
     recorder: RecorderSection = msgspec.field(default_factory=RecorderSection)
     safety: SafetySection = msgspec.field(default_factory=SafetySection)
+    ros2: Ros2Section = msgspec.field(default_factory=Ros2Section)
 
 
 # Fields that moved into a plug-in's table: (section, old key) -> (plug-in, its field; "" = the whole table). A

@@ -123,8 +123,14 @@ def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profi
         if variable in overrides:
             setattr(profile.zenoh, field, overrides[variable])
             profile.zenoh.secure = True
+    ros2 = profile.ros2.router if profile.ros2.enabled or profile.gateway.source == "ros2" else []
     if insecure(overrides):
         profile.zenoh.secure = False
+    elif beyond := [e for e in ros2 if not _loopback(e)]:
+        raise ConfigError(
+            f"[ros2] router {', '.join(beyond)} reaches beyond this machine, and the ROS 2 side has no TLS: anyone "
+            "on that network could feed the skin. Run rmw_zenohd on this machine (the lab's routers link to it), "
+            "or acknowledge the open network with NWR_INSECURE=1 (a trusted network only)")
     elif not profile.zenoh.secure:
         beyond = [e for e in [*profile.zenoh.router, f"tcp/{profile.zenoh.host}:{profile.zenoh.base_port}"]
                   if not _loopback(e)]

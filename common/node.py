@@ -301,6 +301,7 @@ class Node:
         self._journal: tuple[Recording, threading.Lock, Batcher, Callable[[Any], None]] | None = None
         self._journal_thread: threading.Thread | None = None
         self._journal_stop = threading.Event()
+        self._ros2: Any = None
 
     def owners(self, service: str = "*", timeout_s: float = OWNER_QUERY_S) -> list[keys.Owner]:
         """The live services of every pipeline on this robot (``service``: one name, or ``*`` for all)."""
@@ -354,13 +355,35 @@ class Node:
         with lock:
             run_ns = self.clock.now_ns()
             wiring = factory(profile, journal=journal, out=out, diag=self.diag, **kwargs)
+        mirror = self._ros2_mirror(profile, wiring.outputs)
         for key in wiring.outputs:
-            publishers[key] = self.publisher(key)
+            publish = self.publisher(key)
+            publishers[key] = mirror.tee(key, publish) if mirror is not None else publish
         batcher = Batcher(self.service, run_ns, service_config(profile, **wiring.params()))
         self._journal = (journal, lock, batcher, self.publisher(keys.journal(self.service)))
         self._journal_thread = threading.Thread(target=self._publish_journal, name="journal", daemon=True)
         self._journal_thread.start()
         return wiring
+
+    # -- the ROS 2 side ----------------------------------------------------------
+    def ros2(self, cfg: Any) -> Any:
+        """This process's ROS 2 node (:class:`nwr.common.ros2.Ros2Link`, ``cfg``: ``[ros2]``), made once."""
+        if self._ros2 is None:
+            from nwr.common.ros2 import Ros2Link  # rosbags' type store loads only where ROS 2 is used
+
+            self._ros2 = Ros2Link(cfg, self.service, self.diag)
+        return self._ros2
+
+    def _ros2_mirror(self, profile: Any, outputs: tuple[str, ...]) -> Any:
+        """With ``[ros2] enabled``, what publishes this service's outputs as ROS 2 topics too (nwr.common.ros2)."""
+        cfg = getattr(profile, "ros2", None)
+        if cfg is None or not cfg.enabled:
+            return None
+        from nwr.common import ros2
+
+        if not any(ros2.mirrored(key) for key in outputs):
+            return None
+        return ros2.mirror(self.ros2(cfg), profile)
 
     def _flush_journal(self, final: bool = False) -> None:
         assert self._journal is not None
@@ -514,6 +537,8 @@ class Node:
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+        if self._ros2 is not None:
+            self._ros2.close()
         self.session.close()
 
     def __enter__(self) -> Node:

@@ -1,8 +1,8 @@
 """What a ROS 2 node on rmw_zenoh (ROS 2's Zenoh middleware, ``rmw_zenoh_cpp``) puts on Zenoh, as pure functions.
 
-Not wired to any service yet: the encoder a live publisher of ROS 2 topics (and a ROS 2 skin source) will use.
-No Zenoh import (:mod:`nwr.common.node` holds the session); the message bytes themselves are CDR, which
-``rosbags`` serializes (``typestore.serialize_cdr``).
+The names and bytes the live ROS 2 side (:mod:`nwr.common.ros2`: the services' ROS 2 topics and the gateway's
+``ros2`` skin source) puts on Zenoh, and its profile section ``[ros2]`` (:class:`Ros2Section`). No Zenoh import
+here; the message bytes themselves are CDR, which ``rosbags`` serializes (``typestore.serialize_cdr``).
 
 What rmw_zenoh_cpp does (its ``liveliness_utils.cpp`` and ``attachment_helpers.cpp``, 1.x for Jazzy and later):
 
@@ -30,7 +30,11 @@ from __future__ import annotations
 import hashlib
 import struct
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from nwr.common.section import Section
 
 ADMIN_SPACE = "@ros2_lv"
 TYPE_HASH_NOT_SUPPORTED = "TypeHashNotSupported"  # what Humble's rmw_zenoh sends: it has no type hashes
@@ -57,6 +61,29 @@ class Qos:
 
 
 DEFAULT_QOS = Qos()
+
+
+class Ros2Section(Section):
+    """``[ros2]``: the pipeline's side on a ROS 2 graph of rmw_zenoh nodes (docs/lab.md, "ROS 2 live topics")."""
+
+    # Publish the robot's joint states, the skin and the reflex as ROS 2
+    # topics (as `nwr export --ros2` names them), each from the service that
+    # makes it (bridge, gateway, active planner): rmw_zenoh's keys, CDR, the
+    # attachment on every sample and the graph's liveliness tokens.
+    enabled: bool = False
+    # rmw_zenoh's router (`ros2 run rmw_zenoh_cpp rmw_zenohd`, port 7447),
+    # which each process's ROS 2 side joins as a client, on a Zenoh session of
+    # its own (the ROS 2 graph never reaches the pipeline's keys). Beyond
+    # loopback only with NWR_INSECURE=1: rmw_zenohd has no TLS here.
+    router: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    # ROS_DOMAIN_ID of the lab's ROS 2 graph.
+    domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
+    # The ROS 2 nodes' namespace: the topics are joint_states, nwr/skin/...
+    # in it ("/": /joint_states, as robot_state_publisher reads it).
+    namespace: Annotated[str, msgspec.Meta(pattern=r"^/([A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*)?$")] = "/"
+    # The ROS 2 distribution's message definitions and type hashes: "jazzy"
+    # (and later: RIHS01 hashes in the keys) or "humble" (no type hashes).
+    distro: Literal["jazzy", "humble"] = "jazzy"
 
 
 def dds_type_name(msgtype: str) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -9,6 +11,8 @@ from typing import Any
 
 import pytest
 from pipeline import Pipeline
+
+NODE_DIR = Path(__file__).resolve().parent / "node"  # Foxglove's decoders (tests/node/package-lock.json)
 
 
 @pytest.fixture
@@ -39,3 +43,21 @@ def pipeline(tmp_path: Path) -> Iterator[Pipeline]:
     stopped at the end (SIGINT, then SIGKILL to what is left)."""
     with Pipeline(tmp_path) as p:
         yield p
+
+
+@pytest.fixture(scope="session")
+def node() -> str:
+    """node, with Foxglove's packages of tests/node/package-lock.json installed (npm ci, once)."""
+    found = shutil.which("node")
+    if found is None:
+        why = "node is not installed (Debian: apt install nodejs npm): Foxglove's decoders cannot run"
+        if os.environ.get("NWR_REQUIRE_NODE") == "1":
+            pytest.fail(why + "; NWR_REQUIRE_NODE=1 requires it")
+        pytest.skip(why)
+    if not (NODE_DIR / "node_modules" / "@foxglove" / "rosmsg2-serialization").is_dir():
+        npm = shutil.which("npm")
+        assert npm, "node is installed but npm is not: apt install npm"
+        proc = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=NODE_DIR, capture_output=True, text=True,
+                              timeout=300)
+        assert proc.returncode == 0, f"npm ci in {NODE_DIR} failed: {proc.stderr}"
+    return found

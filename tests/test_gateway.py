@@ -271,7 +271,8 @@ def test_the_live_skin_sources_are_the_modules_of_their_package_and_a_wrong_name
     from nwr.common.errors import ConfigError
     from nwr.services.gateway import sources
 
-    assert sources.names() == ["physics", "ros1", "sim"]
-    assert sources.live("sim").NAME == "sim" and callable(sources.live("ros1").run)
-    with pytest.raises(ConfigError, match="gateway.source = 'ros2' is no skin source; there are: physics, ros1, sim"):
-        sources.live("ros2")
+    assert sources.names() == ["physics", "ros1", "ros2", "sim"]
+    assert sources.live("sim").NAME == "sim" and callable(sources.live("ros2").run)
+    with pytest.raises(ConfigError, match="gateway.source = 'ros3' is no skin source; there are: physics, ros1, ros2, "
+                                          "sim"):
+        sources.live("ros3")

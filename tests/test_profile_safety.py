@@ -121,6 +121,7 @@ LOOSENED: dict[str, Any] = {
     "bridge.skin_timeout_s": 5.0,
     "bridge.position_jump_rad": 0.2,
     "bridge.ur_rtde.watchdog_hz": 5.0,
+    "gateway.ros2.scale_hpa": 0.01,
     "bridge.limits.speed_m_s": 0.3,
     "bridge.limits.withdrawal_speed_m_s": 0.6,
     "bridge.limits.momentum_kg_m_s": 12.0,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 import zenoh
 import zenoh.ext as zx
+from ros2_live import parse_token
 from rosbags.typesys import Stores, get_typestore
 
 from nwr.common import rmw_zenoh as rz
@@ -59,29 +60,20 @@ def test_anything_but_the_33_bytes_is_no_attachment(data: bytes) -> None:
         rz.Attachment(0, 0, bytes(15)).encode()
 
 
-def _parse(token: str) -> list[str]:
-    """rmw_zenoh_cpp's checks of a token it receives (Entity::make): its parts, none empty, the admin space."""
-    parts = token.split("/")
-    assert parts[0] == rz.ADMIN_SPACE and all(parts), token
-    assert parts[5] in ("NN", "MP", "MS") and len(parts) == (9 if parts[5] == "NN" else 13), token
-    assert str(zenoh.KeyExpr(token)) == token
-    return parts
-
-
 def test_liveliness_tokens_follow_rmw_zenohs_grammar() -> None:
     node = rz.Node(domain_id=0, zid=ZID, node_id=0, name="talker")
     assert node.token() == f"@ros2_lv/0/{ZID}/0/0/NN/%/%/talker"
     pub = node.endpoint_token(11, "MP", "chatter", "std_msgs/msg/String", STRING_HASH)
     assert pub == f"@ros2_lv/0/{ZID}/0/11/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/{STRING_HASH}/" \
         "::,:,:,:,,"
-    parts = _parse(pub)
+    parts = parse_token(pub)
     assert rz.demangle(parts[9]) == "/chatter" and parts[12].count(":") == 5
-    _parse(node.token())
+    parse_token(node.token())
 
     lab = rz.Node(domain_id=3, zid=ZID, node_id=2, name="skin", namespace="/nwr/ur10e")
     sub = lab.endpoint_token(5, "MS", "airskin", "std_msgs/msg/Float64MultiArray", "TypeHashNotSupported",
                              rz.Qos(reliability=rz.BEST_EFFORT, durability=rz.TRANSIENT_LOCAL, depth=1))
-    parts = _parse(sub)
+    parts = parse_token(sub)
     assert parts[6:10] == ["%", "%nwr%ur10e", "skin", "%nwr%ur10e%airskin"]
     assert parts[12] == "2:1:,1:,:,:,,"
     with pytest.raises(ValueError):

@@ -7,8 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -144,24 +142,6 @@ def test_unusable_export_input_is_one_line(imported: Path, tmp_path: Path, caplo
 
 
 # -- Foxglove's decoders -------------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def node() -> str:
-    """node, with Foxglove's packages of tests/node/package-lock.json installed (npm ci, once)."""
-    found = shutil.which("node")
-    if found is None:
-        why = "node is not installed (Debian: apt install nodejs npm): Foxglove's decoders cannot run"
-        if os.environ.get("NWR_REQUIRE_NODE") == "1":
-            pytest.fail(why + "; NWR_REQUIRE_NODE=1 requires it")
-        pytest.skip(why)
-    if not (NODE_DIR / "node_modules" / "@foxglove" / "rosmsg2-serialization").is_dir():
-        npm = shutil.which("npm")
-        assert npm, "node is installed but npm is not: apt install npm"
-        proc = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=NODE_DIR, capture_output=True, text=True,
-                              timeout=300)
-        assert proc.returncode == 0, f"npm ci in {NODE_DIR} failed: {proc.stderr}"
-    return found
 
 
 def foxglove_decode(node: str, mcap: Path) -> dict[str, Any]:

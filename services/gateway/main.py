@@ -3,7 +3,8 @@
 The source is ``gateway.source`` (``--source``), a module of :mod:`.sources`:
 ``sim`` (the default: simulated AIRSKIN pads on a touch script), ``physics``
 (a physics world's pads, sampled by the world the bridge hosts, on a touch
-script) or ``ros1`` (a real skin's pressures from a ROS 1 topic, docs/lab.md).
+script), ``ros1`` (a real skin's pressures from a ROS 1 topic, docs/lab.md) or
+``ros2`` (from a ROS 2 topic through rmw_zenoh).
 
 It follows the arm's pose (``robot/state``) to tell where each touch meets
 its pad (the ground truth published on ``skin/touch``) and, with

@@ -14,7 +14,7 @@ runs and ``nwr verify`` run this code.
 - each tick: the follower's touch, the touches that start (forward
   kinematics only when one needs the pose), the sample (of the period's
   deadline: a late loop takes the periods it missed one by one);
-- a real skin (``gateway.source = "ros1"``, :mod:`.sources.ros1`) has no ticks: each
+- a real skin (``gateway.source = "ros1"`` or ``"ros2"``, :mod:`.sources.ros1`) has no ticks: each
   of its samples, mapped onto the pads, is an input (:meth:`GatewayWiring.on_sample`);
 - a physics world's skin (``gateway.source = "physics"``, :mod:`.sources.physics`): the
   ticks run the touch script's clock (the touches' ground truth, which the
@@ -143,8 +143,8 @@ class GatewayWiring(Wiring):
 
     @event("sample", record=lambda absolute: _sample_fields(absolute), recall=lambda w, e: (_sample_values(e),))
     def on_sample(self, absolute: np.ndarray) -> None:
-        """A real skin's sample (``gateway.source = "ros1"``): each pad's absolute pressure, hPa, NaN where
-        the pad is invalid in it (:func:`nwr.common.skinmap.map_values`, whose caller reports why)."""
+        """A real skin's sample (``gateway.source = "ros1"`` or ``"ros2"``): each pad's absolute pressure, hPa,
+        NaN where the pad is invalid in it (:func:`nwr.common.skinmap.map_values`, whose caller reports why)."""
         absolute = np.asarray(absolute, dtype=float)
         now = self.journal.now_ns()
         msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)

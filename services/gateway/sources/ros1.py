@@ -3,8 +3,9 @@
 A thin adapter: rospy subscribes to ``gateway.ros1.topic``; each message's
 values field is mapped onto the robot's pads by
 :func:`nwr.common.skinmap.map_values` (the same code ``nwr import`` uses)
-and fed to the gateway's wiring (:meth:`GatewayWiring.on_sample`): the
-same baseline filter and ``skin/pressure`` as the simulated skin.
+and fed to the gateway's wiring (:meth:`GatewayWiring.on_sample`) by
+:class:`~nwr.services.gateway.sources._feed.SkinFeed`, which the ROS 2 source
+shares: the same baseline filter and ``skin/pressure`` as the simulated skin.
 
 - the mapping's own gaps (unused device indices, pads no index feeds) are
   reported once at start (log and diagnostic ``ros1_mapping``);
@@ -31,12 +32,10 @@ import logging
 import socket
 import sys
 import threading
-import time
 from typing import TYPE_CHECKING, Annotated, Any
 from urllib.parse import urlparse
 
 import msgspec
-import numpy as np
 
 from nwr.common import keys
 from nwr.common import messages as m
@@ -45,8 +44,9 @@ from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.node import Node
 from nwr.common.section import Section
-from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, PadMap, map_values, pad_map
+from nwr.common.skinmap import PadMap, pad_map
 from nwr.services.gateway.sources import KIND
+from nwr.services.gateway.sources._feed import SkinFeed
 from nwr.services.gateway.wiring import SERVICE, GatewayWiring
 
 if TYPE_CHECKING:
@@ -149,58 +149,19 @@ def check_field(cls: Any, cfg: Settings) -> None:
                           f"(its fields: {slots})")
 
 
-class Ros1Skin:
-    """The subscriber's callback and the watchdog's checks, around the gateway's wiring."""
+class Ros1Skin(SkinFeed):
+    """The subscriber's callback and the watchdog's checks (messages coming, master reachable)."""
+
+    source = NAME
 
     def __init__(self, cfg: Settings, pmap: PadMap, wiring: GatewayWiring, lock: threading.Lock,
                  diag: Any) -> None:
-        self.cfg = cfg
-        self.pmap = pmap
-        self.wiring = wiring
-        self.lock = lock
-        self.diag = diag
-        self.count = 0
-        self.bad = 0
-        self.last = time.monotonic()  # of the newest message (the start, before any)
-        self.stale = False
+        super().__init__(cfg, pmap, wiring, lock, diag)
         self.master_down = False
-
-    def on_message(self, msg: Any) -> None:
-        try:
-            values = getattr(msg, self.cfg.values_field)
-            mapped = map_values(values, self.pmap)
-            with self.lock:
-                self.wiring.on_sample(mapped.absolute_hpa)
-        except Exception as exc:  # a callback must never end the subscription: report and go on
-            self.bad += 1
-            self.diag("error", "ros1_bad_message", f"a message on {self.cfg.topic} could not be used: {exc!r}")
-            return
-        self.count += 1
-        self.last = time.monotonic()
-        if self.stale:
-            self.stale = False
-            log.info("skin messages on %s again", self.cfg.topic)
-        if mapped.problems:
-            self.bad += 1
-            if "range" in mapped.problems and not np.isfinite(mapped.absolute_hpa).any():
-                # Every pad out of range: not a bad message but the wrong units or scale (a device in Pa).
-                lo, hi = ABSOLUTE_RANGE_HPA
-                self.diag("error", "ros1_units",
-                          f"every value on {self.cfg.topic} is outside {lo:g}..{hi:g} hPa after gateway.ros1's "
-                          f"scale_hpa = {self.cfg.scale_hpa:g} and offset_hpa = {self.cfg.offset_hpa:g}: the skin is "
-                          "blind and the bridge holds the arm; a device that reports Pa needs scale_hpa = 0.01, one "
-                          "that reports a change from rest an offset_hpa (docs/lab.md)", every_s=10.0)
-                return
-            self.diag("warning", "ros1_bad_message", f"{self.cfg.topic}: " + "; ".join(mapped.problems.values()))
 
     def check(self, master_uri: str) -> None:
         """The watchdog: messages coming, master reachable."""
-        quiet = time.monotonic() - self.last
-        if quiet > self.cfg.timeout_s:
-            self.stale = True
-            self.diag("error", "ros1_no_messages",
-                      f"no skin message on {self.cfg.topic} for {quiet:.1f} s: the skin is stale (the bridge "
-                      "stops the arm); is the skin's node running, the topic and ROS_MASTER_URI right?")
+        self.check_quiet("is the skin's node running, the topic and ROS_MASTER_URI right?")
         up = master_reachable(master_uri)
         if not up:
             self.master_down = True

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-import math
 import shutil
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Iterator
@@ -53,28 +52,36 @@ from nwr.common import messages as m
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotDescription, RobotModel, load_description
+from nwr.common.ros2_msgs import (
+    ADD,
+    ARRAY_TYPE,
+    ARROW,
+    DELETEALL,
+    JOINT_STATE_TYPE,
+    JOINT_STATES,
+    MARKERS_TYPE,
+    REFLEX,
+    SKIN_ABSOLUTE,
+    SKIN_CHANGE,
+    Ros2Builder,
+)
 from nwr.services.view.core import link_transforms, quaternion, urdf_joints, visual_urdf
 
 log = logging.getLogger(__name__)
 
-JOINT_STATES = "/joint_states"
-SKIN_ABSOLUTE = "/nwr/skin/absolute_hpa"
-SKIN_CHANGE = "/nwr/skin/change_hpa"
 TF, TF_STATIC, DESCRIPTION = "/tf", "/tf_static", "/robot_description"
-CONTACTS, REFLEX = "/nwr/contacts", "/nwr/reflex"
+CONTACTS = "/nwr/contacts"
 TOPICS: dict[str, str] = {
-    JOINT_STATES: "sensor_msgs/msg/JointState",
-    SKIN_ABSOLUTE: "std_msgs/msg/Float64MultiArray",
-    SKIN_CHANGE: "std_msgs/msg/Float64MultiArray",
+    JOINT_STATES: JOINT_STATE_TYPE,
+    SKIN_ABSOLUTE: ARRAY_TYPE,
+    SKIN_CHANGE: ARRAY_TYPE,
     TF: "tf2_msgs/msg/TFMessage",
     TF_STATIC: "tf2_msgs/msg/TFMessage",
     DESCRIPTION: "std_msgs/msg/String",
-    CONTACTS: "visualization_msgs/msg/MarkerArray",
-    REFLEX: "visualization_msgs/msg/MarkerArray",
+    CONTACTS: MARKERS_TYPE,
+    REFLEX: MARKERS_TYPE,
 }
 LATCHED = (TF_STATIC, DESCRIPTION)
-ARROW, TEXT_VIEW_FACING, DELETEALL = 0, 9, 3  # visualization_msgs/Marker's type and action constants
-ADD = 0
 
 
 def pad_frame(name: str) -> str:
@@ -113,33 +120,18 @@ class Ros2Messages:
         self.joints = urdf_joints(ET.fromstring(self.urdf))
         self.pads = [p.name for p in self.desc.pads]
         self._last_tf = -(2**62)
-        self._last_mode: tuple[Any, ...] | None = None
-
-    def _t(self, msgtype: str, /, **kwargs: Any) -> Any:
-        return self.types.types[msgtype](**kwargs)
-
-    def _time(self, ns: int) -> Any:
-        ns = max(0, ns)
-        return self._t("builtin_interfaces/msg/Time", sec=ns // 10**9, nanosec=ns % 10**9)
-
-    def _header(self, ns: int, frame: str = "") -> Any:
-        return self._t("std_msgs/msg/Header", stamp=self._time(ns), frame_id=frame)
+        self.build = Ros2Builder(self.types, self.desc.joints, self.offset_ns)
+        self._t = self.build.t
 
     def _transform(self, ns: int, parent: str, child: str, translation: Iterable[float],
                    rotation: Iterable[float]) -> Any:
         x, y, z = (float(v) for v in translation)
         qx, qy, qz, qw = (float(v) for v in rotation)
-        return self._t("geometry_msgs/msg/TransformStamped", header=self._header(ns, parent), child_frame_id=child,
+        return self._t("geometry_msgs/msg/TransformStamped", header=self.build.header(ns, parent),
+                       child_frame_id=child,
                        transform=self._t("geometry_msgs/msg/Transform",
                                          translation=self._t("geometry_msgs/msg/Vector3", x=x, y=y, z=z),
                                          rotation=self._t("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)))
-
-    def _array(self, values: Iterable[float], valid: list[bool]) -> Any:
-        data = np.array([v if ok else math.nan for v, ok in zip(values, valid, strict=True)], dtype=np.float64)
-        n = len(data)
-        layout = self._t("std_msgs/msg/MultiArrayLayout", dim=[
-            self._t("std_msgs/msg/MultiArrayDimension", label="pads", size=n, stride=n)], data_offset=0)
-        return self._t("std_msgs/msg/Float64MultiArray", layout=layout, data=data)
 
     def static(self, ns: int) -> Iterator[tuple[str, int, Any]]:
         """The robot description and the pads' frames, once at the start."""
@@ -158,81 +150,36 @@ class Ros2Messages:
         msg, t = record.message, record.log_time_ns + self.offset_ns
         if isinstance(msg, m.RobotState):
             stamp = msg.stamp_ns + self.offset_ns
-            yield JOINT_STATES, t, self._t(
-                "sensor_msgs/msg/JointState", header=self._header(stamp), name=list(self.desc.joints),
-                position=np.array(msg.q, dtype=np.float64), velocity=np.array(msg.dq, dtype=np.float64),
-                effort=np.array([], dtype=np.float64))
+            yield JOINT_STATES, t, self.build.joint_state(msg)
             if t - self._last_tf >= 1e9 / self.rate_hz:
                 self._last_tf = t
                 transforms = [self._transform(stamp, tr.parent, tr.child, tr.translation, tr.rotation)
                               for tr in link_transforms(self.model, self.joints, np.asarray(msg.q, dtype=float))]
                 yield TF, t, self._t("tf2_msgs/msg/TFMessage", transforms=transforms)
         elif isinstance(msg, m.SkinPressure):
-            valid = list(msg.valid) or [True] * len(msg.absolute_hpa)
-            yield SKIN_ABSOLUTE, t, self._array(msg.absolute_hpa, valid)
-            yield SKIN_CHANGE, t, self._array(msg.change_hpa, valid)
+            absolute, change = self.build.skin(msg)
+            yield SKIN_ABSOLUTE, t, absolute
+            yield SKIN_CHANGE, t, change
         elif isinstance(msg, m.SkinPain):
-            yield CONTACTS, t, self._t("visualization_msgs/msg/MarkerArray",
-                                       markers=self._contacts(msg, msg.stamp_ns + self.offset_ns))
-        elif isinstance(msg, m.PlannerStatus) and msg.active:
-            reflex = msg.reflex
-            key = (msg.name, msg.mode, reflex and (reflex.reflex_seq, reflex.contact.pad))
-            if key != self._last_mode:
-                self._last_mode = key
-                yield REFLEX, t, self._t("visualization_msgs/msg/MarkerArray",
-                                         markers=[self._reflex(msg, msg.stamp_ns + self.offset_ns)])
-
-    def _marker(self, ns: int, frame: str, namespace: str, ident: int, kind: int, action: int, **kw: Any) -> Any:
-        """A Marker of this type store's definition (Jazzy's has texture and mesh-file fields Humble's lacks)."""
-        t = self._t
-        defaults: dict[str, Any] = {
-            "pose": lambda: t("geometry_msgs/msg/Pose", position=t("geometry_msgs/msg/Point", x=0.0, y=0.0, z=0.0),
-                              orientation=t("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0)),
-            "scale": lambda: t("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=0.0),
-            "color": lambda: t("std_msgs/msg/ColorRGBA", r=0.0, g=0.0, b=0.0, a=0.0),
-            "lifetime": lambda: t("builtin_interfaces/msg/Duration", sec=0, nanosec=0),
-            "frame_locked": lambda: True, "points": list, "colors": list, "texture_resource": str,
-            "texture": lambda: t("sensor_msgs/msg/CompressedImage", header=self._header(0), format="",
-                                 data=np.array([], dtype=np.uint8)),
-            "uv_coordinates": list, "text": str, "mesh_resource": str,
-            "mesh_file": lambda: t("visualization_msgs/msg/MeshFile", filename="", data=np.array([], dtype=np.uint8)),
-            "mesh_use_embedded_materials": lambda: False,
-        }
-        fields: dict[str, Any] = {"header": self._header(ns, frame), "ns": namespace, "id": ident, "type": kind,
-                                  "action": action}
-        for name in self._fields("visualization_msgs/msg/Marker"):
-            if name not in fields:
-                fields[name] = kw[name] if name in kw else defaults[name]()
-        return t("visualization_msgs/msg/Marker", **fields)
-
-    def _fields(self, msgtype: str) -> list[str]:
-        return [name for name, _ in self.types.fielddefs[msgtype][1]]
+            yield CONTACTS, t, self._t(MARKERS_TYPE, markers=self._contacts(msg, msg.stamp_ns + self.offset_ns))
+        elif isinstance(msg, m.PlannerStatus):
+            markers = self.build.reflex(msg, self.joints[0].parent if self.joints else "base_link")
+            if markers is not None:
+                yield REFLEX, t, markers
 
     def _contacts(self, pain: m.SkinPain, ns: int) -> list[Any]:
-        out = [self._marker(ns, "", "contacts", 0, ARROW, DELETEALL)]
+        out = [self.build.marker(ns, "", "contacts", 0, ARROW, DELETEALL)]
         for pad, gain in enumerate(pain.gain):
             if not gain > 0 or pad >= len(self.pads):
                 continue
             length = 0.05 + 0.10 * float(gain)
             tail = self._t("geometry_msgs/msg/Point", x=0.0, y=0.0, z=length)
             tip = self._t("geometry_msgs/msg/Point", x=0.0, y=0.0, z=0.0)
-            out.append(self._marker(
+            out.append(self.build.marker(
                 ns, pad_frame(self.pads[pad]), "contacts", pad, ARROW, ADD, points=[tail, tip],
                 scale=self._t("geometry_msgs/msg/Vector3", x=0.01, y=0.02, z=0.02),
                 color=self._t("std_msgs/msg/ColorRGBA", r=1.0, g=float(1.0 - gain), b=0.0, a=1.0)))
         return out
-
-    def _reflex(self, status: m.PlannerStatus, ns: int) -> Any:
-        text = f"{status.name}: {status.mode}"
-        if status.reflex is not None:
-            contact = status.reflex.contact
-            text += f" ({status.reflex.strategy}, {contact.name}, gain {contact.gain:.2f})"
-        pose = self._t("geometry_msgs/msg/Pose", position=self._t("geometry_msgs/msg/Point", x=0.0, y=0.0, z=1.6),
-                       orientation=self._t("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0))
-        return self._marker(ns, self.joints[0].parent if self.joints else "base_link", "reflex", 0,
-                            TEXT_VIEW_FACING, ADD, pose=pose, text=text,
-                            scale=self._t("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=0.08),
-                            color=self._t("std_msgs/msg/ColorRGBA", r=1.0, g=1.0, b=1.0, a=1.0))
 
 
 @dataclass

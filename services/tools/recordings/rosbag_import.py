@@ -64,6 +64,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.recordings import McapRecorder, new_file, session_metadata
 from nwr.common.robot import RobotDescription, load_description
+from nwr.common.ros2_msgs import field_names, numbers_field
 from nwr.common.skinmap import PadMap, map_values, pad_map
 from nwr.services.gateway.sources.ros1 import settings_of
 from nwr.services.profile import profile_for
@@ -201,27 +202,6 @@ def _register(typestore: Any, connection: Any, fallback: tuple[str, str] | None,
     typestore.register(get_types_from_msg(fallback[1], connection.msgtype))
 
 
-def _field_names(typestore: Any, msgtype: str) -> list[str]:
-    return [name for name, _ in typestore.fielddefs[msgtype][1]]
-
-
-NUMBERS = {"bool", "byte", "char", "float32", "float64", "int8", "int16", "int32", "int64", "uint8", "uint16",
-           "uint32", "uint64"}
-
-
-def _numbers_field(typestore: Any, msgtype: str, name: str) -> str | None:
-    """None if field ``name`` of ``msgtype`` is an array or sequence of numbers, else what it is."""
-    from rosbags.interfaces import Nodetype
-
-    (kind, detail), = [t for n, t in typestore.fielddefs[msgtype][1] if n == name]
-    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
-        (inner, inner_detail), _count = detail
-        if inner == Nodetype.BASE and inner_detail[0] in NUMBERS:
-            return None
-        return f"an array of {inner_detail[0] if inner == Nodetype.BASE else inner_detail}"
-    return detail[0] if kind == Nodetype.BASE else str(detail)
-
-
 def _first_line(exc: BaseException) -> str:
     """An exception's message in one line of at most 200 characters (rosbags' parser errors span several)."""
     text = str(exc).strip()
@@ -290,12 +270,12 @@ def import_bag(bag: Path, out: Path, profile: Profile, *, topic: str, joint_topi
                               "with --topic")
         for connection in skin_connections:
             _register(typestore, connection, (message_type, definition), kind)
-            fields = _field_names(typestore, connection.msgtype)
+            fields = field_names(typestore, connection.msgtype)
             if values_field not in fields:
                 raise ConfigError(f"{topic} in {bag} is of type {kind.type_name(connection.msgtype)}, which has no "
                                   f"field {values_field!r} (its fields: {fields}); give the type's field of pressures "
                                   "(gateway.ros1.values_field)")
-            if (shape := _numbers_field(typestore, connection.msgtype, values_field)) is not None:
+            if (shape := numbers_field(typestore, connection.msgtype, values_field)) is not None:
                 raise ConfigError(f"{topic} in {bag} is of type {kind.type_name(connection.msgtype)}, whose field "
                                   f"{values_field!r} is {shape}, not an array of numbers; give the type's field of "
                                   "pressures (gateway.ros1.values_field)")
