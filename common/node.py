@@ -496,6 +496,8 @@ class Node:
         """Whether ``sample`` comes from this pipeline (:func:`from_this_pipeline`); one that does not is
         counted (:attr:`foreign`) and reported on ``diag/<service>`` as ``foreign_instance``, every 10 s at most."""
         theirs = sender_instance(sample.attachment)
+        if theirs == self.instance:  # the reflex path's case: nothing more to look at
+            return True
         key = str(sample.key_expr)
         try:
             relative = keys.relative_key(self.robot, key)
