@@ -63,6 +63,8 @@ def relabel_logging(service: str) -> None:
 # A pipeline's instance: the launcher (nwr up, demo, replay, study, bench) sets it for every process it starts,
 # so that a service it restarts finds its own pipeline's tokens, not another's.
 INSTANCE_ENV = "NWR_INSTANCE"
+# A message of another pipeline instance is reported at most this often per service, s (each one is counted).
+FOREIGN_DIAG_EVERY_S = 10.0
 # How long a starting service asks who else drives its robot, s (the answers come as soon as the peers reply).
 OWNER_QUERY_S = 1.0
 
@@ -70,6 +72,45 @@ OWNER_QUERY_S = 1.0
 def pipeline_instance() -> str:
     """This process's pipeline instance (``NWR_INSTANCE``), or keys.NO_INSTANCE for a process started alone."""
     return keys.key_chunk(os.environ.get(INSTANCE_ENV, ""))
+
+
+# Which pipeline a message comes from travels beside it, as the Zenoh attachment of every put (the instance's
+# UTF-8 bytes), not in it: a message's bytes, what recordings keep and what nwr verify and lockstep compare, are
+# the same in every pipeline, and a recording made before instances travelled still verifies and replays.
+# Producers a process started alone may legitimately stand for beside a launched pipeline: the operator's tools,
+# a live replay, a planner added with `nwr run planner`. Any other key's messages must come from this pipeline.
+_ALONE_MAY_PUT = frozenset({"operator", "replay", "status", "planner", keys.ANY_SERVICE})
+
+
+def sender_instance(attachment: Any) -> str:
+    """The pipeline instance a sample's attachment names (keys.NO_INSTANCE for none, or one that is no instance)."""
+    if attachment is None:
+        return keys.NO_INSTANCE
+    try:
+        raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
+        text = raw.decode()
+    except (UnicodeDecodeError, TypeError, ValueError):
+        return keys.NO_INSTANCE
+    return text if text and keys.key_chunk(text) == text else keys.NO_INSTANCE
+
+
+def from_this_pipeline(mine: str, theirs: str, relative: str) -> bool:
+    """Whether a message on ``relative`` from pipeline ``theirs`` may feed a process of pipeline ``mine``.
+
+    A process started alone (``mine`` is keys.NO_INSTANCE) takes every message: its owner token kept it from
+    starting beside another pipeline's. A launched one takes its own pipeline's, and a process started alone's
+    only on the keys such a process may put on (the operator's, a replay's, a planner's, diagnostics): a
+    message of another pipeline instance never feeds it, whatever the key.
+    """
+    if mine == keys.NO_INSTANCE or theirs == mine:
+        return True
+    if theirs != keys.NO_INSTANCE:
+        return False
+    try:
+        producers = keys.topic_for(relative).producers
+    except DecodeError:
+        return False
+    return not _ALONE_MAY_PUT.isdisjoint(producers)
 
 
 def endpoints(cfg: ZenohSection) -> list[str]:
@@ -259,6 +300,9 @@ class Node:
         ConfigError naming the other) while a process of another pipeline instance is that robot's ``service``
         (:meth:`claim`)."""
         self.service = service
+        self.instance = pipeline_instance()
+        self._attachment = self.instance.encode()
+        self.foreign = 0  # messages of another pipeline instance dropped (foreign_instance on diag/<service>)
         self.door = door  # the semantic checks of every message subscribed to (None: decoding only)
         self.refused = 0
         self.handler_errors = 0
@@ -410,8 +454,10 @@ class Node:
         self._publishers.append(pub)
         encode = codec.encode
 
+        attachment = self._attachment
+
         def publish(message: Any) -> None:
-            pub.put(encode(message))
+            pub.put(encode(message), attachment=attachment)
 
         return publish
 
@@ -435,8 +481,11 @@ class Node:
         codec = keys.codec(relative)
         full = keys.key(self.robot, relative)
         door = self.door
+        mine = self.instance
 
         def on_sample(sample: zenoh.Sample) -> None:
+            if mine != keys.NO_INSTANCE and not self.accepts(sample):
+                return
             try:
                 message = codec.decode(sample.payload.to_bytes())
             except DecodeError as exc:
@@ -466,6 +515,28 @@ class Node:
         callback = zenoh.handlers.Callback(on_sample, indirect=False) if direct else on_sample
         self._subscribers.append(self.session.declare_subscriber(full, callback))
 
+    def accepts(self, sample: zenoh.Sample) -> bool:
+        """Whether ``sample`` comes from this pipeline (:func:`from_this_pipeline`); one that does not is
+        counted (:attr:`foreign`) and reported on ``diag/<service>`` as ``foreign_instance``, every 10 s at most."""
+        theirs = sender_instance(sample.attachment)
+        if theirs == self.instance:  # the reflex path's case: nothing more to look at
+            return True
+        key = str(sample.key_expr)
+        try:
+            relative = keys.relative_key(self.robot, key)
+        except DecodeError:
+            relative = key
+        if from_this_pipeline(self.instance, theirs, relative):
+            return True
+        self.foreign += 1
+        who = "a process started alone" if theirs == keys.NO_INSTANCE else f"pipeline {theirs}"
+        self.diag("warning", "foreign_instance",
+                  f"dropped a message on {key} from {who}: this {self.service} is of pipeline {self.instance} "
+                  f"({self.foreign} dropped so far). Another pipeline publishes on robot {self.robot!r}'s keys (a "
+                  "stale process of an earlier run, or a second pipeline under the same robot name): stop it, or "
+                  "run it under another robot name", every_s=FOREIGN_DIAG_EVERY_S)
+        return False
+
     # -- diagnostics ------------------------------------------------------
     def diag(self, level: str, code: str, message: str, *, every_s: float = 1.0) -> None:
         """Log and publish a diagnostic; repeats of a code are rate limited."""
@@ -486,7 +557,7 @@ class Node:
         )
         self._diag_seq += 1
         try:
-            self._diag_pub.put(self._diag_codec.encode(msg))
+            self._diag_pub.put(self._diag_codec.encode(msg), attachment=self._attachment)
         except zenoh.ZError:  # the session is closing
             pass
 

@@ -319,6 +319,7 @@ def session_metadata(
     labels: dict[str, str],
     loosened_safety: list[dict[str, Any]] | None = None,
     timing: str = "live",
+    instance: str | None = None,
 ) -> dict[str, str]:
     """The ``session`` metadata record (every value a string, as MCAP requires).
 
@@ -328,6 +329,8 @@ def session_metadata(
     ``timing``: "live" (services as processes, on the machine's clock) or
     "lockstep" (one process on simulated time, where stamps are control
     cycles and no latency is measured).
+    ``instance``: the pipeline instance the recorder belongs to (live only; ``-`` for a recorder started alone):
+    what it recorded came from that pipeline, or from processes started alone.
     """
     return {
         "robot": robot,
@@ -341,6 +344,7 @@ def session_metadata(
         # this pair maps them to wall-clock time.
         "start_monotonic_ns": str(start_monotonic_ns),
         "timing": timing,
+        **({} if instance is None else {"instance": instance}),
         **({} if loosened_safety is None else {"loosened_safety": json.dumps(loosened_safety)}),
         **{f"label.{k}": v for k, v in labels.items()},
     }

@@ -114,6 +114,8 @@ def ctx(**kw):
         (pos([math.inf, 0.0]), {}, "command_invalid", "non-finite"),
         (pos([0.0, 0.0], seq=5), {"last_seq": 5}, "command_out_of_order", "duplicated"),
         (pos([0.0, 0.0], seq=3), {"last_seq": 5}, "command_out_of_order", "out of order"),
+        (pos([0.0, 0.0], seq=455), {"last_seq": 5, "since_last_ns": 2_000_000}, "command_seq_jump",
+         "450 ahead of the last accepted (5) 2.0 ms ago"),
         (pos([0.0, 0.3]), {}, "command_jump", "0.3000 rad from the commanded"),
         ("not a command", {}, "command_invalid", "not a joint command"),
     ],
@@ -139,6 +141,13 @@ def test_valid_commands_pass_untouched():
         out = check_command(cmd, ENV, ctx())
         assert not out.rejected and not out.clipped and not out.events
         assert out.values is not None
+
+
+def test_a_seq_ahead_within_what_a_planner_counts_in_the_time_passes():
+    # One command per cycle, a few lost, or a planner silent for a second: its next seq is no jump.
+    for seq, since_ns in ((6, 2_000_000), (25, 2_000_000), (505, 1_000_000_000)):
+        assert not check_command(pos([0.0, 0.0], seq=seq), ENV, ctx(last_seq=5, since_last_ns=since_ns)).rejected
+    assert check_command(pos([0.0, 0.0], seq=26), ENV, ctx(last_seq=5, since_last_ns=0)).rejected
 
 
 def test_restarted_planner_is_accepted():

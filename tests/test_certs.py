@@ -42,6 +42,17 @@ def test_init_writes_a_ca_with_an_owner_only_key(lab: Path) -> None:
         certs.init_ca(lab)  # a second CA would silently invalidate every certificate
 
 
+def test_a_robots_certificate_names_the_robot(lab: Path) -> None:
+    path = certs.issue(lab, "cartesian", "planner", robot="arm-a")
+    assert path == lab / "arm-a" / "cartesian.crt"
+    assert certs.certificate_common_name(_cert(path)) == "planner:cartesian@arm-a"
+    assert certs.parse_common_name("planner:cartesian@arm-a") == ("planner", "cartesian")
+    with pytest.raises(ConfigError, match="ROLE:NAME@ROBOT"):
+        certs.parse_common_name("planner:cartesian@Arm A")
+    with pytest.raises(ConfigError, match="the router serves every robot"):
+        certs.issue(lab, "router", "router", robot="arm-a")
+
+
 def test_issue_puts_the_role_in_the_common_name(lab: Path) -> None:
     path = certs.issue(lab, "cartesian", "planner", days=30)
     assert stat.S_IMODE((lab / "cartesian.key").stat().st_mode) == 0o600

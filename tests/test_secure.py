@@ -84,6 +84,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Lab:
     certs.init_ca(base / "lab")
     for name, role in ISSUED:
         certs.issue(base / "lab", name, role)
+    for robot in ("arm-a", "arm-b"):  # one router for two arms (--robots): each arm's planner its own certificate
+        certs.issue(base / "lab", ACTIVE, "planner", robot=robot)
     certs.init_ca(base / "other", lab="another lab")
     certs.issue(base / "other", ACTIVE, "planner")  # the right name, the wrong CA
     return Lab(base / "lab", base / "other")
@@ -464,39 +466,46 @@ def test_tls_latency_cost(lab: Lab, tmp_path: Path, pipeline_factory: list[Route
                   f"max {max(lat):.2f} ms over {len(lat)} reflexes")
 
 
-@pytest.mark.parametrize("all_robots", [False, True])
-def test_router_scoped_to_its_robot(lab: Lab, all_robots: bool) -> None:
-    """A planner's certificate puts on its arm's and another arm's robot/command; the router passes only its arm's.
+@pytest.mark.parametrize("scope", ["own", "all", "per-robot"])
+def test_router_scoped_to_its_robot(lab: Lab, scope: str) -> None:
+    """A planner's certificate puts on two arms' robot/command; the router passes only what its rules allow.
 
     The router runs in this process, so its own session subscribes to
     everything behind the access control, which filters what a client
-    sends (ingress). ``--all-robots`` (one router shared by several arms) is
-    the control: there both arrive.
+    sends (ingress). ``own``: a router of ``ur10e`` passes its arm's only.
+    ``all`` (``--all-robots``, the control): both arrive. ``per-robot``
+    (``--robots arm-a,arm-b``, one router for two arms): each arm's planner
+    certificate (``planner:cartesian@arm-a``) reaches its own arm only, and
+    a certificate of no robot (``planner:cartesian``) neither.
     """
-    port = 18190 + int(all_robots)
-    acl = router.load_acl(ACL, None if all_robots else ROBOT)
+    port = 18190 + ["own", "all", "per-robot"].index(scope)
+    robots = ["arm-a", "arm-b"] if scope == "per-robot" else [ROBOT, "ur5e"]
+    acl = router.load_acl(ACL, ROBOT if scope == "own" else None, robots if scope == "per-robot" else None)
     conf = router.router_config([f"tcp/127.0.0.1:{port}"], [], tls=lab.zenoh(port, "router"), acl=acl)
     conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
-    seen: dict[str, int] = {}
+    seen: dict[tuple[str, str], int] = {}
     lock = threading.Lock()
+    senders = {"arm-a": lab.directory / "arm-a", "arm-b": lab.directory / "arm-b", "none": lab.directory} \
+        if scope == "per-robot" else {"none": lab.directory}
 
     def on_sample(sample: zenoh.Sample) -> None:
         robot = str(sample.key_expr).split("/")[1]
+        sender = sample.payload.to_bytes().decode()
         with lock:
-            seen[robot] = seen.get(robot, 0) + 1
+            seen[sender, robot] = seen.get((sender, robot), 0) + 1
 
     with zenoh.open(conf) as server:
         server.declare_subscriber("nwr/**", on_sample)
-        with zenoh.open(zenoh_config(lab.zenoh(port, ACTIVE))) as planner:
-            codec = keys.codec(keys.robot_command(ACTIVE))
-            for robot in (ROBOT, "ur5e"):
-                payload = codec.encode(m.VelocityCommand(seq=SENTINEL, stamp_ns=time.monotonic_ns(), owner=ACTIVE,
-                                                         dq=[0.0] * 6, trace=m.Trace(0, 0)))
-                for _ in range(20):
-                    planner.put(keys.key(robot, keys.robot_command(ACTIVE)), payload)
-            deadline = time.monotonic() + 5.0
-            want = {ROBOT: 20, "ur5e": 20} if all_robots else {ROBOT: 20}
-            while time.monotonic() < deadline and seen != want:
-                time.sleep(0.05)
-            time.sleep(0.5)  # anything late for the other arm would arrive now
+        for sender, directory in senders.items():
+            with zenoh.open(zenoh_config(lab.zenoh(port, ACTIVE, directory))) as planner:
+                for robot in robots:
+                    for _ in range(20):
+                        planner.put(keys.key(robot, keys.robot_command(ACTIVE)), sender.encode())
+                time.sleep(0.5)
+        want = {"own": {("none", ROBOT): 20}, "all": {("none", ROBOT): 20, ("none", "ur5e"): 20},
+                "per-robot": {("arm-a", "arm-a"): 20, ("arm-b", "arm-b"): 20}}[scope]
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and seen != want:
+            time.sleep(0.05)
+        time.sleep(0.5)  # anything late for the other arm would arrive now
     assert seen == want, seen

@@ -52,6 +52,18 @@ def test_collector_counts_rates_and_keeps_the_latest_state_and_pain() -> None:
     assert c.report([], 1.0, 0, []).rates_hz == {}
 
 
+def test_messages_of_two_pipeline_instances_are_named() -> None:
+    c = status.StatusCollector(ROBOT)
+    for instance, n in (("lab.1.100", 30), ("lab.2.200", 4), (keys.NO_INSTANCE, 2)):
+        for _ in range(n):
+            c.observe(keys.key(ROBOT, "skin/pressure"), b"not decoded", 0, instance)
+    text = status.format_report(c.report([], 1.0, 0, []))
+    assert "warning: messages of 2 pipeline instances on this robot's keys (lab.1.100: 30, lab.2.200: 4)" in text
+    c.reset()
+    c.observe(keys.key(ROBOT, "skin/pressure"), b"not decoded", 0, "lab.1.100")
+    assert "pipeline instances" not in status.format_report(c.report([], 1.0, 0, []))
+
+
 def test_report_without_traffic_says_so() -> None:
     text = status.format_report(status.StatusCollector(ROBOT).report([], 2.0, 0, []))
     assert "alive (0): none" in text and "no robot/state" in text and "no message in the window" in text

@@ -19,6 +19,7 @@ active planner has no liveliness token      reject    a dead planner's name is f
 wrong kind / phase / number of joints       reject    no meaningful nearest command exists
 NaN or infinity                             reject    (also rejected by the decoder)
 seq duplicated or out of order              reject    a replayed or reordered stream is stale
+seq further ahead than the time allows      reject    no planner counts that fast: a forged seq
 position target jumps > position_jump_rad  reject    the sender lost track of the arm
 position target beyond a joint limit        clip      the limit is the nearest safe target
 joint velocity above its limit              clip      scaled uniformly: the direction is kept
@@ -44,6 +45,12 @@ MAX_PERIOD_S = 0.05
 # A command planned ahead may cover at most this long, s: the bridge notices a
 # dead planner at most this much later than with one command per cycle.
 MAX_AHEAD_S = 0.1
+# How far a command's seq may run ahead of the last one accepted: SEQ_SLACK, plus MAX_COMMAND_RATE_HZ times the
+# time since it (a planner numbers its commands one by one, 500 a second by default). A seq further ahead is no
+# planner's next command: accepting it would make the planner's own commands "out of order" until it caught up
+# (one forged seq 450 ahead cost 450 rejected commands, and a stop); it is rejected and changes nothing.
+SEQ_SLACK = 20
+MAX_COMMAND_RATE_HZ = 2000.0
 
 Level = Literal["info", "warning", "error"]
 
@@ -67,6 +74,7 @@ class CheckContext:
     q_ref: np.ndarray  # the pose the bridge currently commands
     last_seq: int | None  # seq of the last accepted command, None after a (re)start
     seq_restart_gap: int = 500
+    since_last_ns: int = 0  # since the last accepted command (its seq: last_seq)
 
 
 @dataclass
@@ -121,6 +129,13 @@ def check_command(cmd: object, env: Envelope, ctx: CheckContext) -> Checked:
             kind = "duplicated" if cmd.seq == ctx.last_seq else "out of order"
             return reject("command_out_of_order", f"seq {cmd.seq} is {kind} (last accepted {ctx.last_seq})")
         restarted = True
+    elif ctx.last_seq is not None:
+        most = ctx.last_seq + SEQ_SLACK + int(max(ctx.since_last_ns, 0) * MAX_COMMAND_RATE_HZ / 1e9)
+        if cmd.seq > most:
+            return reject("command_seq_jump",
+                          f"seq {cmd.seq} is {cmd.seq - ctx.last_seq} ahead of the last accepted ({ctx.last_seq}) "
+                          f"{max(ctx.since_last_ns, 0) / 1e6:.1f} ms ago, more than a planner counts in that time "
+                          f"(at most {most}): not the planner's next command")
 
     out = Checked(values, restarted=restarted)
     if position:

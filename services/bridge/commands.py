@@ -79,7 +79,8 @@ class Commands(Faults):
         tracker = self.tracker
         streaming = tracker.mode == "position" and self.status == "ok"
         q_ref = (tracker.planned(now_ns)[0] if tracker.plan is not None else tracker.target) if streaming else tracker.q
-        ctx = CheckContext(self.active, self.planner_alive, q_ref, self.last_seq, self.seq_restart_gap)
+        ctx = CheckContext(self.active, self.planner_alive, q_ref, self.last_seq, self.seq_restart_gap,
+                           now_ns - self.last_command_ns)
         checked = check_command(cmd, self.env, ctx)
         self.events.extend(self._limit_level(e, "in a withdrawal" if cmd.phase == "REFLEX" else "")
                            for e in checked.events)

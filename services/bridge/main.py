@@ -77,6 +77,55 @@ def make_backend(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argpar
     return backend
 
 
+class PipelinePlanners:
+    """Which planners the bridge may follow or switch to: those of its own pipeline.
+
+    A planner's liveliness token (``alive/planner-<name>``) counts only while the planner also holds an owner
+    token (``owner/planner-<name>/<instance>/...``, which every planner declares before its liveliness) of the
+    bridge's pipeline instance, or of a planner started alone (``nwr run planner`` beside ``nwr up``). A token
+    alone, or a planner of another pipeline on the same robot's keys, is reported and never followed. A bridge
+    started alone follows every planner token, as before instances: its own owner token kept it from starting
+    beside another pipeline.
+    """
+
+    def __init__(self, instance: str) -> None:
+        self.instance = instance
+        self.alive: set[str] = set()
+        self.owners: dict[str, set[str]] = {}  # planner name -> its owner tokens of this pipeline (relative keys)
+        self.followed: set[str] = set()  # what the wiring was told is alive
+
+    def _ours(self, name: str) -> bool:
+        return self.instance == keys.NO_INSTANCE or bool(self.owners.get(name))
+
+    def _change(self, name: str) -> tuple[str, bool] | None:
+        now = name in self.alive and self._ours(name)
+        if now == (name in self.followed):
+            return None
+        (self.followed.add if now else self.followed.discard)(name)
+        return name, now
+
+    def on_alive(self, name: str, present: bool) -> tuple[str, bool] | None:
+        """A planner's liveliness token; the change the wiring must hear (name, alive), if any."""
+        (self.alive.add if present else self.alive.discard)(name)
+        return self._change(name)
+
+    def on_owner(self, relative: str, present: bool) -> tuple[str, bool] | None:
+        """An owner token (its key relative to the robot's prefix); the change the wiring must hear, if any."""
+        owner = keys.parse_owner(relative)
+        if owner is None or not owner.service.startswith(keys.PLANNER_SERVICE_PREFIX):
+            return None
+        if owner.instance not in (self.instance, keys.NO_INSTANCE):
+            return None
+        name = owner.service.removeprefix(keys.PLANNER_SERVICE_PREFIX)
+        tokens = self.owners.setdefault(name, set())
+        (tokens.add if present else tokens.discard)(relative)
+        return self._change(name)
+
+    def strangers(self) -> list[str]:
+        """The planners whose liveliness token is there but that hold no owner token of this pipeline."""
+        return sorted(self.alive - self.followed)
+
+
 def run(profile: Profile, args: argparse.Namespace) -> int:
     cfg = profile.bridge
     if getattr(args, "active", None):
@@ -99,15 +148,35 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             node.install_signal_handlers()
             bridge = node.wire(BridgeWiring, profile, lock, backend=backend)
 
+            planners = PipelinePlanners(node.instance)
+
+            def follow(change: tuple[str, bool] | None) -> None:
+                if change is not None:
+                    bridge.on_token(*change)
+                for name in planners.strangers():
+                    node.diag("warning", "planner_not_of_pipeline",
+                              f"planner {name!r} announces itself (alive/planner-{name}) but holds no owner token "
+                              f"of this pipeline ({node.instance}): it is neither followed nor switched to",
+                              every_s=10.0)
+
             def on_liveliness(sample: zenoh.Sample) -> None:
                 """Any planner's token (alive/planner-<name>) appearing or vanishing."""
                 name = str(sample.key_expr).rsplit("/", 1)[-1].removeprefix(keys.PLANNER_SERVICE_PREFIX)
                 with lock:
-                    bridge.on_token(name, sample.kind == zenoh.SampleKind.PUT)
+                    follow(planners.on_alive(name, sample.kind == zenoh.SampleKind.PUT))
+
+            def on_owner(sample: zenoh.Sample) -> None:
+                """A planner's owner token (owner/planner-<name>/<instance>/...) appearing or vanishing."""
+                relative = keys.relative_key(profile.robot.name, str(sample.key_expr))
+                with lock:
+                    follow(planners.on_owner(relative, sample.kind == zenoh.SampleKind.PUT))
 
             # Every handler on Zenoh's network thread (direct: no hand-off to a
             # Python thread per command); the bridge subscribes to nothing it publishes.
             subscribe(node, bridge, lock)
+            # Owner tokens first: a planner declares its owner token before its liveliness.
+            owners = node.session.liveliness().declare_subscriber(
+                keys.key(profile.robot.name, f"owner/{keys.PLANNER_SERVICE_PREFIX}$*/**"), on_owner, history=True)
             tokens = keys.key(profile.robot.name, keys.alive(keys.PLANNER_SERVICE_PREFIX + "$*"))
             watcher = node.session.liveliness().declare_subscriber(tokens, on_liveliness, history=True)
             node.declare_token()  # alive once subscribed
@@ -137,6 +206,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                 with lock:
                     bridge.tick(publish=True)
                 watcher.undeclare()
+                owners.undeclare()
                 bridge.core.release()
                 log.info(pacer.summary())
                 core = bridge.core

@@ -55,6 +55,11 @@ RETRY_S = 1.0
 # The disk diagnostics come once per failure or per retry: let every one out
 # (Node.diag's default holds back a code repeated within 1 s).
 DISK_DIAG_EVERY_S = 0.5
+# The most keys a session records: the registry's patterns (robot/command/*, reflex/*/status, diag/*, ...) hold
+# any name, and a session's own processes use a few dozen of them. Messages on keys beyond it are counted, not
+# recorded (too_many_keys on diag/recorder): a peer putting on ever new names cannot make the recorder open
+# channels, and hold codecs, without end.
+MAX_KEYS = 256
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -116,7 +121,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             robot=robot, session=session, profile_json=encode_profile(profile).decode(),
             strategy=getattr(args, "strategy", None) or profile.planner.strategy, planner=profile.planner.name,
             start_time_iso=dt.datetime.now(dt.UTC).isoformat(), start_monotonic_ns=node.clock.now_ns(),
-            labels=labels, loosened_safety=loosened_safety(profile),
+            labels=labels, loosened_safety=loosened_safety(profile), instance=node.instance,
         )
         recorder = SessionRecorder(
             open_part, files.close, robot, metadata, compression=cfg.compression, chunk_size=cfg.chunk_size,
@@ -127,7 +132,10 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
 
         def on_sample(sample: zenoh.Sample) -> None:
             # Cheap, and never blocks, so it may run on Zenoh's network thread
-            # (indirect=False): decoding and writing happen below.
+            # (indirect=False): decoding and writing happen below. A message of
+            # another pipeline instance is counted and reported, not recorded.
+            if node.instance != keys.NO_INSTANCE and not node.accepts(sample):
+                return
             inbox.append((str(sample.key_expr), sample.payload.to_bytes(), node.clock.now_ns()))
 
         sub = node.session.declare_subscriber(f"{keys.prefix(robot)}/**",
@@ -136,16 +144,24 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
         log.info("recording %s/** to %s%s", keys.prefix(robot), base,
                  f" (split: {split.max_bytes / MB:g} MB, {split.max_duration_ns / 1e9:g} s)" if split.enabled else "")
         bad = 0
+        beyond = 0  # messages on keys beyond MAX_KEYS
         # The codec of each full key, looked up once: matching a key against
         # the registry's patterns for every message cost more than decoding it.
         codecs: dict[str, keys.Codec] = {}
 
         def record(item: tuple[str, bytes, int]) -> None:
-            nonlocal bad
+            nonlocal bad, beyond
             full_key, payload, received = item
             try:
                 codec = codecs.get(full_key)
                 if codec is None:
+                    if len(codecs) >= MAX_KEYS:
+                        beyond += 1
+                        node.diag("warning", "too_many_keys",
+                                  f"not recorded: a message on {full_key}, a key beyond the {MAX_KEYS} this session "
+                                  f"records ({beyond} such messages so far): a peer puts on ever new key names",
+                                  every_s=10.0)
+                        return
                     codec = codecs[full_key] = keys.codec(keys.relative_key(robot, full_key))
                 message = codec.decode(payload)
             except (DecodeError, ValueError) as exc:
@@ -182,6 +198,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
             finally:
                 report = recorder.finish(node.clock.now_ns())
             log.info("wrote %s; %d malformed samples dropped", report.format(), bad)
+            if node.foreign or beyond:
+                log.warning("not recorded: %d messages of another pipeline instance (this one: %s), %d on keys beyond "
+                            "the first %d", node.foreign, node.instance, beyond, MAX_KEYS)
             if report.outages:
                 log.warning("the session is incomplete: %d messages were not recorded while the disk could not be "
                             "written (%d time(s))%s", report.dropped, len(report.outages),

@@ -63,17 +63,23 @@ def default_dir() -> Path:
     return Path(os.environ.get("NWR_CERTS") or "certs")
 
 
-def common_name(role: str, name: str) -> str:
-    """The certificate's common name, which the router's access control matches: ``ROLE:NAME``."""
-    return f"{role}:{name}"
+# A robot's own certificates (one router for several arms, `nwr router --robots`): ROLE:NAME@ROBOT.
+ROBOT_SEP = "@"
+
+
+def common_name(role: str, name: str, robot: str | None = None) -> str:
+    """The certificate's common name, which the router's access control matches: ``ROLE:NAME``, or
+    ``ROLE:NAME@ROBOT`` for a certificate of one robot's pipeline (its rules hold on that robot's keys only)."""
+    return f"{role}:{name}" if robot is None else f"{role}:{name}{ROBOT_SEP}{robot}"
 
 
 def parse_common_name(cn: str) -> tuple[str, str]:
-    """(role, name) of a ``ROLE:NAME`` common name; ConfigError if it is not one."""
+    """(role, name) of a ``ROLE:NAME`` or ``ROLE:NAME@ROBOT`` common name; ConfigError if it is not one."""
     role, sep, name = cn.partition(":")
-    if not sep or role not in ROLES or not NAME.match(name):
-        raise ConfigError(f"common name {cn!r} is not ROLE:NAME with a role of {list(ROLES)}: "
-                          "issue the certificate with `nwr certs issue NAME --role ROLE`")
+    name, at, robot = name.partition(ROBOT_SEP)
+    if not sep or role not in ROLES or not NAME.match(name) or (at and not NAME.match(robot)):
+        raise ConfigError(f"common name {cn!r} is not ROLE:NAME (or ROLE:NAME@ROBOT) with a role of {list(ROLES)}: "
+                          "issue the certificate with `nwr certs issue NAME --role ROLE [--robot ROBOT]`")
     return role, name
 
 
@@ -156,15 +162,19 @@ def _san(entry: str) -> x509.GeneralName:
 
 
 def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sans: list[str] | None = None,
-          force: bool = False, out: Path | None = None) -> Path:
+          force: bool = False, out: Path | None = None, robot: str | None = None) -> Path:
     """Write ``NAME.crt`` and ``NAME.key`` signed by the CA in ``directory``; returns the certificate's path.
 
     They go to ``out`` if given (a service's own directory), else next to the
-    CA. The router's certificate also carries subject alternative names (the
-    host names and addresses clients dial), since clients verify them.
+    CA (``ROBOT/`` beside it for a robot's certificate). The router's certificate also carries subject
+    alternative names (the host names and addresses clients dial), since clients verify them. ``robot``: a
+    certificate of that robot's pipeline, common name ``ROLE:NAME@ROBOT`` (``nwr router --robots``).
     """
     if role not in ROLES:
         raise ConfigError(f"role {role!r} is not one of {list(ROLES)}")
+    if robot is not None and (role == "router" or not NAME.match(robot)):
+        raise ConfigError(f"--robot {robot!r}: a robot name (lower-case letters, digits, '_' and '-'), for a "
+                          "service's certificate (the router serves every robot)")
     if not NAME.match(name):
         raise ConfigError(f"certificate name {name!r}: lower-case letters, digits, '_' and '-', starting with a "
                           "letter, at most 32 characters (a planner's name is its planner name, e.g. cartesian)")
@@ -172,11 +182,12 @@ def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sa
         raise ConfigError("certificate name 'ca' is the CA's own: choose another name")
     if not 1 <= days <= CA_DAYS:
         raise ConfigError(f"--days {days}: give 1 to {CA_DAYS} days")
-    out = directory if out is None else out
+    out = (directory if robot is None else directory / robot) if out is None else out
     cert_path, key_path = out / f"{name}.crt", out / f"{name}.key"
     if cert_path.exists() and not force:
         raise ConfigError(f"{cert_path} exists: use --force to re-issue it (rotation), then copy it to its host")
     ca_cert, ca_key = _load_ca(directory)
+    out.mkdir(parents=True, exist_ok=True)
     now = _now()
     not_after = min(now + dt.timedelta(days=days), ca_cert.not_valid_after_utc)
     key = ec.generate_private_key(ec.SECP256R1())
@@ -190,7 +201,7 @@ def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sa
         usages.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)  # only the router may serve TLS
     cert = (
         x509.CertificateBuilder()
-        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name(role, name))]))
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name(role, name, robot))]))
         .issuer_name(ca_cert.subject).public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - dt.timedelta(minutes=5))
@@ -207,7 +218,7 @@ def issue(directory: Path, name: str, role: str, *, days: int = DEFAULT_DAYS, sa
     )
     _write_private(key_path, _key_pem(key))
     _write_public(cert_path, cert.public_bytes(serialization.Encoding.PEM))
-    log.info("issued %s for %s (valid until %s)", cert_path, common_name(role, name), not_after.date())
+    log.info("issued %s for %s (valid until %s)", cert_path, common_name(role, name, robot), not_after.date())
     return cert_path
 
 
@@ -381,8 +392,10 @@ def _handler(args: argparse.Namespace) -> int:
         print(f"CA certificate {path}; its key {directory / CA_KEY} (0600) must stay on this machine")
         return 0
     if args.certs_command == "issue":
-        path = issue(directory, args.name, args.role, days=args.days, sans=args.san, force=args.force)
-        print(f"{path} and {path.with_suffix('.key')} (0600), common name {common_name(args.role, args.name)}: "
+        path = issue(directory, args.name, args.role, days=args.days, sans=args.san, force=args.force,
+                     robot=args.robot)
+        print(f"{path} and {path.with_suffix('.key')} (0600), common name "
+              f"{common_name(args.role, args.name, args.robot)}: "
               f"copy them and {directory / CA_CERT} to the service's host")
         return 0
     if args.certs_command == "provision":
@@ -426,6 +439,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     issue_p.add_argument("--san", action="append", metavar="HOST",
                          help="a host name or address clients dial (router certificates; repeatable; "
                               f"{', '.join(ROUTER_DEFAULT_SANS)} are always included)")
+    issue_p.add_argument("--robot", metavar="ROBOT",
+                         help="a certificate of this robot's pipeline only: common name ROLE:NAME@ROBOT, files in "
+                              "DIR/ROBOT/; a router started with --robots lets it put on that robot's keys only")
     issue_p.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity in days (default {DEFAULT_DAYS})")
     issue_p.add_argument("--force", action="store_true", help="replace an existing certificate (rotation)")
     prov = certs_sub.add_parser(

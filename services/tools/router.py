@@ -38,6 +38,7 @@ import signal
 import threading
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -97,22 +98,47 @@ def router_config(listen: list[str], connect: list[str], *, tls: ZenohSection | 
 ANY_ROBOT = "nwr/*/"
 
 
-def load_acl(path: Path, robot: str | None = None) -> str:
+def per_robot(section: dict[str, Any], robots: list[str]) -> dict[str, Any]:
+    """The rules of ``section`` once per robot: each robot's copy holds on ``nwr/<robot>/`` only and for that
+    robot's certificates only (common names ``ROLE:NAME@ROBOT``, ``nwr certs issue --robot``). The rules that
+    let everyone read, and the router's own certificate, stay as they are: reading is every certificate's."""
+    shared = {"read-ingress", "read-egress", "router"}  # rule and subject ids kept once, for every robot
+    rules = [r for r in section["rules"] if r["id"] in shared]
+    subjects = [s for s in section["subjects"] if s["id"] in shared]
+    policies = []
+    for robot in robots:
+        rules += [{**r, "id": f"{r['id']}@{robot}",
+                   "key_exprs": [k.replace(ANY_ROBOT, f"nwr/{robot}/") for k in r["key_exprs"]]}
+                  for r in section["rules"] if r["id"] not in shared]
+        subjects += [{**s, "id": f"{s['id']}@{robot}", "cert_common_names": [f"{cn}@{robot}" for cn in
+                                                                             s["cert_common_names"]]}
+                     for s in section["subjects"] if s["id"] not in shared]
+        policies += [{**p, "id": f"{p['id']}@{robot}",
+                      "rules": [r if r in shared else f"{r}@{robot}" for r in p["rules"]],
+                      "subjects": [s if s in shared else f"{s}@{robot}" for s in p["subjects"]]}
+                     for p in section["policies"]]
+    return {**section, "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def load_acl(path: Path, robot: str | None = None, robots: list[str] | None = None) -> str:
     """The access-control section in ``path`` (JSON5), checked to be on and to deny by default.
 
     With ``robot``, every ``nwr/*/`` key expression becomes ``nwr/<robot>/``:
     the router then allows nothing on another arm's keys, so a certificate
     issued for one arm's pipeline cannot command a second arm that shares
-    the LAN (or, with ``--all-robots``, the same router).
+    the LAN (or, with ``--all-robots``, the same router). With ``robots``
+    (one router for several arms), the rules once per robot, each for that
+    robot's own certificates (:func:`per_robot`).
     """
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"cannot read the access control rules {path}: {exc}; the project ships "
                           "deploy/acl.json5") from exc
+    for name in ([] if robot is None else [robot]) + (robots or []):
+        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", name):
+            raise ConfigError(f"robot name {name!r} cannot scope the access control rules")
     if robot is not None:
-        if not re.fullmatch(r"[a-z][a-z0-9_-]{0,31}", robot):
-            raise ConfigError(f"robot name {robot!r} cannot scope the access control rules")
         text = text.replace(ANY_ROBOT, f"nwr/{robot}/")
     probe = zenoh.Config()
     try:
@@ -125,6 +151,8 @@ def load_acl(path: Path, robot: str | None = None) -> str:
         raise ConfigError(f"{path}: access control must have enabled: true and default_permission: \"deny\" "
                           f"(got enabled={section.get('enabled')!r}, "
                           f"default_permission={section.get('default_permission')!r})")
+    if robots:
+        return json.dumps(per_robot(section, robots))
     return text
 
 
@@ -140,9 +168,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acl", metavar="FILE",
                         help="secure mode: the access control rules, JSON5 (default: $NWR_ROUTER_ACL or "
                              f"{DEFAULT_ACL}, from the working directory)")
-    parser.add_argument("--all-robots", action="store_true",
-                        help="secure mode: apply the rules to every robot's keys (nwr/*/), for one router shared "
-                             "by several arms; by default they hold for this router's robot only (NWR_ROBOT)")
+    scope = parser.add_mutually_exclusive_group()
+    scope.add_argument("--robots", metavar="R1,R2,...",
+                       help="secure mode, one router for several arms: the rules once per robot, each holding on "
+                            "that robot's keys for that robot's certificates only (common names ROLE:NAME@ROBOT, "
+                            "`nwr certs issue NAME --role ROLE --robot ROBOT`)")
+    scope.add_argument("--all-robots", action="store_true",
+                       help="secure mode: apply the rules to every robot's keys (nwr/*/) for the same certificates, "
+                            "so that one arm's planner may command another (prefer --robots); by default they hold "
+                            "for this router's robot only (NWR_ROBOT)")
 
 
 def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) -> int:
@@ -168,10 +202,13 @@ def run(robot: str, args: argparse.Namespace, zcfg: ZenohSection | None = None) 
         listen = tls_endpoints(listen, "--listen")
         connect = tls_endpoints(connect, "--connect")
         acl_path = Path(getattr(args, "acl", None) or os.environ.get("NWR_ROUTER_ACL") or DEFAULT_ACL)
-        scope = None if getattr(args, "all_robots", False) else robot
-        acl = load_acl(acl_path, scope)
+        robots = [r.strip() for r in (getattr(args, "robots", None) or "").split(",") if r.strip()]
+        scope = None if getattr(args, "all_robots", False) or robots else robot
+        acl = load_acl(acl_path, scope, robots)
         log.info("secure mode: mutual TLS only, as %s; access control from %s, deny by default, for %s", cn,
-                 acl_path, f"nwr/{scope}/ only" if scope else "every robot (nwr/*/)")
+                 acl_path, f"nwr/{scope}/ only" if scope else
+                 (f"each of {', '.join(robots)} by its own certificates (ROLE:NAME@ROBOT)" if robots
+                  else "every robot (nwr/*/)"))
     else:
         log.warning("router without TLS or access control: anyone who reaches %s can publish on every key "
                     "(robot/command included); use secure mode on a lab LAN (docs/security.md)", ", ".join(listen))

@@ -37,7 +37,7 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile, ZenohSection
 from nwr.common.errors import DecodeError, NwrError
-from nwr.common.node import tls_endpoints, zenoh_config
+from nwr.common.node import sender_instance, tls_endpoints, zenoh_config
 from nwr.services.pipeline.graph import NOT_WAITED_FOR, SERVICES, START_ORDER, process_name
 
 log = logging.getLogger(__name__)
@@ -79,6 +79,8 @@ class StatusReport:
     # The other robots whose services are alive on the same mesh (a lab's router shared by several arms): robot
     # name -> its live services.
     others: dict[str, list[str]] = field(default_factory=dict)
+    # Messages in the window per pipeline instance they carried (keys.NO_INSTANCE: a process started alone).
+    instances: dict[str, int] = field(default_factory=dict)
 
     @property
     def active_planner(self) -> str | None:
@@ -100,6 +102,7 @@ class StatusCollector:
         self.pain: PainEvent | None = None
         self.recorder: m.Diagnostic | None = None
         self.undecodable = 0
+        self.instances: dict[str, int] = {}
         self._lock = threading.Lock()  # Zenoh calls observe() from its own threads
 
     def reset(self) -> None:
@@ -110,15 +113,18 @@ class StatusCollector:
         """
         with self._lock:
             self.counts.clear()
+            self.instances.clear()
             self.recorder = None
 
-    def observe(self, full_key: str, payload: bytes, received_ns: int) -> None:
+    def observe(self, full_key: str, payload: bytes, received_ns: int, instance: str = keys.NO_INSTANCE) -> None:
+        """One message; ``instance``: the pipeline instance it carried (common.node.sender_instance)."""
         try:
             relative = keys.relative_key(self.robot, full_key)
         except DecodeError:
             return  # not this robot's (the subscription is on its prefix, so only a malformed key)
         with self._lock:
             self.counts[relative] = self.counts.get(relative, 0) + 1
+            self.instances[instance] = self.instances.get(instance, 0) + 1
             if relative not in (keys.ROBOT_STATE, keys.SKIN_PAIN, RECORDER_DIAG) and not (
                 relative.startswith("reflex/") and relative.endswith("/status")
             ):
@@ -145,6 +151,7 @@ class StatusCollector:
                 rates_hz={k: n / window_s for k, n in sorted(self.counts.items())},
                 state=self.state, planners=dict(sorted(self.planners.items())), pain=self.pain,
                 undecodable=self.undecodable, now_ns=now_ns, recorder=self.recorder,
+                instances=dict(sorted(self.instances.items())),
             )
 
 
@@ -202,6 +209,12 @@ def format_report(report: StatusReport) -> str:
         lines.append(f"recorder: {report.recorder.message}")
     if report.undecodable:
         lines.append(f"warning: {report.undecodable} samples did not decode (see diag/*)")
+    launched = {i: n for i, n in report.instances.items() if i != keys.NO_INSTANCE}
+    if len(launched) > 1:
+        lines.append(f"warning: messages of {len(launched)} pipeline instances on this robot's keys ("
+                     + ", ".join(f"{i}: {n}" for i, n in launched.items())
+                     + "): each service takes its own pipeline's only (foreign_instance on its diag key); a stale "
+                       "process of an earlier run, or a second pipeline under this robot's name, publishes here")
     if report.others:
         lines.append("other robots on this mesh: " + "; ".join(
             f"{robot} ({len(services)} alive: {', '.join(services)})" for robot, services in report.others.items()))
@@ -250,7 +263,8 @@ def collect(profile: Profile, window_s: float, timeout_s: float) -> StatusReport
     with _open(profile) as session:
         sub = session.declare_subscriber(
             f"{keys.prefix(robot)}/**",
-            lambda s: collector.observe(str(s.key_expr), s.payload.to_bytes(), time.monotonic_ns()),
+            lambda s: collector.observe(str(s.key_expr), s.payload.to_bytes(), time.monotonic_ns(),
+                                        sender_instance(s.attachment)),
         )
         alive = alive_services(session, robot, timeout_s)
         # The query's reply came back through the router after the
