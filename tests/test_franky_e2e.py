@@ -41,7 +41,8 @@ KILL_AFTER_S = 13.5
 # The simulator real-time (where permitted), as tests/ur_support.py runs the UR emulator: a real arm's controller
 # is a machine of its own, and franky-sim's MuJoCo (a Python process) starved beside the loaded pipeline runs
 # slower than real time (56 % measured at load 13 without it), its arm following the stream 75 ms late, not 10.
-SIM_PRIORITY = 30
+# Below the bridge's priority (20): above it, the simulator took the bridge's cycles on the two cores.
+SIM_PRIORITY = 10
 PROFILE = ('[robot]\nname = "fr3"\ndescription = "fr3"\n'
            '[bridge]\nbackend = "franky"\n'
            '[bridge.franky]\nrealtime = "ignore"\n')  # franky-sim on an ordinary kernel

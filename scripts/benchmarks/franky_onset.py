@@ -3,7 +3,7 @@
     .venv/bin/python scripts/benchmarks/franky_onset.py [--runs N] [--script NAME|FILE]
 
 Starts franky-sim on 127.0.0.1 (``python -m nwr.services.tools.hardware.franky_sim``:
-headless, its FR3 moved home, SCHED_FIFO 30 where permitted), runs ``nwr demo`` on the FR3 with
+headless, its FR3 moved home, SCHED_FIFO ``--sim-priority`` where permitted), runs ``nwr demo`` on the FR3 with
 ``bridge.backend = "franky"`` N times (the simulator restarted for each: a
 session leaves its arm where it ended), and prints, over every touch's reflex, its
 onset (the per-touch table's *onset*) from the touching skin sample's stamp (the gateway) to the bridge
@@ -30,8 +30,8 @@ from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
 from nwr.services.tools.recordings import analysis
 
-# The simulator real-time, as in tests/test_franky_e2e.py (where permitted; else the normal scheduler).
-SIM_PRIORITY = 30
+# The simulator real-time below the bridge (20), as in tests/test_franky_e2e.py (where permitted).
+SIM_PRIORITY = 10
 PROFILE = ('[robot]\nname = "fr3"\ndescription = "fr3"\n'
            '[bridge]\nbackend = "franky"\n'
            '[bridge.franky]\nrealtime = "ignore"\n')
@@ -44,10 +44,10 @@ def onsets_ms(path: Path) -> list[float]:
     return [t.onset_latency_ms for t in touches if t.reflex_seq > 0 and t.onset_latency_ms is not None]
 
 
-def session(tmp: Path, run: int, script: str) -> list[float]:
+def session(tmp: Path, run: int, script: str, priority: int) -> list[float]:
     with (tmp / f"franky-sim-{run}.log").open("w") as log:
         sim = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.hardware.franky_sim",
-                                "--realtime-priority", str(SIM_PRIORITY)],
+                                "--realtime-priority", str(priority)],
                                stdout=subprocess.PIPE, stderr=log, text=True)
     try:
         assert sim.stdout is not None
@@ -72,6 +72,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=2)
     parser.add_argument("--script", default="demo", help="the touch script (default: the FR3's demo session)")
+    parser.add_argument("--sim-priority", type=int, default=SIM_PRIORITY,
+                        help=f"the simulator's SCHED_FIFO priority (default {SIM_PRIORITY}; the bridge's is 20)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="franky-onset-") as name:
         tmp = Path(name)
@@ -79,7 +81,7 @@ def main() -> int:
         load = []
         values: list[float] = []
         for run in range(args.runs):
-            values += session(tmp, run, args.script)
+            values += session(tmp, run, args.script, args.sim_priority)
             load.append(os.getloadavg()[0])
     if not values:
         print("no reflex onset recorded")
@@ -87,8 +89,8 @@ def main() -> int:
     v = np.array(values)
     print(f"reflex onset on the FR3 through franky (skin sample -> setpoint handed to libfranka's loop), "
           f"{v.size} reflexes in {args.runs} sessions: p50 {np.percentile(v, 50):.2f} ms, "
-          f"p90 {np.percentile(v, 90):.2f} ms, worst {v.max():.2f} ms; load average {min(load):.1f}-{max(load):.1f} "
-          f"on {os.cpu_count()} cores")
+          f"p90 {np.percentile(v, 90):.2f} ms, worst {v.max():.2f} ms; the simulator at SCHED_FIFO "
+          f"{args.sim_priority}; load average {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores")
     return 0
 
 
