@@ -504,6 +504,3 @@ class FrankyBackend(Backend):
             self.refused = f"the controller refused the motion ({exc})"
             log.error("%s", self.refused)
             self._backoff()
-
-    def resync(self, q: np.ndarray) -> None:
-        super().resync(q)
