@@ -253,6 +253,8 @@ class Door:
             return refused
         if msg.stop_distance and len(msg.stop_distance) != self.n:
             return Refusal("wrong joint count", f"stop_distance has {len(msg.stop_distance)} values")
+        if msg.tau_ext and len(msg.tau_ext) != self.n:
+            return Refusal("wrong joint count", f"tau_ext has {len(msg.tau_ext)} values")
         return self._continues(msg)
 
     def _continues(self, msg: m.RobotState) -> Refusal | None:

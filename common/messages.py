@@ -51,6 +51,8 @@ RobotStatus = Literal[
     "script_not_running",  # the ur_rtde control script is not running on the controller
     "disconnected",  # no connection to the robot controller: reconnecting with backoff
     "state_implausible",  # the robot's reported state is not believed (following error, jump, frozen): stopped
+    "robot_reflex",  # the robot's own reflex stopped it (franky: Franka's collision or limit reflex)
+    "motion_refused",  # the robot refused the bridge's motion, or is in no mode to be moved (franky)
 ]
 
 
@@ -312,6 +314,9 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     # True: q and dq are the last known ones, not a measurement of this moment
     # (the controller is unreachable, or its report was not finite; dq is 0).
     pose_stale: bool = False
+    # The controller's estimated external torque per joint, N m (franky: Franka's tau_ext_hat_filtered);
+    # empty when the backend has no such estimate.
+    tau_ext: list[Finite] = []
 
 
 class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

@@ -691,9 +691,11 @@ def test_the_backends_are_the_modules_of_their_package_and_a_real_arm_needs_its_
     from nwr.services.bridge import backends
     from nwr.services.bridge.main import check_arm_flags
 
-    assert backends.names() == ["physics", "sim", "ur_rtde"]
-    assert not backends.plugin("sim").REAL_ARM and backends.plugin("ur_rtde").REAL_ARM
-    with pytest.raises(ConfigError, match="bridge.backend = 'franka' is no backend; there are: physics, sim, ur_rtde"):
+    assert backends.names() == ["franky", "physics", "sim", "ur_rtde"]
+    assert not backends.plugin("sim").REAL_ARM
+    assert backends.plugin("ur_rtde").REAL_ARM and backends.plugin("franky").REAL_ARM
+    with pytest.raises(ConfigError,
+                       match="bridge.backend = 'franka' is no backend; there are: franky, physics, sim, ur_rtde"):
         backends.plugin("franka")
     check_arm_flags("sim", "", False)
     check_arm_flags("ur_rtde", "192.0.2.10", True)

@@ -120,6 +120,11 @@ def test_a_robot_state_that_does_not_continue_the_bridge_s_stream_is_refused() -
     jump = replace(later, seq=12, stamp_ns=10**9 + 40_000_000, q=[x + 0.5 for x in home])
     refusal = door.refuse(jump)
     assert refusal is not None and refusal.cause == "robot state jumps"
+    # The external torques, where the backend has them, are one per joint.
+    torques = replace(later, seq=13, stamp_ns=10**9 + 60_000_000, tau_ext=[0.5] * N)
+    assert door.refuse(torques) is None
+    refusal = door.refuse(replace(torques, seq=14, stamp_ns=10**9 + 80_000_000, tau_ext=[0.5] * 1000))
+    assert refusal is not None and refusal.cause == "wrong joint count" and "tau_ext" in refusal.detail
     # A restarted bridge (seq from 0) is followed once its old stream has been silent for a second.
     restarted = replace(state, seq=0, stamp_ns=10**9 + 1_200_000_000, q=[x + 0.5 for x in home])
     assert door.refuse(restarted) is None

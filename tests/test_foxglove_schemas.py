@@ -275,7 +275,7 @@ def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:
             command_mode="velocity", reflex_seq=1, accepted=TRACE, accepted_ns=stamp_ns, stopping=True,
             stop_distance=[0.01] * 6, stop_time_s=0.1, pending_owner="uniform",
             handover=m.Handover(previous="uniform", owner=PLANNER, requested_ns=1, switched_ns=2, first_command_ns=3),
-            safety_mode="reduced", limited=2, phase="REFLEX")),
+            safety_mode="reduced", limited=2, phase="REFLEX", tau_ext=[0.5] * 6)),
         (keys.planner_status(PLANNER), m.PlannerStatus(seq=0, stamp_ns=stamp_ns, name=PLANNER, strategy="uniform",
                                                        mode="REFLEX", task_time_s=1.5, saved_pose=q, reflex=reflex,
                                                        target_pad=4)),

@@ -39,9 +39,10 @@ class Observation:
 
     q: np.ndarray
     dq: np.ndarray
-    fault: m.RobotStatus | None = None  # protective_stop, emergency_stop, script_not_running, disconnected
+    fault: m.RobotStatus | None = None  # protective_stop, emergency_stop, script_not_running, robot_reflex, ...
     detail: str = ""
     stamp_s: float | None = None  # the controller's own time of the report, s (None: the bridge's clock times it)
+    tau_ext: np.ndarray | None = None  # the controller's estimated external torque per joint, N m (None: it has none)
 
 
 class Pacer(Protocol):

@@ -250,6 +250,8 @@ class BridgeWiring(Wiring):
         dq = np.zeros_like(q) if stale else obs.dq
         state = self.core.state(self.seq, now, q, dq, self.backend.name, pose_stale=stale)
         state.clipped += self.backend.guarded
+        if obs.tau_ext is not None and not stale and np.isfinite(obs.tau_ext).all():
+            state.tau_ext = obs.tau_ext.tolist()
         self.out(keys.ROBOT_STATE, state)
         self.seq += 1
 

@@ -344,7 +344,8 @@ def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray
 # The bridge's statuses that stop the arm's motion (RobotStatus): a block during which the bridge went from
 # following commands ("ok") to one of these was degraded, whatever its reflexes looked like.
 ARM_STOPS = frozenset({"stale_command", "stale_skin", "planner_lost", "protective_stop", "emergency_stop",
-                       "script_not_running", "disconnected", "state_implausible"})
+                       "script_not_running", "disconnected", "state_implausible", "robot_reflex",
+                       "motion_refused"})
 
 
 @dataclass(frozen=True)
