@@ -85,6 +85,8 @@ def test_match_traces_pairs_every_sample_with_its_decision_and_counts_each_onset
     assert traces.gain_planner == [2.0, 2.0, 2.0]
     assert traces.onset == [4.0]
     assert traces.planner_bridge == [1.0]  # from the reflex's first command
+    assert traces.planner_bridge_planning == [0.0]  # its stamp to the decision that started the reflex
+    assert traces.planner_bridge_hop == [1.0]  # that decision to the bridge's acceptance
     assert traces.reflexes == 1 and traces.unmatched_onsets == 0
     assert traces.unmatched_samples == 0  # the last sample is within the tail
     assert traces.orphan_decisions == 0
@@ -206,7 +208,7 @@ def test_quick_bench_measures_every_configuration(tmp_path):
     for name, s in summary.items():
         latency = s["latency_ms"]
         for metric in ("onset", "sample", "gateway->gain", "gain->planner", "planner->bridge",
-                       "lower bound: sample", "lower bound: onset"):
+                       "planner->bridge: planning", "planner->bridge: hop", "lower bound: sample", "lower bound: onset"):
             assert latency[metric]["n"] > 0, (name, metric)
         assert s["matching"]["unmatched_samples"] == 0, name
         assert s["matching"]["orphan_decisions"] == 0, name

@@ -275,6 +275,8 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
             "gateway->gain": summarize(traces.gateway_gain),
             "gain->planner": summarize(traces.gain_planner),
             "planner->bridge": summarize(traces.planner_bridge),
+            "planner->bridge: planning": summarize(traces.planner_bridge_planning),
+            "planner->bridge: hop": summarize(traces.planner_bridge_hop),
             "lower bound: sample": summarize(lb_sample),
             "lower bound: onset": summarize(lb_onset),
         },
