@@ -85,6 +85,8 @@ def test_match_traces_pairs_every_sample_with_its_decision_and_counts_each_onset
     assert traces.gain_planner == [2.0, 2.0, 2.0]
     assert traces.onset == [4.0]
     assert traces.planner_bridge == [1.0]  # from the reflex's first command
+    assert traces.planner_bridge_planning == [0.0]  # its stamp to the decision that started the reflex
+    assert traces.planner_bridge_hop == [1.0]  # that decision to the bridge's acceptance
     assert traces.reflexes == 1 and traces.unmatched_onsets == 0
     assert traces.unmatched_samples == 0  # the last sample is within the tail
     assert traces.orphan_decisions == 0
@@ -206,7 +208,8 @@ def test_quick_bench_measures_every_configuration(tmp_path):
     for name, s in summary.items():
         latency = s["latency_ms"]
         for metric in ("onset", "sample", "gateway->gain", "gain->planner", "planner->bridge",
-                       "lower bound: sample", "lower bound: onset"):
+                       "planner->bridge: planning", "planner->bridge: hop", "lower bound: sample",
+                       "lower bound: onset"):
             assert latency[metric]["n"] > 0, (name, metric)
         assert s["matching"]["unmatched_samples"] == 0, name
         assert s["matching"]["orphan_decisions"] == 0, name
@@ -216,7 +219,7 @@ def test_quick_bench_measures_every_configuration(tmp_path):
         assert s["skipped_at_source"] >= 0, name
         assert set(s["loops"]) == {"planner", "bridge"}
         # The baseline, measured right after each run: the bare chain's three hops, and the ratio to them.
-        assert s["bare"]["p50"] > result["in_process_ms"]["p50"] > 0, name
+        assert s["bare"]["p50"] > result["in_process_ms"][f"{s['rate_hz']:g}"]["p50"] > 0, name
         # Counted, not asserted to be none: the bare chain's publisher may lose a few of 3,000 samples at 1 kHz
         # when the machine is loaded (a figure of the bench, not a property of the code).
         assert 0 <= s["bare"]["lost"] < 0.05 * 3.0 * 1000, name
@@ -226,11 +229,15 @@ def test_quick_bench_measures_every_configuration(tmp_path):
     if bench_ros1.available() is None or os.environ.get("NWR_REQUIRE_ROS") == "1":
         assert result["ros1"] == {"ran": True, "why_not": None}
         for name, s in summary.items():
-            if "embedded" in name:
-                assert s["ros1"]["p50"] > 0 and 0 <= s["ros1"]["lost"] < 0.05 * 3.0 * 1000, name
-            else:
-                assert "ros1" not in s, name
-        assert "ROS 1 p50" in proc.stdout
+            for queue in bench_ros1.QUEUE_SIZES:  # queues of 100, then of 1 (which may drop samples: counted)
+                key = bench.ros1_key(queue)
+                if "embedded" in name:
+                    assert s[key]["p50"] > 0 and 0 <= s[key]["lost"] <= 3.0 * s["rate_hz"], name
+                    if queue > 1:
+                        assert s[key]["lost"] < 0.05 * 3.0 * 1000, name
+                else:
+                    assert key not in s, name
+        assert "ROS 1 q100 p50" in proc.stdout and "ROS 1 q1 p50" in proc.stdout
     assert "Reflex onset against the baseline" in (out / "bench.md").read_text()
     assert result["recorder_soak"]["lost"] == 0
 
@@ -252,6 +259,18 @@ def test_the_in_process_chain_is_the_floor():
 
     floor = bench_bare.percentiles(bench_bare.in_process(200))
     assert 0.0 < floor["p50"] <= floor["p99"] < 5.0  # encode, decode and build three messages
+    paced = bench_bare.in_process(20, 200.0)  # one sample per 5 ms period, as the chains it bounds
+    assert len(paced) == 20 and all(0.0 < x < 5.0 for x in paced)
+
+
+def test_the_in_process_floor_is_paced_at_each_touched_configurations_rate(monkeypatch):
+    calls = []
+    monkeypatch.setattr(bench.bench_bare, "in_process", lambda n, rate_hz=None: calls.append((n, rate_hz)) or [1.0])
+    configs = [c for c in bench.configurations(quick=True, onsets=3)]
+    floors = bench.in_process_floors(configs, 2.0)
+    rates = sorted({c.rate_hz for c in configs if c.onsets})
+    assert sorted(calls) == sorted((round(2.0 * r), r) for r in rates)
+    assert set(floors) == {f"{r:g}" for r in rates} and floors["25"]["p50"] == 1.0
 
 
 def test_the_strategies_bench_times_every_reflex_cycle_against_the_cartesian_one(monkeypatch):

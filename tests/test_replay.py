@@ -185,3 +185,45 @@ def test_a_channel_of_a_few_messages_has_no_rate():
     stream = ChannelInfo(2, "nwr/ur10e/robot/state", "nwr.RobotState", "json", count=51, first_log_ns=0,
                          last_log_ns=1_000_000_000)
     assert stream.rate_hz == pytest.approx(50.0)
+
+
+def test_several_recordings_replay_in_lockstep_only_each_to_its_own_file(tmp_path, caplog):
+    from nwr.services import cli
+
+    samples = skin_samples()
+    a = write(tmp_path / "a.mcap", [Recorded("skin/pressure", s.stamp_ns, s) for s in samples], "uniform")
+    b = write(tmp_path / "sub_b.mcap", [Recorded("skin/pressure", s.stamp_ns, s) for s in samples], "uniform")
+    (tmp_path / "sub").mkdir()
+    same = write(tmp_path / "sub" / "a.mcap", [Recorded("skin/pressure", s.stamp_ns, s) for s in samples], "uniform")
+    assert cli.main(["replay", str(a), str(b), "--reflex", "uniform"]) == 2
+    assert "add --fast" in caplog.text
+    assert cli.main(["replay", str(a), str(b), "--fast", "-o", str(tmp_path / "x.mcap")]) == 2
+    assert "-o names one replay's recording" in caplog.text
+    assert cli.main(["replay", str(a), str(same), "--fast"]) == 2
+    assert "named alike" in caplog.text
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_several_recordings_replayed_at_once_equal_their_replays_one_by_one(tmp_path):
+    samples = skin_samples()
+    sources = [write(tmp_path / f"s{i}.mcap", [Recorded("skin/pressure", s.stamp_ns, s) for s in samples],
+                     "cartesian") for i in range(3)]
+    profile = tmp_path / "profile.toml"
+    profile.write_text(f'[recorder]\ndirectory = "{tmp_path / "out"}"\n')
+    cli = [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "--log-level", "WARNING"]
+    many = subprocess.run([*cli, "replay", *map(str, sources), "--fast", "--reflex", "location", "--jobs", "2"],
+                          capture_output=True, text=True, timeout=300)
+    assert many.returncode == 0, many.stdout + many.stderr
+    assert "3 of 3 recordings" in many.stdout and "2 at once" in many.stdout
+    one = subprocess.run([*cli, "replay", str(sources[1]), "--fast", "--reflex", "location",
+                          "-o", str(tmp_path / "one.mcap")], capture_output=True, text=True, timeout=120)
+    assert one.returncode == 0, one.stderr
+
+    def messages(path: Path) -> list[tuple[str, int, bytes]]:
+        return [(r.key, r.log_time_ns, msgspec.msgpack.encode(r.message)) for r in read_recording(path)[0]]
+
+    alone = messages(tmp_path / "one.mcap")
+    assert any(keys.is_command(k) for k, _, _ in alone)
+    for i in range(3):  # each replay the same as the one run alone (the same skin, the same strategy)
+        assert messages(tmp_path / "out" / f"s{i}-replay-location.mcap") == alone

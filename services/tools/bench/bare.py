@@ -12,7 +12,8 @@ decodes what it receives and publishes the next message from its Zenoh
 callback; the gateway publishes ten pads at the skin's rate. The bridge
 stamps each command's arrival: the chain's latency is the skin sample's
 stamp to that arrival, the three hops a reflex takes. :func:`in_process`
-is the same chain as function calls (the lower bound of any chain).
+is the same chain as function calls (the lower bound of any chain), paced
+at the chain's rate like the chains it bounds.
 
 Every process reads the same clock (``time.monotonic_ns``, one per machine
 on Linux), so stamps from different processes compare directly. A role is
@@ -249,14 +250,23 @@ def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
         return subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT)
 
 
-def in_process(n: int) -> list[float]:
-    """The same chain as function calls (encode, decode, the next message) in this process, ms per sample."""
+def in_process(n: int, rate_hz: float | None = None) -> list[float]:
+    """The same chain as function calls (encode, decode, the next message) in this process, ms per sample.
+
+    ``rate_hz``: one sample per period, on absolute deadlines (the chains' own pacing), so that each sample
+    meets the caches and the CPU's frequency and sleep states a paced chain meets; None: back to back.
+    """
+    from nwr.common.pacing import Rate
+
     encode = msgspec.msgpack.Encoder().encode
     dec_s = msgspec.msgpack.Decoder(m.SkinPressure).decode
     dec_p = msgspec.msgpack.Decoder(m.SkinPain).decode
     dec_c = msgspec.msgpack.Decoder(m.PositionCommand).decode
+    rate = Rate(rate_hz, "in-process chain") if rate_hz else None
     out = []
     for seq in range(n):
+        if rate is not None:
+            rate.sleep()
         t = time.monotonic_ns()
         c = dec_c(encode(command(dec_p(encode(pain(dec_s(encode(sample(seq, t))), time.monotonic_ns()))),
                                  time.monotonic_ns())))

@@ -69,6 +69,8 @@ class Traces:
     gateway_gain: list[float] = field(default_factory=list)
     gain_planner: list[float] = field(default_factory=list)
     planner_bridge: list[float] = field(default_factory=list)
+    planner_bridge_planning: list[float] = field(default_factory=list)  # of it: the planner's work on the pain
+    planner_bridge_hop: list[float] = field(default_factory=list)  # of it: the command's hop to the bridge
     skin_samples: int = 0
     unmatched_samples: int = 0  # skin samples with no decision of the active planner
     orphan_decisions: int = 0  # decisions whose skin sample is not in the recording
@@ -87,6 +89,7 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
     pains: list[m.SkinPain] = []
     decisions: list[m.PlannerDecision] = []
     commands: dict[int, int] = {}  # reflex number -> stamp of its first REFLEX command
+    decided: dict[int, int] = {}  # reflex number -> stamp of the decision that started it
     onsets: dict[int, tuple[m.Trace, int]] = {}
     accepted_at: set[int] = set()
     for r in records:
@@ -97,6 +100,8 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
             pains.append(msg)
         elif r.key.endswith("/decision") and msg.name == planner and msg.active:
             decisions.append(msg)
+            if msg.reflex_seq > 0:
+                decided.setdefault(msg.reflex_seq, msg.stamp_ns)
         elif r.key == keys.robot_command(planner) and msg.owner == planner and msg.phase == "REFLEX":
             commands.setdefault(msg.reflex_seq, msg.stamp_ns)
         elif r.key == "robot/state" and msg.accepted is not None and msg.owner == planner \
@@ -106,13 +111,13 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
             accepted_at.add(msg.accepted_ns)
             onsets.setdefault(msg.reflex_seq, (msg.accepted, msg.accepted_ns))
     out = Traces(skin_samples=len(samples))
-    decided: set[int] = set()
+    answered: set[int] = set()
     for d in decisions:
         stamp = samples.get(d.trace.seq)
         if stamp is None or stamp != d.trace.stamp_ns:
             out.orphan_decisions += 1
             continue
-        decided.add(d.trace.seq)
+        answered.add(d.trace.seq)
         out.sample.append((d.stamp_ns - stamp) / 1e6)
         out.gain_planner.append((d.stamp_ns - d.pain_stamp_ns) / 1e6)
         if d.reflex_seq > 0:
@@ -121,13 +126,17 @@ def match_traces(records: Iterable[Recorded], planner: str, *, tail_ns: int = 0)
                 out.unmatched_onsets += 1
     last = max(samples.values(), default=0)
     out.unmatched_samples = sum(1 for seq, stamp in samples.items()
-                                if seq not in decided and stamp <= last - tail_ns)
+                                if seq not in answered and stamp <= last - tail_ns)
     out.gateway_gain = [(p.stamp_ns - p.trace.stamp_ns) / 1e6 for p in pains if p.trace.seq in samples]
     for reflex_seq, (trace, accepted_ns) in sorted(onsets.items()):
         out.onset.append((accepted_ns - trace.stamp_ns) / 1e6)
         first = commands.get(reflex_seq)
         if first is not None:
             out.planner_bridge.append((accepted_ns - first) / 1e6)
+            decision = decided.get(reflex_seq)
+            if decision is not None:
+                out.planner_bridge_planning.append((decision - first) / 1e6)
+                out.planner_bridge_hop.append((accepted_ns - decision) / 1e6)
     return out
 
 

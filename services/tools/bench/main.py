@@ -18,10 +18,11 @@ the same three hops as a bare chain of zenoh-python processes with the
 pipeline's Zenoh configuration, messages and rate, and no other work; every
 onset figure is also given as a ratio to it, measured in the same
 repetition (on a shared machine the ratios hold better than the absolute
-figures), with the same chain as function calls in one process as the floor.
-Where Debian's ROS 1 is installed (rospy, rosmaster), the same chain as
-rospy nodes (:mod:`nwr.services.tools.bench.ros1`) runs after each run of
-the embedded mesh too: a lab's older stack in the same table.
+figures), with the same chain as function calls in one process, paced at
+each configuration's rate, as the floor. Where Debian's ROS 1 is installed
+(rospy, rosmaster), the same chain as rospy nodes
+(:mod:`nwr.services.tools.bench.ros1`) runs after each run of the embedded
+mesh too, with queues of 100 and of 1: a lab's older stack in the same table.
 
 ``--cpus`` pins the bench and every process it starts to a set of CPUs:
 what the pipeline does with fewer cores than the machine has.
@@ -268,13 +269,15 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
     lb_sample, lb_onset = lower_bound(base, strategy, skin)
     cpu = {n: cpu1[n] - cpu0[n] for n in cpu1}
     return {
-        "config": config.name, "rep": rep, "wall_s": wall,
+        "config": config.name, "rep": rep, "rate_hz": config.rate_hz, "wall_s": wall,
         "latency_ms": {
             "onset": summarize(traces.onset),
             "sample": summarize(traces.sample),
             "gateway->gain": summarize(traces.gateway_gain),
             "gain->planner": summarize(traces.gain_planner),
             "planner->bridge": summarize(traces.planner_bridge),
+            "planner->bridge: planning": summarize(traces.planner_bridge_planning),
+            "planner->bridge: hop": summarize(traces.planner_bridge_hop),
             "lower bound: sample": summarize(lb_sample),
             "lower bound: onset": summarize(lb_onset),
         },
@@ -302,9 +305,15 @@ def bare_once(config: Config, base_port: int, work: Path, seconds: float, profil
                                             router_listen=f"tcp/127.0.0.1:{base_port + 5}" if router else None))
 
 
-def ros1_once(config: Config, port: int, work: Path, seconds: float) -> dict[str, float]:
-    """The same three hops in ROS 1 (:mod:`.bench_ros1`) at ``config``'s rate: latency p50/p99 (ms), lost, CPU %."""
-    return chain_figures(bench_ros1.measure(config.rate_hz, seconds, work, port))
+def ros1_once(config: Config, port: int, work: Path, seconds: float, queue: int) -> dict[str, float]:
+    """The same three hops in ROS 1 (:mod:`.bench_ros1`) at ``config``'s rate, queues of ``queue``: latency p50/p99
+    (ms), lost, CPU %."""
+    return chain_figures(bench_ros1.measure(config.rate_hz, seconds, work, port, queue))
+
+
+def ros1_key(queue: int) -> str:
+    """Where a run keeps the ROS 1 chain's figures with queues of ``queue``."""
+    return f"ros1 q{queue}"
 
 
 def chain_figures(run: bench_bare.BareRun) -> dict[str, float]:
@@ -440,6 +449,7 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                  for loop in sorted({k for r in mine for k in r["loops"]})}
         out[name] = {
             "reps": len(mine),
+            "rate_hz": mine[0]["rate_hz"],
             "latency_ms": latency,
             "ratio_to_lower_bound": {
                 "sample p50": latency["sample"]["p50"] / latency["lower bound: sample"]["p50"],
@@ -458,9 +468,10 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             "loops": loops,
             "matching": {k: int(sum(r["matching"][k] for r in mine)) for k in mine[0]["matching"]},
         }
-        ros1 = [r["ros1"] for r in mine if r.get("ros1")]
-        if ros1:
-            out[name]["ros1"] = median_over(ros1)
+        for key in map(ros1_key, bench_ros1.QUEUE_SIZES):
+            ros1 = [r[key] for r in mine if r.get(key)]
+            if ros1:
+                out[name][key] = median_over(ros1)
         bare = [r["bare"] for r in mine if r.get("bare")]
         if bare:
             out[name]["bare"] = median_over(bare)
@@ -471,13 +482,15 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def baseline_table(summary: dict[str, dict[str, Any]], floor_p50: float) -> tuple[list[str], list[list[str]]]:
-    """Reflex onset against the bare chain of the same rate and topology (the ratios: the headline)."""
+def baseline_table(summary: dict[str, dict[str, Any]],
+                   floors: dict[str, dict[str, float]]) -> tuple[list[str], list[list[str]]]:
+    """Reflex onset against the bare chain of the same rate and topology (the ratios: the headline); ``floors``:
+    the in-process chain's figures per rate (:func:`in_process_floors`)."""
     header = ["configuration", "onset p50", "bare p50", "x bare", "onset p99", "bare p99", "x bare",
               "bare lost", "in-process p50"]
-    with_ros1 = any(s.get("ros1") for s in summary.values())
-    if with_ros1:
-        header += ["ROS 1 p50", "ROS 1 p99", "ROS 1 lost"]
+    queues = [q for q in bench_ros1.QUEUE_SIZES if any(s.get(ros1_key(q)) for s in summary.values())]
+    for q in queues:
+        header += [f"ROS 1 q{q} p50", "p99", "lost"]
     rows = []
     for name, s in summary.items():
         bare = s.get("bare")
@@ -486,9 +499,9 @@ def baseline_table(summary: dict[str, dict[str, Any]], floor_p50: float) -> tupl
         onset = s["latency_ms"]["onset"]
         row = [name, _f(onset["p50"], ".3f"), _f(bare["p50"], ".3f"), _f(s["ratio_to_bare"]["p50"], ".2f"),
                _f(onset["p99"], ".3f"), _f(bare["p99"], ".3f"), _f(s["ratio_to_bare"]["p99"], ".2f"),
-               _f(bare["lost"], ".0f"), _f(floor_p50, ".4f")]
-        if with_ros1:
-            ros1 = s.get("ros1")
+               _f(bare["lost"], ".0f"), _f(floors.get(f"{s['rate_hz']:g}", {}).get("p50", float("nan")), ".4f")]
+        for q in queues:
+            ros1 = s.get(ros1_key(q))
             row += [_f(ros1["p50"], ".3f"), _f(ros1["p99"], ".3f"), _f(ros1["lost"], ".0f")] if ros1 else ["-"] * 3
         rows.append(row)
     return header, rows
@@ -567,14 +580,17 @@ def report_markdown(result: dict[str, Any]) -> str:
         markdown_table(header, rows),
         "",
     ]
-    base_header, base_rows = baseline_table(result["summary"], result.get("in_process_ms", {}).get("p50", float("nan")))
+    base_header, base_rows = baseline_table(result["summary"], result.get("in_process_ms", {}))
     if base_rows:
         lines += [
             "Reflex onset against the baseline: the same three hops as a bare chain of zenoh-python processes "
             "(the pipeline's Zenoh configuration, messages and rate; no other work), run right after each "
-            "repetition; *x bare*: the ratio per repetition, median; *in-process*: the chain as function calls"
-            + ("; *ROS 1*: the same chain as rospy nodes with their own rosmaster (Debian's ROS 1), peers only."
-               if any(s.get("ros1") for s in result["summary"].values()) else "."),
+            "repetition; *x bare*: the ratio per repetition, median; *in-process*: the chain as function calls in "
+            "one process, paced at the configuration's rate"
+            + ("; *ROS 1 qN*: the same chain as rospy nodes with their own rosmaster (Debian's ROS 1), peers only, "
+               "decoding and building the same numbers as float arrays, publishers' and subscribers' queues of N "
+               "(*lost*: samples a queue of 1 dropped)."
+               if any(k.startswith("ros1") for s in result["summary"].values() for k in s) else "."),
             "",
             markdown_table(base_header, base_rows),
             "",
@@ -657,10 +673,12 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                         print(f"; onset p50 {lat['onset']['p50'] / bare['p50']:.2f}x the chain's", end="")
                     print(flush=True)
                 if config.onsets and ros1 is None and config.topology == "embedded":
-                    ros_port = args.base_port + 2 * PORTS_PER_RUN * PORT_BLOCKS + done % PORT_BLOCKS
-                    _baseline(result, run, rep, config, "ros1", "ROS 1 chain", partial(
-                        ros1_once, config, ros_port, work / f"ros1-{done}", args.bare_seconds))
-                    print(flush=True)
+                    for i, queue in enumerate(bench_ros1.QUEUE_SIZES):
+                        ros_port = args.base_port + (2 * PORTS_PER_RUN + i) * PORT_BLOCKS + done % PORT_BLOCKS
+                        _baseline(result, run, rep, config, ros1_key(queue), f"ROS 1 chain, queues of {queue}",
+                                  partial(ros1_once, config, ros_port, work / f"ros1-q{queue}-{done}",
+                                          args.bare_seconds, queue))
+                        print(flush=True)
         if args.soak_minutes > 0:
             print(f"recorder soak: {args.soak_minutes:g} simulated minutes ...", end="", flush=True)
             result["recorder_soak"] = recorder_soak(args.soak_minutes, work / "soak.mcap", profile)
@@ -670,13 +688,13 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     result["summary"] = aggregate(result["runs"])
-    result["in_process_ms"] = bench_bare.percentiles(bench_bare.in_process(2000))
+    result["in_process_ms"] = in_process_floors(configs, args.bare_seconds)
     result["elapsed_s"] = time.monotonic() - t_start
     (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=_jsonable))
     md = report_markdown(result)
     (out_dir / "bench.md").write_text(md)
     header, rows, cost_header, cost = tables(result["summary"])
-    base_header, base_rows = baseline_table(result["summary"], result["in_process_ms"]["p50"])
+    base_header, base_rows = baseline_table(result["summary"], result["in_process_ms"])
     if base_rows:
         print("\nreflex onset against the bare zenoh chain of the same rate and topology (ms; x: ratio, per "
               "repetition, median):")
@@ -687,6 +705,13 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     print(text_table(cost_header, cost))
     print(f"\nraw numbers: {out_dir / 'bench.json'}; table: {out_dir / 'bench.md'} ({result['elapsed_s']:.0f} s)")
     return result
+
+
+def in_process_floors(configs: list[Config], seconds: float) -> dict[str, dict[str, float]]:
+    """The chain as function calls in this process, paced at each touched configuration's rate for ``seconds``
+    (as long as the bare chain runs): its p50 and p99 per rate, ms, keyed ``f"{rate:g}"``."""
+    rates = sorted({c.rate_hz for c in configs if c.onsets})
+    return {f"{r:g}": bench_bare.percentiles(bench_bare.in_process(max(1, round(seconds * r)), r)) for r in rates}
 
 
 def _baseline(result: dict[str, Any], run: dict[str, Any], rep: int, config: Config, key: str, label: str,
@@ -733,8 +758,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--soak-minutes", type=float, default=None,
                    help="simulated minutes of the recorder soak (default 60; --quick 0.5; 0 = none)")
     p.add_argument("--base-port", type=int, default=18050,
-                   help=f"first of the {(2 * PORTS_PER_RUN + 1) * PORT_BLOCKS} loopback ports the runs, the bare "
-                        "chain and the ROS 1 chain's rosmaster use (default 18050)")
+                   help=f"first of the {(2 * PORTS_PER_RUN + len(bench_ros1.QUEUE_SIZES)) * PORT_BLOCKS} loopback "
+                        "ports the runs, the bare chain and the ROS 1 chains' rosmasters use (default 18050)")
     p.add_argument("--bare-seconds", type=float, default=BARE_S,
                    help=f"how long the bare chain runs after each run (default {BARE_S:g}; --quick 3)")
     p.add_argument("--no-ros1", action="store_true",

@@ -13,30 +13,37 @@ rospy lives in the system's Python (``/usr/bin/python3``, Debian's
 ``python3-rospy``), not in the project's environment, and the system's
 Python has neither msgspec nor this package. So the roles are this file run
 as a script by the system's Python: that part imports only the standard
-library, rospy and std_msgs. What differs from the bare chain, on purpose:
+library, rospy and std_msgs. The chain does what the bare chain does:
 
-- Sizes, not encodings. Each message is a ``std_msgs/UInt8MultiArray`` whose
-  data is as long as the pipeline's message encoded with msgspec (the bare
-  chain's :func:`~nwr.services.tools.bench.bare.sample`, ``pain`` and
-  ``command`` at the run's last sequence number: within a few bytes of
-  every other one). The parent (the project's Python) encodes one of each
-  into ``<work>/<message>.bin``; a role writes the sequence number and
-  stamps into a fixed-width little-endian header (``struct``) over the
-  template's first bytes and keeps the rest. On the wire the array adds 12
-  bytes (an empty layout and the array's length) to the bare chain's payload.
-- Trivial compute. A stage unpacks the header and packs the next one: well
-  under a microsecond, where the bare chain's msgspec decode, build and
-  encode take a few (:func:`~nwr.services.tools.bench.bare.in_process`).
-  The difference favours ROS slightly.
+- The pipeline's numbers, as float arrays. Each message is a
+  ``std_msgs/Float64MultiArray`` holding the numbers of the pipeline's
+  message (the bare chain's :func:`~nwr.services.tools.bench.bare.sample`,
+  ``pain`` and ``command``): a sample its sequence number and stamp and the
+  ten pads' absolute pressure, baseline, change, contact and validity (52
+  values); a pain message its own and its sample's sequence number and stamp
+  and the pads' level and gain (24); a command the same four and the six
+  joint targets (10). ROS has no message of the pipeline's types without a
+  build of its own; a float array is what a lab's quick rospy node would
+  send. Stamps are ``time.monotonic_ns`` as float64: exact below 2^53 ns
+  (104 days of uptime). :data:`SAMPLE_LEN`, :data:`PAIN_LEN` and
+  :data:`COMMAND_LEN` follow the bare chain's messages (a test checks them).
+- The same work per stage. rospy decodes each array on arrival (genpy
+  unpacks the floats into a tuple) before the callback; the callback reads
+  the stamps, builds the next message's numbers and publishes it (rospy
+  encodes it). As the bare chain's stage decodes with msgspec, builds the
+  next Struct and encodes it.
 - Stamps are ``time.monotonic_ns`` in every process (one clock per machine
   on Linux), as in the bare chain.
 - Tuned as a lab tuning rospy for latency would: every subscriber asks for
   ``tcp_nodelay`` (and every publisher sets it). The chain's publishers and
-  subscribers have ``queue_size=100``: rospy's documentation asks for an explicit queue
-  size, and 100 holds 100 ms of a 1 kHz stream, so a short stall delays
-  samples rather than dropping them (the bare chain blocks instead of
-  dropping). With a queue size, rospy's publish hands each message to a
-  writer thread per connection: that is how rospy is normally used.
+  subscribers have ``queue_size`` 100 or 1 (``--queue``; ``nwr bench`` runs
+  both): rospy's documentation asks for an explicit queue size; 100 holds
+  100 ms of a 1 kHz stream, so a short stall delays samples rather than
+  dropping them (the bare chain blocks instead of dropping), 1 keeps only
+  the newest, as a control loop's subscriber is usually set, and drops the
+  rest (counted as lost). With a queue size, rospy's publish hands each
+  message to a writer thread per connection: that is how rospy is normally
+  used.
 
 No sample is lost to start-up: a stage that publishes writes
 ``<work>/<role>.ready`` once its publisher has a subscriber connected (the
@@ -52,7 +59,7 @@ the gateway's publishing time, % of one core, as the bare chain's.
 
 ``python -m nwr.services.tools.bench.ros1 --rate 25 --duration 5`` runs it
 once and prints the figures. A role is
-``/usr/bin/python3 bench_ros1.py ROLE --rate R --duration D --work DIR --master-pid PID``.
+``/usr/bin/python3 bench_ros1.py ROLE --rate R --duration D --queue Q --work DIR --master-pid PID``.
 """
 
 from __future__ import annotations
@@ -62,7 +69,6 @@ import json
 import os
 import shutil
 import socket
-import struct
 import subprocess
 import sys
 import tempfile
@@ -77,13 +83,18 @@ if TYPE_CHECKING:
 
 SYSTEM_PYTHON = "/usr/bin/python3"  # the interpreter with rospy (Debian's python3-rospy)
 ROLES = ("bridge", "planner", "gain", "gateway")  # the start order: the source last
-MESSAGES = ("sample", "pain", "command")  # the templates, <work>/<message>.bin
 TOPIC = "/nwr_bench/{}"
 START = TOPIC.format("start")
 END = TOPIC.format("end")
-QUEUE_SIZE = 100  # publishers' and subscribers': 100 ms at 1 kHz (see the module's docstring)
-HEAD_SAMPLE = struct.Struct("<qq")  # seq, stamp_ns
-HEAD_TRACE = struct.Struct("<qqqq")  # seq, stamp_ns, the sample's seq, the sample's stamp_ns
+QUEUE_SIZES = (100, 1)  # publishers' and subscribers', the two nwr bench runs (see the module's docstring)
+N_PADS = 10
+N_JOINTS = 6
+# The float arrays: [seq, stamp_ns, absolute, baseline, change, contact, valid (a value per pad each)];
+# [seq, stamp_ns, the sample's seq, its stamp_ns, level, gain (per pad)]; [the same four, q (per joint)].
+SAMPLE_LEN = 2 + 5 * N_PADS
+PAIN_LEN = 4 + 2 * N_PADS
+COMMAND_LEN = 4 + N_JOINTS
+Q = [0.1, -1.2, 1.3, -1.6, -1.57, 0.0]  # the bare chain's command target
 STARTUP_TIMEOUT_S = 30.0
 MASTER_TIMEOUT_S = 20.0
 
@@ -91,7 +102,7 @@ MASTER_TIMEOUT_S = 20.0
 # ------------------------------------------------------------------------------ one role (the system's Python)
 
 
-def run_role(role: str, *, rate_hz: float, duration_s: float, work: Path, master_pid: int) -> int:
+def run_role(role: str, *, rate_hz: float, duration_s: float, queue: int, work: Path, master_pid: int) -> int:
     """One process of the chain, run by the system's Python; the gateway publishes once every other role is ready.
 
     Imports only the standard library, rospy and std_msgs. The role's figures go to ``work/<role>.json``.
@@ -100,43 +111,42 @@ def run_role(role: str, *, rate_hz: float, duration_s: float, work: Path, master
     # Run as a script, this file's directory comes first on sys.path: its modules must not shadow rospy's imports.
     sys.path[:] = [p for p in sys.path if os.path.realpath(p or ".") != here]
     import rospy
-    from std_msgs.msg import Empty, String, UInt8MultiArray
+    from std_msgs.msg import Empty, Float64MultiArray, String
 
-    templates = {name: (work / f"{name}.bin").read_bytes() for name in MESSAGES}
     rospy.init_node(f"nwr_bench_{role}", disable_signals=True)  # SIGTERM ends the process
     if role == "gateway":
-        return _publish(rospy, Empty, String, UInt8MultiArray, templates["sample"][HEAD_SAMPLE.size:],
-                        rate_hz=rate_hz, duration_s=duration_s, work=work, master_pid=master_pid)
+        return _publish(rospy, Empty, String, Float64MultiArray, rate_hz=rate_hz, duration_s=duration_s,
+                        queue=queue, work=work, master_pid=master_pid)
 
     arrivals: list[tuple[int, int, int]] = []  # (seq, sample stamp, arrival), the bridge's
     out: Any = None
     if role == "gain":
-        tail_p = templates["pain"][HEAD_TRACE.size:]
-        out = rospy.Publisher(TOPIC.format("pain"), UInt8MultiArray, queue_size=QUEUE_SIZE, tcp_nodelay=True)
+        out = rospy.Publisher(TOPIC.format("pain"), Float64MultiArray, queue_size=queue, tcp_nodelay=True)
+        level, gain = [1.0] * N_PADS, [0.0] * N_PADS  # the bare chain's pain: no touch
 
         def on_pressure(msg: Any) -> None:
-            seq, stamp = HEAD_SAMPLE.unpack_from(msg.data)
-            out.publish(UInt8MultiArray(data=HEAD_TRACE.pack(seq, time.monotonic_ns(), seq, stamp) + tail_p))
+            d = msg.data
+            seq, stamp = d[0], d[1]
+            out.publish(Float64MultiArray(data=[seq, float(time.monotonic_ns()), seq, stamp, *level, *gain]))
 
-        rospy.Subscriber(TOPIC.format("pressure"), UInt8MultiArray, on_pressure, queue_size=QUEUE_SIZE,
+        rospy.Subscriber(TOPIC.format("pressure"), Float64MultiArray, on_pressure, queue_size=queue,
                          tcp_nodelay=True)
     elif role == "planner":
-        tail_c = templates["command"][HEAD_TRACE.size:]
-        out = rospy.Publisher(TOPIC.format("command"), UInt8MultiArray, queue_size=QUEUE_SIZE, tcp_nodelay=True)
+        out = rospy.Publisher(TOPIC.format("command"), Float64MultiArray, queue_size=queue, tcp_nodelay=True)
 
         def on_pain(msg: Any) -> None:
-            seq, _stamp, trace_seq, trace_stamp = HEAD_TRACE.unpack_from(msg.data)
-            out.publish(UInt8MultiArray(data=HEAD_TRACE.pack(seq, time.monotonic_ns(), trace_seq, trace_stamp)
-                                        + tail_c))
+            d = msg.data
+            out.publish(Float64MultiArray(data=[d[0], float(time.monotonic_ns()), d[2], d[3], *Q]))
 
-        rospy.Subscriber(TOPIC.format("pain"), UInt8MultiArray, on_pain, queue_size=QUEUE_SIZE, tcp_nodelay=True)
+        rospy.Subscriber(TOPIC.format("pain"), Float64MultiArray, on_pain, queue_size=queue, tcp_nodelay=True)
     else:
         def on_command(msg: Any) -> None:
             now = time.monotonic_ns()
-            _seq, _stamp, trace_seq, trace_stamp = HEAD_TRACE.unpack_from(msg.data)
-            arrivals.append((trace_seq, trace_stamp, now))
+            d = msg.data
+            if len(d) == COMMAND_LEN:
+                arrivals.append((int(d[2]), int(d[3]), now))
 
-        rospy.Subscriber(TOPIC.format("command"), UInt8MultiArray, on_command, queue_size=QUEUE_SIZE,
+        rospy.Subscriber(TOPIC.format("command"), Float64MultiArray, on_command, queue_size=queue,
                          tcp_nodelay=True)
 
     done = threading.Event()
@@ -171,10 +181,10 @@ def run_role(role: str, *, rate_hz: float, duration_s: float, work: Path, master
     return 0 if done.is_set() else 1
 
 
-def _publish(rospy: Any, empty: Any, string: Any, array: Any, tail: bytes, *, rate_hz: float, duration_s: float,
+def _publish(rospy: Any, empty: Any, string: Any, array: Any, *, rate_hz: float, duration_s: float, queue: int,
              work: Path, master_pid: int) -> int:
     """The gateway: wait for the others, publish ``duration_s`` of samples at ``rate_hz``, then the end."""
-    pub = rospy.Publisher(TOPIC.format("pressure"), array, queue_size=QUEUE_SIZE, tcp_nodelay=True)
+    pub = rospy.Publisher(TOPIC.format("pressure"), array, queue_size=queue, tcp_nodelay=True)
     start = rospy.Publisher(START, empty, queue_size=10, tcp_nodelay=True)
     end = rospy.Publisher(END, string, queue_size=10, tcp_nodelay=True)
     others = ("gain", "planner", "bridge")
@@ -196,6 +206,7 @@ def _publish(rospy: Any, empty: Any, string: Any, array: Any, tail: bytes, *, ra
     time.sleep(0.3)  # as the bare chain: the connections settle
     period_ns = round(1e9 / rate_hz)
     n = int(round(duration_s * rate_hz))
+    baseline, change, flags, valid = [1013.0] * N_PADS, [0.01] * N_PADS, [0.0] * N_PADS, [1.0] * N_PADS
     overruns = 0
     next_ns = time.monotonic_ns() + period_ns
     start.publish(empty())
@@ -210,7 +221,10 @@ def _publish(rospy: Any, empty: Any, string: Any, array: Any, tail: bytes, *, ra
         else:
             next_ns += (-delay // period_ns + 1) * period_ns
             overruns += 1
-        pub.publish(array(data=HEAD_SAMPLE.pack(seq, time.monotonic_ns()) + tail))
+        # The bare chain's sample: the pads' absolute pressure, baseline, change, contact and validity.
+        pressures = [1013.0 + 0.01 * (seq % 7)] * N_PADS
+        pub.publish(array(data=[float(seq), float(time.monotonic_ns()), *pressures, *baseline, *change, *flags,
+                                *valid]))
     wall = time.monotonic() - t0
     time.sleep(0.2)  # the last sample through the chain before the end stops it
     end.publish(string(data=json.dumps({"sent": n, "publish_wall_s": wall, "overruns": overruns})))
@@ -262,27 +276,9 @@ def available(python: str = SYSTEM_PYTHON, path: str | None = None) -> str | Non
     return "; ".join(missing) + " (Debian: apt install python3-rospy python3-std-msgs python3-rosmaster)"
 
 
-def templates(n: int) -> dict[str, bytes]:
-    """The bare chain's three messages at sequence number ``n - 1``, encoded as the pipeline encodes them."""
-    import msgspec
-
-    from nwr.services.tools.bench.bare import command, pain, sample
-
-    encode = msgspec.msgpack.Encoder().encode
-    now = time.monotonic_ns()
-    s = sample(max(n - 1, 0), now)
-    p = pain(s, now + 1)
-    c = command(p, now + 2)
-    out = {"sample": encode(s), "pain": encode(p), "command": encode(c)}
-    for name, data in out.items():
-        head = HEAD_SAMPLE if name == "sample" else HEAD_TRACE
-        if len(data) < head.size:
-            raise ValueError(f"the {name} message ({len(data)} bytes) is shorter than its header ({head.size})")
-    return out
-
-
-def measure(rate_hz: float, duration_s: float, work: Path, port: int) -> BareRun:
-    """Start a rosmaster on 127.0.0.1:``port`` and the four roles, run ``duration_s``, collect the figures.
+def measure(rate_hz: float, duration_s: float, work: Path, port: int, queue: int = QUEUE_SIZES[0]) -> BareRun:
+    """Start a rosmaster on 127.0.0.1:``port`` and the four roles (queues of ``queue``), run ``duration_s``,
+    collect the figures.
 
     Raises RuntimeError when ROS 1 is missing (:func:`available`), the port is taken, or a role fails.
     Everything it starts is stopped before it returns.
@@ -295,12 +291,9 @@ def measure(rate_hz: float, duration_s: float, work: Path, port: int) -> BareRun
     rosmaster = shutil.which("rosmaster")
     assert rosmaster is not None
     work.mkdir(parents=True, exist_ok=True)
-    for pattern in ("*.json", "*.ready", "*.tmp", "*.bin"):
+    for pattern in ("*.json", "*.ready", "*.tmp"):
         for stale in work.glob(pattern):
             stale.unlink()
-    n = int(round(duration_s * rate_hz))
-    for name, data in templates(n).items():
-        (work / f"{name}.bin").write_bytes(data)
     with socket.socket() as s:  # a master already there would answer in place of ours
         try:
             s.bind(("127.0.0.1", port))
@@ -316,7 +309,8 @@ def measure(rate_hz: float, duration_s: float, work: Path, port: int) -> BareRun
         script = str(Path(__file__).resolve())
         for role in ROLES:
             procs[role] = _spawn([SYSTEM_PYTHON, script, role, "--rate", str(rate_hz), "--duration", str(duration_s),
-                                  "--work", str(work), "--master-pid", str(procs["rosmaster"].pid)],
+                                  "--queue", str(queue), "--work", str(work),
+                                  "--master-pid", str(procs["rosmaster"].pid)],
                                  work / f"{role}.log", env)
         try:
             code = procs["gateway"].wait(duration_s + STARTUP_TIMEOUT_S + 30.0)
@@ -397,15 +391,19 @@ def main(argv: list[str] | None = None) -> int:
         role_parser.add_argument("role", choices=ROLES)
         role_parser.add_argument("--rate", type=float, required=True)
         role_parser.add_argument("--duration", type=float, required=True)
-        role_parser.add_argument("--work", type=Path, required=True, help="the templates, and the role's figures")
+        role_parser.add_argument("--queue", type=int, required=True)
+        role_parser.add_argument("--work", type=Path, required=True, help="the role's figures")
         role_parser.add_argument("--master-pid", type=int, required=True)
         r = role_parser.parse_args(argv)
-        return run_role(r.role, rate_hz=r.rate, duration_s=r.duration, work=r.work, master_pid=r.master_pid)
+        return run_role(r.role, rate_hz=r.rate, duration_s=r.duration, queue=r.queue, work=r.work,
+                        master_pid=r.master_pid)
 
     parser = argparse.ArgumentParser(prog="python -m nwr.services.tools.bench.ros1",
                                      description="The bench's ROS 1 chain, once: latency p50/p99, lost, CPU.")
     parser.add_argument("--rate", type=float, default=25.0, help="samples per second (default 25)")
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of publishing (default 5)")
+    parser.add_argument("--queue", type=int, default=QUEUE_SIZES[0],
+                        help=f"the publishers' and subscribers' queue size (default {QUEUE_SIZES[0]})")
     parser.add_argument("--port", type=int, default=0, help="the rosmaster's port (default: a free one)")
     parser.add_argument("--work", type=Path, help="directory for the logs and figures (default: a temporary one)")
     args = parser.parse_args(argv)
@@ -417,9 +415,10 @@ def main(argv: list[str] | None = None) -> int:
 
     port = args.port or free_port()
     with tempfile.TemporaryDirectory(prefix="nwr-bench-ros1-") as tmp:
-        run = measure(args.rate, args.duration, args.work or Path(tmp), port)
+        run = measure(args.rate, args.duration, args.work or Path(tmp), port, args.queue)
     pct = percentiles(run.latency_ms)
-    print(f"ros1 chain, {args.rate:g} Hz for {args.duration:g} s: p50 {pct['p50']:.3f} ms, p99 {pct['p99']:.3f} ms, "
+    print(f"ros1 chain, {args.rate:g} Hz for {args.duration:g} s, queues of {args.queue}: p50 {pct['p50']:.3f} ms, "
+          f"p99 {pct['p99']:.3f} ms, "
           f"lost {run.sent - run.received} of {run.sent}, CPU {run.cpu_percent_total:.1f}% of one core "
           f"(four roles and the rosmaster, over {run.wall_s:.2f} s of publishing)")
     return 0

@@ -12,7 +12,10 @@ Three ways, all from the recorded skin stream (``skin/pressure``):
   to compare with the first (``nwr compare``);
 - ``--fast``: the same cores chained in this process on simulated time
   (:mod:`nwr.services.pipeline.lockstep`), as fast as they go, deterministic: the same
-  file and strategy give the same messages every run.
+  file and strategy give the same messages every run. Several files replay
+  at once, each in a process of its own (``--jobs``, default: the CPUs this
+  process may use), each into ``recordings/<FILE>-replay-<reflex>.mcap``,
+  with a progress bar.
 
 Replay is open loop by default: a recorded press is replayed as recorded,
 even if the new reflex moves the pad away sooner. ``--fast --resimulate``
@@ -32,10 +35,14 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import logging
+import multiprocessing
+import os
 import shlex
 import subprocess
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -220,14 +227,31 @@ def _layout_for(args: argparse.Namespace, output: Path) -> tuple[Layout, str]:
     name = args.name or args.reflex or "replayed"
     layout = Layout(planners=[] if args.planner_cmd else [name], active=name, gateway=None,
                     recorder=recorder_args(output, output.stem, args.reflex or "external",
-                                           {"replay_of": str(args.file)}))
+                                           {"replay_of": str(args.file[0])}))
     return layout, name
 
 
-def _run(args: argparse.Namespace) -> int:
-    profile = profile_for(args)
-    source = Path(args.file)
-    # Read (and checked) before anything is started: a bad file ends the replay with one line.
+@dataclass(frozen=True)
+class FastReplay:
+    """What one lockstep replay did."""
+
+    source: Path
+    output: Path
+    strategy: str
+    samples: int  # records replayed (skin samples)
+    simulated_s: float
+    wall_s: float
+
+    def line(self, resimulated: bool) -> str:
+        how = ", touches re-simulated," if resimulated else ""
+        return (f"replayed {self.samples} skin samples ({self.simulated_s:.1f} s){how} against {self.strategy!r} in "
+                f"lockstep in {self.wall_s:.2f} s ({self.simulated_s / self.wall_s:.0f}x real time): {self.output}")
+
+
+def _prepare(args: argparse.Namespace, profile: Profile,
+             source: Path) -> tuple[list[Recorded], dict[str, dict[str, str]], list[Recorded], str, Path]:
+    """The recording read and checked before anything is started (a bad file ends the replay with one line): its
+    records, metadata, the records chosen, the strategy and the output."""
     records, metadata = read_recording(source)
     topics = [t for t in (args.topics.split(",") if args.topics else REPLAYABLE) if t]
     bad = [t for t in topics if t not in REPLAYABLE]
@@ -242,8 +266,6 @@ def _run(args: argparse.Namespace) -> int:
     output = Path(args.output) if args.output else default_out
     if output.resolve() == source.resolve():
         raise ConfigError(f"-o {output} is the recording being replayed: write the replay to another file")
-    span = (chosen[-1].log_time_ns - chosen[0].log_time_ns) / 1e9
-
     if args.resimulate and not args.fast:
         raise ConfigError("--resimulate needs --fast: a live replay publishes the recorded samples as they were "
                           "and cannot re-simulate them against the new arm's motion")
@@ -254,12 +276,72 @@ def _run(args: argparse.Namespace) -> int:
         if strategy not in strategies.names():
             raise ConfigError(f"strategy {strategy!r} of the recording is not one of {list(strategies.names())}: "
                               "choose one with --reflex")
-        path, simulated, wall = run_fast(profile, records, strategy, output, source, metadata, chosen=chosen,
-                                         resimulate=args.resimulate)
-        how = ", touches re-simulated," if args.resimulate else ""
-        print(f"replayed {len(chosen)} skin samples ({simulated:.1f} s){how} against {strategy!r} in lockstep in "
-              f"{wall:.2f} s ({simulated / wall:.0f}x real time): {path}")
+    return records, metadata, chosen, strategy, output
+
+
+def replay_fast(args: argparse.Namespace, source: Path) -> FastReplay:
+    """One recording replayed in lockstep, as ``args`` ask (``--fast``)."""
+    profile = profile_for(args)
+    records, metadata, chosen, strategy, output = _prepare(args, profile, source)
+    path, simulated, wall = run_fast(profile, records, strategy, output, source, metadata, chosen=chosen,
+                                     resimulate=args.resimulate)
+    return FastReplay(source, path, strategy, len(chosen), simulated, wall)
+
+
+def _replay_many(args: argparse.Namespace, sources: list[Path]) -> int:
+    """Several recordings in lockstep, each in a process of its own, ``--jobs`` at once, with a progress bar."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if not args.fast:
+        raise ConfigError("several recordings replay in lockstep only: add --fast (a live replay plays one file)")
+    if args.output:
+        raise ConfigError("-o names one replay's recording: with several files each goes to "
+                          "<recorder.directory>/<FILE>-replay-<reflex>.mcap")
+    stems = [s.stem for s in sources]
+    twice = sorted({stem for stem in stems if stems.count(stem) > 1})
+    if twice:
+        raise ConfigError(f"recordings {twice} are named alike: their replays would write the same file")
+    jobs = args.jobs or len(os.sched_getaffinity(0))
+    done: list[FastReplay] = []
+    failed_files: list[str] = []
+    t0 = time.perf_counter()
+    # spawn: each replay in a fresh interpreter (nothing of this process's state, threads or loaded libraries)
+    with ProcessPoolExecutor(max_workers=min(jobs, len(sources)),
+                             mp_context=multiprocessing.get_context("spawn")) as pool, \
+            Progress(TextColumn("replaying"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                     transient=True) as progress:
+        task = progress.add_task("replay", total=len(sources))
+        futures = {pool.submit(replay_fast, args, source): source for source in sources}
+        for future in as_completed(futures):
+            source = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001  one bad file must not lose the others' replays
+                failed_files.append(str(source))
+                progress.console.print(f"{source}: not replayed: {exc}")
+            else:
+                done.append(result)
+                progress.console.print(result.line(args.resimulate))
+            progress.advance(task)
+    wall = time.perf_counter() - t0
+    simulated = sum(r.simulated_s for r in done)
+    print(f"{len(done)} of {len(sources)} recordings ({simulated:.1f} s) replayed in lockstep in {wall:.2f} s, "
+          f"{min(jobs, len(sources))} at once ({simulated / wall:.0f}x real time in all)"
+          + (f"; not replayed: {', '.join(failed_files)}" if failed_files else ""))
+    return 1 if failed_files else 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    sources = [Path(f) for f in args.file]
+    if len(sources) > 1:
+        return _replay_many(args, sources)
+    source = sources[0]
+    if args.fast:
+        print(replay_fast(args, source).line(args.resimulate))
         return 0
+    profile = profile_for(args)
+    records, metadata, chosen, strategy, output = _prepare(args, profile, source)
+    span = (chosen[-1].log_time_ns - chosen[0].log_time_ns) / 1e9
 
     robot = args.robot or metadata.get("session", {}).get("robot") or profile.robot.name
     procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -305,7 +387,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("file", help="MCAP recording")
+    p.add_argument("file", nargs="+", help="MCAP recording (several: with --fast, replayed at once)")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (live replay; default 1)")
     p.add_argument("--start", type=float, default=0.0, help="start at this offset from the recording's start, s")
     p.add_argument("--end", type=float, default=None, help="stop at this offset from the recording's start, s")
@@ -324,5 +406,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --fast, for sessions of the simulated skin: re-simulate each touch's pressure against "
                         "the replay's arm (it falls as the pad withdraws from the finger); sessions of a real skin "
                         "replay open loop only")
-    p.add_argument("--output", "-o", help="recording to write (default: recordings/<FILE>-replay-<reflex>.mcap)")
+    p.add_argument("--output", "-o", help="recording to write (default: recordings/<FILE>-replay-<reflex>.mcap; "
+                                          "one file only)")
+    p.add_argument("--jobs", "-j", type=int, default=0,
+                   help="with --fast and several files: how many replay at once, each in a process of its own "
+                        "(default: the CPUs this process may use)")
     p.set_defaults(handler=_run)
