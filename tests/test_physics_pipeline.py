@@ -51,7 +51,7 @@ def physics_profile() -> Profile:
 
 
 def test_todays_touch_scripts_fit_the_physics_world() -> None:
-    for name in ("demo", "contacts", "survey"):
+    for name in ("demo", "contacts", "survey", "held-press", "slow-press", "two-fingers"):
         check_script(load_script(name), SETTINGS, DESC)
 
 

@@ -88,10 +88,23 @@ class TouchSummary:
     # impact force a collision at its speed would cause, N (None: the recording's gain model predicts none).
     effective_mass_kg: float | None = None
     impact_n: float | None = None
-    # A physics world's touch (world/contacts): the peak contact force on the finger, N, and how far the arm
-    # pushed the finger back from where it met the pad (along the pad's normal) while it pressed, mm.
-    person_force_n: float | None = None
+    # A physics world's touch (world/contacts, :func:`world_figures`): the measured peak contact force on the
+    # person's body part, N, and how far the arm pushed it back from where it met the pad (along the pad's
+    # normal) while it pressed, mm.
+    peak_force_n: float | None = None
     into_finger_mm: float | None = None
+    # The peak pressure over the contact area, N/cm^2, and the energy the arm put into the body part, J
+    # (docs/worlds.md "Force figures"); the ISO/TS 15066 body area the part is judged by (people.ISO_TS_15066),
+    # its quasi-static and transient force (N) and pressure (N/cm^2) limits, and the peaks' largest fraction of
+    # the quasi-static limits (over 1: beyond them).
+    peak_pressure_n_cm2: float | None = None
+    energy_j: float | None = None
+    body_area: str = ""
+    force_limit_n: float | None = None
+    pressure_limit_n_cm2: float | None = None
+    transient_force_limit_n: float | None = None
+    transient_pressure_limit_n_cm2: float | None = None
+    of_limit: float | None = None
 
 
 def summarized(key: str) -> bool:
@@ -144,7 +157,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
 
     for touch in touches:
         _contact_figures(touch, model, state_t, state_q)
-    _world_figures(touches, records)
+    world_figures(touches, records)
 
     for touch in touches:
         reflex = next(
@@ -300,15 +313,21 @@ def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:
     return float(np.linalg.norm(jerk, axis=1).max()) if len(jerk) else None
 
 
-def _world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
-    """A physics world's figures per touch (``person_force_n``, ``into_finger_mm``): from the body part that
-    stood for the scripted touch (``skin/touch``) met on the touch's pad at its start (within 0.5 s)."""
-    people: dict[int, tuple[float, float]] = {}  # skin/touch seq -> (peak force, peak pushed back)
+def world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
+    """A physics world's measured figures per touch, from its body parts' contact figures (``world/contacts``):
+    the peak contact force on the person (``peak_force_n``), the peak pressure, the energy put into them, how
+    far the arm pushed them back, and ISO/TS 15066's limits for the body area they are judged by (the kind of
+    body part's, :data:`nwr.services.worlds.people.KINDS`: a touch script's finger is the dominant hand's
+    forefinger pad). The body part is the one that stood for the scripted touch (``skin/touch``) met on the
+    touch's pad at its start (within 0.5 s, and its ramp). Touches of a recording without a physics world keep
+    None."""
+    from nwr.services.worlds.people import KINDS, region_of
+
+    people: dict[int, list[m.WorldPerson]] = {}  # skin/touch seq -> its body part's figures, in time order
     for r in records:
         if r.key == "world/contacts":
             for p in r.message.people:
-                force, pushed = people.get(p.touch, (0.0, 0.0))
-                people[p.touch] = (max(force, p.peak_force_n), max(pushed, p.peak_pushed_m))
+                people.setdefault(p.touch, []).append(p)
     if not people:
         return
     scripted = [r.message for r in records if r.key == "skin/touch"]
@@ -316,9 +335,22 @@ def _world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None
         match = min((s for s in scripted if s.pad == touch.pad and s.seq in people
                      and abs(s.origin_ns + s.start_s * 1e9 - touch.start_ns) <= 0.5e9 + s.ramp_s * 1e9),
                     key=lambda s: abs(s.origin_ns + s.start_s * 1e9 - touch.start_ns), default=None)
-        if match is not None:
-            force, pushed = people[match.seq]
-            touch.person_force_n, touch.into_finger_mm = force, 1e3 * max(0.0, pushed)
+        if match is None:
+            continue
+        seen = people[match.seq]
+        touch.peak_force_n = max(p.peak_force_n for p in seen)
+        touch.into_finger_mm = 1e3 * max(0.0, *(p.peak_pushed_m for p in seen))
+        touch.peak_pressure_n_cm2 = max(p.peak_pressure_n_cm2 for p in seen)
+        touch.energy_j = max(p.energy_j for p in seen)
+        kind = seen[-1].kind
+        if kind in KINDS:
+            region = region_of(kind)
+            touch.body_area = region.area
+            touch.force_limit_n, touch.pressure_limit_n_cm2 = region.force_n, region.pressure_n_cm2
+            touch.transient_force_limit_n = region.transient_force_n
+            touch.transient_pressure_limit_n_cm2 = region.transient_pressure_n_cm2
+            touch.of_limit = max(touch.peak_force_n / region.force_n,
+                                 touch.peak_pressure_n_cm2 / region.pressure_n_cm2)
 
 
 def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray) -> None:
@@ -403,6 +435,13 @@ class Quality:
     # touch met it while it lasted, and those the arm took back more than PAST_MM past that place while recent.
     any_toward: int = 0
     back_past: int = 0
+    # A physics world's (None without one), over every touch it measured: the largest peak force on the person,
+    # N, and pressure, N/cm^2, the largest fraction of its body area's quasi-static ISO/TS 15066 limits, and the
+    # touches beyond them.
+    worst_force_n: float | None = None
+    worst_pressure_n_cm2: float | None = None
+    worst_of_limit: float | None = None
+    over_limit: int | None = None
 
 
 APPROACH_MM = 5.0  # a touched pad moving more than this toward the contact approached it
@@ -419,6 +458,13 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
     felt = [t for t in touches if t.gain > 0.0]
     q.any_toward = sum((t.pressed_toward_mm or 0.0) > APPROACH_MM for t in felt)
     q.back_past = sum((t.past_after_mm or 0.0) > PAST_MM for t in felt)
+    measured = [t for t in touches if t.peak_force_n is not None]
+    if measured:
+        q.worst_force_n = max(t.peak_force_n or 0.0 for t in measured)
+        q.worst_pressure_n_cm2 = max(t.peak_pressure_n_cm2 or 0.0 for t in measured)
+        judged = [t.of_limit for t in measured if t.of_limit is not None]
+        q.worst_of_limit = max(judged) if judged else None
+        q.over_limit = sum(x > 1.0 for x in judged)
     if not done:
         return q
     toward = [t.toward_mm or 0.0 for t in done]
@@ -467,6 +513,20 @@ def quality_rows(rows: list[Quality]) -> list[list[str]]:
              f(q.withdrawal_median_mm, ".1f"), f(q.withdrawal_min_mm, ".1f"), str(q.repeat_pairs),
              f(q.repeat_diff_mm, ".1f"), f(q.gain_rank_corr, ".2f"), f(q.peak_jerk_m_s3, ".1f"), str(q.any_toward),
              str(q.back_past)] for q in rows]
+
+
+WORLD_QUALITY_HEADER = ["strategy", "worst force on the person (N)", "worst pressure (N/cm^2)",
+                        "worst of ISO limit (%)", "over ISO limit"]
+# A physics world's measured peaks on the person over every touch, their largest share of the body area's
+# quasi-static ISO/TS 15066 limits (force or pressure, whichever is nearer) and the touches beyond them ("-"
+# without a physics world).
+
+
+def world_quality_rows(rows: list[Quality]) -> list[list[str]]:
+    f = cell
+    return [[q.strategy, f(q.worst_force_n, ".1f"), f(q.worst_pressure_n_cm2, ".1f"),
+             f(None if q.worst_of_limit is None else 100 * q.worst_of_limit, ".0f"),
+             "-" if q.over_limit is None else str(q.over_limit)] for q in rows]
 
 
 def cell(x: float | None, fmt: str) -> str:

@@ -10,7 +10,11 @@ other pad to the contact point, the peak joint speed during the reflex and
 its return, the time until the task resumed, and how far the reflex motion
 strayed from the first file's (the largest difference of the joints'
 displacements from their onset poses, from the reflex onset until the earlier
-of the two resumptions, the two aligned at their onsets). Below the table, each file's command stream against the
+of the two resumptions, the two aligned at their onsets). Files with a
+physics world add a table of their fingers' measured figures (how far the
+pad moved toward and into the finger, the peak force and pressure on the
+person, the energy put into them, the share of ISO/TS 15066's quasi-static
+limits); the quality table their worst. Below, each file's command stream against the
 first's: identical decoded messages (a deterministic replay of the first
 file), or where they part. A PNG (``--figure``) draws, per touch that
 caused a reflex, one colour per file and time from the touch's first skin
@@ -171,6 +175,28 @@ def table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]
                 f(touch.peak_speed_m_s, ".3f"), f(touch.peak_toward_m_s, ".3f"), f(touch.resumed_after_s, ".2f"),
                 f(None if error is None else 1e3 * error, ".3f"),
             ])
+    return analysis.format_table(header, out)
+
+
+def world_table(sessions: list[Session], rows: list[list[analysis.TouchSummary | None]]) -> str | None:
+    """The touches' measured figures in the files that have a physics world (None if none has): per touch and
+    file, how far the pad moved toward the finger and into it, the peak force and pressure on the person, the
+    energy put into them, and the share of their body area's quasi-static ISO/TS 15066 limits."""
+    if not any(t is not None and t.peak_force_n is not None for row in rows for t in row):
+        return None
+    header = ["touch", "pad", "file", "pad toward finger (mm)", "into finger (mm)", "peak force (N)",
+              "peak pressure (N/cm^2)", "energy (mJ)", "of ISO limit (%)"]
+    f = analysis.cell
+    out = []
+    for i, row in enumerate(rows, start=1):
+        for session, touch in zip(sessions, row):
+            if touch is None:
+                continue
+            out.append([str(i), touch.name, session.label, f(touch.pressed_toward_mm, ".1f"),
+                        f(touch.into_finger_mm, ".1f"), f(touch.peak_force_n, ".1f"),
+                        f(touch.peak_pressure_n_cm2, ".1f"), f(None if touch.energy_j is None else 1e3 * touch.energy_j,
+                                                               ".1f"),
+                        f(None if touch.of_limit is None else 100 * touch.of_limit, ".0f")])
     return analysis.format_table(header, out)
 
 
@@ -359,9 +385,16 @@ def _run(args: argparse.Namespace) -> int:
         for note in session.notes:
             print(f"{session.label}: {note}")
     print(table(sessions, rows))
+    world = world_table(sessions, rows)
+    if world is not None:
+        print("\nthe physics world's fingers (measured; \"-\" in a file without one):\n" + world)
+        for note in summary.iso_notes([t for row in rows for t in row if t is not None]):
+            print(note)
     print("\nreflex quality per file (every touch of the file that started a reflex):")
     quality = [analysis.quality(session.touches, session.label) for session in sessions]
     print(analysis.format_table(analysis.QUALITY_HEADER, analysis.quality_rows(quality)))
+    if world is not None:
+        print(analysis.format_table(analysis.WORLD_QUALITY_HEADER, analysis.world_quality_rows(quality)))
     if len(sessions) > 1:
         print("\ncommand streams (robot/command/<name>, decoded) against the first file's:")
         for session in sessions[1:]:

@@ -30,7 +30,7 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     latencies = [t.onset_latency_ms for t in touches if t.onset_latency_ms is not None]
     lockstep = is_lockstep(metadata)
-    physics = any(t.person_force_n is not None for t in touches)
+    physics = any(t.peak_force_n is not None for t in touches)
     notes = complete(touches, records, metadata, profile, desc)
     print(f"\nRecording {path}: {len(records)} messages")
     for note in notes:
@@ -40,8 +40,13 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
         fingers = [c for c in table.COLUMNS if c.name in ("t", "pad", *table.WORLD_COLUMNS)]
         print("\nthe physics world's fingers:\n" + table.render([c.header for c in fingers],
                                                                 table.touch_rows(touches, first, fingers), width))
+        for note in iso_notes(touches):
+            print(textwrap.fill(note, table.DEFAULT_WIDTH, subsequent_indent="  "))
     if any(t.reflex_seq for t in touches):
         print("\n" + table.render(analysis.QUALITY_HEADER, analysis.quality_rows([analysis.quality(touches)]), width))
+    if physics:
+        print("\n" + table.render(analysis.WORLD_QUALITY_HEADER,
+                                   analysis.world_quality_rows([analysis.quality(touches)]), width))
     predicted = [t for t in touches if t.impact_n is not None]
     if predicted:
         top = max(predicted, key=lambda t: t.impact_n or 0.0)
@@ -64,6 +69,25 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     if script_name:
         return _compare_with_script(touches, script_name, desc, first, profile, physics=physics)
     return 0
+
+
+def iso_notes(touches: list[Any]) -> list[str]:
+    """A line per ISO/TS 15066 body area the physics world's touches were judged by: its limits, and the touches
+    beyond them."""
+    from nwr.services.worlds.people import ISO_TS_15066
+
+    notes = []
+    for area in sorted({t.body_area for t in touches if t.body_area}):
+        r = ISO_TS_15066[area]
+        mine = [t for t in touches if t.body_area == area and t.of_limit is not None]
+        over = [t for t in mine if (t.of_limit or 0.0) > 1.0]
+        notes.append(f"of ISO limit: the larger of peak force and peak pressure as a share of ISO/TS 15066's "
+                     f"quasi-static limits for {r.region}, {area.replace('_', ' ')} ({r.force_n:g} N, "
+                     f"{r.pressure_n_cm2:g} N/cm^2; transient {r.transient_force_n:g} N, "
+                     f"{r.transient_pressure_n_cm2:g} N/cm^2; a touch script's fingers are judged as this area; "
+                     f"values unchecked against the standard's text, docs/worlds.md): "
+                     + (f"{len(over)} of {len(mine)} touches beyond them" if over else f"all {len(mine)} within"))
+    return notes
 
 
 def is_lockstep(metadata: dict[str, dict[str, str]]) -> bool:

@@ -2,8 +2,10 @@
 
 By default ``nwr summary`` and ``nwr demo`` print the essential columns,
 which fit a 120-column terminal (the effective-mass gain model's predicted
-impact force, ``force``, and effective mass, ``mass``, at each onset are not
-among them: a line below the table gives their largest); ``--wide`` prints every column and
+impact force, ``impact``, and effective mass, ``mass``, at each onset are not
+among them: a line below the table gives their largest; nor are a physics
+world's measured figures, :data:`WORLD_COLUMNS`, which ``nwr summary``
+prints in a table of their own); ``--wide`` prints every column and
 ``--columns`` a chosen few (by the names :data:`COLUMNS` gives). The tables
 are rendered with ``rich``: a header's unit goes on a line of its own, and a
 terminal narrower than the table wraps its cells rather than the lines.
@@ -66,10 +68,15 @@ COLUMNS = [
     Column("mass", "mass (kg)", lambda t, _: cell(t.effective_mass_kg, ".1f"), False),
     # A physics world's (nwr summary prints them in a table of their own when the recording has them).
     Column("pressed", "pad toward finger (mm)", lambda t, _: cell(t.pressed_toward_mm, ".1f"), False),
-    Column("force", "finger (N)", lambda t, _: cell(t.person_force_n, ".1f"), False),
+    Column("peak_force", "peak force (N)", lambda t, _: cell(t.peak_force_n, ".1f"), False),
     Column("into", "into finger (mm)", lambda t, _: cell(t.into_finger_mm, ".1f"), False),
+    Column("pressure", "peak pressure (N/cm^2)", lambda t, _: cell(t.peak_pressure_n_cm2, ".1f"), False),
+    Column("energy", "energy (mJ)", lambda t, _: cell(None if t.energy_j is None else 1e3 * t.energy_j, ".1f"),
+           False),
+    Column("of_limit", "of ISO limit (%)", lambda t, _: cell(None if t.of_limit is None else 100 * t.of_limit,
+                                                             ".0f"), False),
 ]
-WORLD_COLUMNS = ("pressed", "force", "into")
+WORLD_COLUMNS = ("pressed", "peak_force", "into", "pressure", "energy", "of_limit")
 NAMES = [c.name for c in COLUMNS]
 
 
