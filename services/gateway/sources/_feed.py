@@ -13,15 +13,24 @@ invalid in that sample; every value out of range is the wrong units or scale
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from nwr.common import keys
+from nwr.common import messages as m
+from nwr.common.door import Door
+from nwr.common.node import Node
 from nwr.common.skinmap import ABSOLUTE_RANGE_HPA, PadMap, map_values
-from nwr.services.gateway.wiring import GatewayWiring
+from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+
+if TYPE_CHECKING:
+    from nwr.common.config import Profile
 
 log = logging.getLogger(__name__)
 
@@ -87,3 +96,25 @@ class SkinFeed:
             self.diag("error", f"{self.source}_no_messages",
                       f"no skin message on {self.cfg.topic} for {quiet:.1f} s: the skin is stale (the bridge stops "
                       f"the arm); {hint}")
+
+
+@contextlib.contextmanager
+def gateway_node(profile: Profile, pmap: PadMap, source: str) -> Iterator[tuple[Node, GatewayWiring, threading.Lock]]:
+    """The gateway's node for a real skin source: its wiring, the robot's state followed, the pad map's problems
+    said (``<source>_mapping``), the origin published; yields the node, the wiring and the wiring's lock."""
+    lock = threading.Lock()
+    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile),
+              exclusive=True) as node:
+        node.install_signal_handlers()
+        wiring = node.wire(GatewayWiring, profile, lock, script=None)
+
+        def on_state(state: m.RobotState) -> None:
+            with lock:
+                wiring.on_state(state)
+
+        node.subscribe(keys.ROBOT_STATE, on_state)
+        for problem in pmap.describe():
+            node.diag("warning", f"{source}_mapping", f"gateway.{source}.pads: {problem}", every_s=0.0)
+        with lock:
+            wiring.origin()
+        yield node, wiring, lock

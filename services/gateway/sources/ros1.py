@@ -37,17 +37,13 @@ from urllib.parse import urlparse
 
 import msgspec
 
-from nwr.common import keys
-from nwr.common import messages as m
 from nwr.common.config import Profile
-from nwr.common.door import Door
 from nwr.common.errors import ConfigError
-from nwr.common.node import Node
 from nwr.common.section import Section
 from nwr.common.skinmap import PadMap, pad_map
 from nwr.services.gateway.sources import KIND
-from nwr.services.gateway.sources._feed import SkinFeed
-from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+from nwr.services.gateway.sources._feed import SkinFeed, gateway_node
+from nwr.services.gateway.wiring import GatewayWiring
 
 if TYPE_CHECKING:
     from nwr.common.robot import RobotDescription
@@ -211,21 +207,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     desc = load_description(profile.robot.description or None)
     pmap = pad_map(cfg.pads, [p.name for p in desc.pads], scale_hpa=cfg.scale_hpa, offset_hpa=cfg.offset_hpa)
     master_uri = rosgraph.get_master_uri()
-    lock = threading.Lock()
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile),
-              exclusive=True) as node:
-        node.install_signal_handlers()
-        wiring = node.wire(GatewayWiring, profile, lock, script=None)
-
-        def on_state(state: m.RobotState) -> None:
-            with lock:
-                wiring.on_state(state)
-
-        node.subscribe(keys.ROBOT_STATE, on_state)
-        for problem in pmap.describe():
-            node.diag("warning", "ros1_mapping", f"gateway.ros1.pads: {problem}", every_s=0.0)
-        with lock:
-            wiring.origin()
+    with gateway_node(profile, pmap, "ros1") as (node, wiring, lock):
         skin = Ros1Skin(cfg, pmap, wiring, lock, node.diag)
 
         def connect() -> None:  # rospy waits for its master to register: not on the main thread

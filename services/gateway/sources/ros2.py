@@ -39,21 +39,17 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import msgspec
 
-from nwr.common import keys
-from nwr.common import messages as m
 from nwr.common import rmw_zenoh as rz
 from nwr.common.config import Profile
-from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.guards import Guard
-from nwr.common.node import Node
 from nwr.common.ros2_msgs import field_names, numbers_field
 from nwr.common.section import Section
 from nwr.common.skinmap import PadMap, pad_map
 from nwr.services.gateway.sources import KIND
-from nwr.services.gateway.sources._feed import SkinFeed
+from nwr.services.gateway.sources._feed import SkinFeed, gateway_node
 from nwr.services.gateway.sources.ros1 import ROS1_DEFAULT_PADS
-from nwr.services.gateway.wiring import SERVICE, GatewayWiring
+from nwr.services.gateway.wiring import GatewayWiring
 
 if TYPE_CHECKING:
     from nwr.common.robot import RobotDescription
@@ -186,21 +182,7 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     desc = load_description(profile.robot.description or None)
     pmap = pad_map(cfg.pads, [p.name for p in desc.pads], scale_hpa=cfg.scale_hpa, offset_hpa=cfg.offset_hpa,
                    where="gateway.ros2.pads")
-    lock = threading.Lock()
-    with Node(SERVICE, profile.robot.name, profile.zenoh, listen_slot="gateway", door=Door.of(profile),
-              exclusive=True) as node:
-        node.install_signal_handlers()
-        wiring = node.wire(GatewayWiring, profile, lock, script=None)
-
-        def on_state(state: m.RobotState) -> None:
-            with lock:
-                wiring.on_state(state)
-
-        node.subscribe(keys.ROBOT_STATE, on_state)
-        for problem in pmap.describe():
-            node.diag("warning", "ros2_mapping", f"gateway.ros2.pads: {problem}", every_s=0.0)
-        with lock:
-            wiring.origin()
+    with gateway_node(profile, pmap, "ros2") as (node, wiring, lock):
         skin = Ros2Skin(cfg, types, pmap, wiring, lock, node.diag)
         link = node.ros2(profile.ros2)
         hash_ = cfg.type_hash or rz.type_hash(types, cfg.message_type, humble=profile.ros2.distro == "humble")
