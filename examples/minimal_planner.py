@@ -3,7 +3,12 @@
 It speaks the pipeline's keys and messages and nothing else, so the bridge
 follows it like any planner once it is the active one:
 
-- announces itself with the liveliness token ``nwr/<robot>/alive/planner-<name>``;
+- announces itself with the liveliness token ``nwr/<robot>/alive/planner-<name>``, and
+  holds the owner token of the pipeline it belongs to,
+  ``nwr/<robot>/owner/planner-<name>/<instance>/<host>/<pid>/<since>``: the bridge follows
+  only a planner of its own pipeline (``<instance>`` is ``NWR_INSTANCE``, which ``nwr up``
+  and ``nwr replay --planner-cmd`` give the processes they start; ``-`` beside services
+  started alone);
 - reads ``skin/pain`` (per-pad gain, strongest contact) and ``robot/state``;
 - writes ``robot/command/<name>`` (joint position targets signed with its name, the
   trace of the skin sample it acted on, a reflex number and the phase) and
@@ -26,7 +31,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import re
 import signal
+import socket
 import threading
 import time
 
@@ -90,6 +98,11 @@ def main() -> int:
 
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(f"{prefix}/alive/planner-{args.name}")
+        # (each part one chunk of a key: letters, digits, '_', '.', '-')
+        instance, host = (re.sub(r"[^A-Za-z0-9_.-]", "_", text) or "-"
+                          for text in (os.environ.get("NWR_INSTANCE", ""), socket.gethostname()))
+        owner = session.liveliness().declare_token(
+            f"{prefix}/owner/planner-{args.name}/{instance}/{host}/{os.getpid()}/{int(time.time())}")
         session.declare_subscriber(f"{prefix}/skin/pain", on_pain)
         session.declare_subscriber(f"{prefix}/robot/state", on_state)
         commands = session.declare_publisher(f"{prefix}/robot/command/{args.name}", priority=zenoh.Priority.REAL_TIME,
@@ -127,6 +140,7 @@ def main() -> int:
                                                   mode=mode, task_time_s=0.0)))
             seq += 1
         token.undeclare()
+        owner.undeclare()
     return 0
 
 

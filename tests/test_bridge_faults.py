@@ -34,6 +34,7 @@ from nwr.common import messages as m
 from nwr.common.config import Profile, ZenohSection
 from nwr.common.node import zenoh_config
 from nwr.common.recordings import read_recording
+from nwr.services.bridge.checks import SEQ_SLACK
 from nwr.services.bridge.wiring import envelope_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -159,16 +160,21 @@ def hostile(session: zenoh.Session, watch: Watch, sent: dict[str, int]) -> None:
         send("wrong_key", INTRUDER_COMMAND, enc(m.VelocityCommand(seq=cmd.seq + 1, stamp_ns=0, owner="cartesian",
                                                                   dq=[3.0] * 6, trace=tr)))
         # Spoofing the active planner, beyond the limits: clipped or rejected. The
-        # seq is far ahead so that the check reaches the values (a nearer seq
-        # may already be taken by the real planner: out of order).
+        # seq is ahead so that the check reaches the values (a nearer seq may
+        # already be taken by the real planner: out of order), by less than
+        # checks.SEQ_SLACK (a seq further ahead than a planner counts is rejected
+        # before its values are looked at: command_seq_jump, below).
         cmd = real()
         q = list(getattr(cmd, "q", None) or watch.state.q)  # type: ignore[union-attr]
-        ahead = cmd.seq + 5000 * (round_ + 1)
+        ahead = cmd.seq + SEQ_SLACK - 4
         send("beyond_limits", COMMAND, enc(m.PositionCommand(
             seq=ahead, stamp_ns=cmd.stamp_ns, owner="cartesian", q=[v + 3.0 for v in q], trace=tr)))
         send("beyond_limits", COMMAND, enc(m.VelocityCommand(
             seq=ahead + 1, stamp_ns=cmd.stamp_ns, owner="cartesian", dq=[50.0] * 6, trace=tr, phase="REFLEX")))
         time.sleep(0.3)
+    # A seq far ahead of the planner's: rejected, and the planner's own commands go on (not out of order).
+    last = real()
+    send("seq_jump", COMMAND, enc(msgspec.structs.replace(last, seq=last.seq + 5000)))
     # A flood at ten times the planner's 500 Hz for one second.
     flood = enc(m.VelocityCommand(seq=0, stamp_ns=0, owner="intruder", dq=[1.0] * 6, trace=tr))
     start = time.monotonic()
@@ -278,7 +284,7 @@ def test_services_survive_hostile_input_and_report_it(session, records, capsys):
     # A command of 100,000 joints and absurd pressures decode, and the door refuses them (common/door.py).
     for expected in [("bridge", "decode_error"), ("bridge", "command_rejected"),
                      ("bridge", "refused_wrong_joint_count"), ("bridge", "command_out_of_order"),
-                     ("bridge", "command_jump"), ("bridge", "command_clipped"),
+                     ("bridge", "command_jump"), ("bridge", "command_clipped"), ("bridge", "command_seq_jump"),
                      ("gain", "decode_error"), ("gain", "refused_pressure_out_of_range")]:
         assert expected in codes, (expected, sorted(codes))
     states = states_between(records, session.hostile_start_ns, session.kill_ns)

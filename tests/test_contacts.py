@@ -24,7 +24,7 @@ from nwr.services.planner import strategies
 from nwr.services.planner.contacts import CONTACT_RADIUS_M, ContactPoint, Contacts, passes_through, past, straight
 from nwr.services.planner.core import Planner
 from nwr.services.planner.strategies.whole_arm import WholeArm
-from nwr.services.tools.recordings import analysis
+from nwr.services.tools.recordings import analysis, summary
 from nwr.services.tools.recordings.replay import simulate
 
 DESC = load_description()
@@ -208,8 +208,13 @@ def test_the_paper_mode_keeps_the_papers_task_through_a_felt_touch() -> None:
 # -- a session of such touches, in lockstep ------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_a_session_of_two_hands_and_touches_on_the_way_back(tmp_path: Path) -> None:
+def test_a_session_of_two_hands_and_touches_on_the_way_back(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = simulate(Profile(), "contacts", "whole-arm", tmp_path / "whole-arm.mcap")[0]
+    # The script's check: the weaker hand of two at once, and a touch felt during another's withdrawal, are
+    # answered by the reflex under way (one reflex for touches felt together), and said so.
+    assert summary.print_summary(path, "contacts", Profile()) == 0
+    out = capsys.readouterr().out
+    assert "a reflex already under way answered these touches" in out and "forearm_top at 3.0 s" in out, out
     records, _ = read_recording(path)
     touches = [t for t in analysis.summarize(records, DESC, MODEL) if t.gain > 0.0]
     assert len(touches) == 10

@@ -43,7 +43,10 @@ def test_a_physics_demo_feels_the_finger_withdraws_from_it_and_verifies(tmp_path
     # whose owner still pushed (the script holds 9 hPa until 2.5 s).
     world = [r.message for r in records if r.key == keys.WORLD_SKIN]
     pressure = [r.message for r in records if r.key == keys.SKIN_PRESSURE]
-    assert len(pressure) >= len(world) - 2 and all(p.source == "physics" for p in pressure)
+    # Every world sample from the gateway's first on became a skin sample (the gateway may subscribe a few samples
+    # after the bridge's world began: 8 samples, 0.32 s, on the loaded CI machine).
+    since = [w for w in world if w.stamp_ns >= pressure[0].stamp_ns - 40_000_000]
+    assert len(pressure) >= len(since) - 2 and all(p.source == "physics" for p in pressure)
     held = [w for w in world if touch.origin_ns + 1.5e9 < w.stamp_ns < touch.origin_ns + 2.5e9]
     peak = max(w.change_hpa[pad] for w in held)
     assert 7.0 < peak < 11.0, [round(w.change_hpa[pad], 2) for w in held]
