@@ -40,19 +40,24 @@ class TaskSection(Section):
     double_frequency: list[Annotated[int, msgspec.Meta(ge=0, le=1)]] = []
     # Time to ease in and out of the task when it resumes or pauses, s.
     ramp_s: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
+    # The pose the figure-eight is drawn around, rad, one per joint; empty = the
+    # robot's home (robot.toml). The arm first returns to it from wherever it
+    # is; a simulated arm starts there with bridge.initial_q set to the same.
+    home_rad: list[Annotated[float, msgspec.Meta(ge=-2 * math.pi, le=2 * math.pi)]] = []
 
 
 class FigureEight:
     def __init__(self, cfg: TaskSection, desc: RobotDescription) -> None:
-        """The figure-eight of ``cfg`` around ``desc``'s home; its amplitudes and frequencies the robot's
-        (robot.toml [task]) where ``cfg`` leaves them empty."""
+        """The figure-eight of ``cfg`` around its home (``desc``'s where ``cfg`` leaves it empty); its amplitudes and
+        frequencies the robot's (robot.toml [task]) where ``cfg`` leaves them empty."""
         amplitude = cfg.amplitude_rad or list(desc.task_amplitude_rad)
         double = cfg.double_frequency or list(desc.task_double_frequency)
+        home = cfg.home_rad or list(desc.home)
         n = len(desc.home)
-        if len(amplitude) != n or len(double) != n:
-            raise ValueError(f"planner.task.amplitude_rad / double_frequency have {len(amplitude)} / {len(double)} "
-                             f"joints, robot {desc.name!r} {n}")
-        self.home = np.asarray(desc.home, dtype=float)
+        if len(amplitude) != n or len(double) != n or len(home) != n:
+            raise ValueError(f"planner.task.amplitude_rad / double_frequency / home_rad have {len(amplitude)} / "
+                             f"{len(double)} / {len(home)} joints, robot {desc.name!r} {n}")
+        self.home = np.asarray(home, dtype=float)
         self.amplitude = np.asarray(amplitude, dtype=float)
         self.multiple = np.where(np.asarray(double) > 0, 2.0, 1.0)
         self.omega = 2.0 * np.pi / cfg.period_s
@@ -83,13 +88,17 @@ def check_task(task: TaskSection, desc: RobotDescription, model: RobotModel, q_l
     """The task on robot ``desc`` stays within the joint ranges ``q_lo``..``q_hi`` the bridge enforces, and its
     fastest point within the robot's max_point_speed and ``speed_limit_m_s`` (bridge.limits.speed_m_s); else a
     ConfigError naming the field (the profile's load checks it)."""
-    figure = FigureEight(task, desc)
+    try:
+        figure = FigureEight(task, desc)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     lo, hi = figure.range()
     for i, joint in enumerate(desc.joints):
         if lo[i] < q_lo[i] or hi[i] > q_hi[i]:
             raise ConfigError(f"planner.task.amplitude_rad[{i}] = {figure.amplitude[i]:g} swings {joint} over "
-                              f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around home, beyond its limits "
-                              f"[{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it")
+                              f"[{lo[i]:.3f}, {hi[i]:.3f}] rad around {figure.home[i]:g} rad (the task's home), "
+                              f"beyond its limits [{q_lo[i]:.3f}, {q_hi[i]:.3f}] rad: shrink it or move "
+                              "planner.task.home_rad")
     peak = peak_point_speed(figure, task.period_s, model)
     for bound, name, why in (
         (desc.max_point_speed, f"robot {desc.name!r}'s max_point_speed", "the arm cannot"),

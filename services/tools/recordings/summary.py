@@ -129,6 +129,16 @@ def complete(touches: list[Any], records: list[Any], metadata: dict[str, dict[st
     return notes
 
 
+def _within_a_reflex(touch: Any, touches: list[Any]) -> Any:
+    """The touch on another pad whose reflex was under way while ``touch`` was felt (touches felt together, or
+    one during another's withdrawal, get one reflex: the strongest contact's), or None."""
+    def until(o: Any) -> float:  # the press, or the reflex until the task resumed if that was later
+        return max(o.end_ns, o.start_ns + (o.resumed_after_s or 0.0) * 1e9)
+
+    return next((o for o in touches if o.reflex_seq > 0 and o.pad != touch.pad and o.reflex_known
+                 and o.start_ns <= touch.start_ns <= until(o)), None)
+
+
 def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns: int, profile: Profile, *,
                          physics: bool = False) -> int:
     """Every scripted touch seen on its pad at its time, with a reflex exactly when G(peak) > 0 (the effective-mass
@@ -144,6 +154,7 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
     script = load_script(script_name, profile.robot.description)
     mismatches: list[str] = []
     differences: list[str] = []
+    covered: list[str] = []
     for touch in script.touch:
         pad = desc.pad(touch.pad)
         least, most = estimator.gain_range(pad.id, touch.peak_hpa)
@@ -152,10 +163,16 @@ def _compare_with_script(touches: list[Any], script_name: str, desc: Any, t0_ns:
                      None)
         if match is None:
             mismatches.append(f"touch on {pad.name} at {touch.start_s} s was not seen")
+        elif match.reflex_seq == 0 and least > 0 and (other := _within_a_reflex(match, touches)) is not None:
+            covered.append(f"touch on {pad.name} at {touch.start_s} s: felt during the reflex of the touch on "
+                           f"{desc.pads[other.pad].name} at {(other.start_ns - t0_ns) / 1e9:.2f} s, which went on")
         elif match.reflex_known and ((match.reflex_seq > 0 and most == 0) or (match.reflex_seq == 0 and least > 0)):
             (differences if physics else mismatches).append(
                 f"touch on {pad.name} at {touch.start_s} s ({touch.peak_hpa} hPa, felt {match.peak_hpa:.1f}): "
                 f"expected {'a' if least > 0 else 'no'} reflex")
+    if covered:
+        print("\na reflex already under way answered these touches (one reflex for touches felt together; "
+              "docs/reflexes.md):\n  " + "\n  ".join(covered))
     if differences:
         print("\nthe physics world's pressures differ from the script's here (the arm moved into or away from "
               "the finger):\n  " + "\n  ".join(differences))
