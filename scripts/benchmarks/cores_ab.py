@@ -32,6 +32,7 @@ from typing import Any
 from nwr.services.planner import core as planner_core
 from nwr.services.tools.recordings import verify
 
+
 def _load(tree: Path, file: str) -> ModuleType:
     """The module at ``tree``/nwr/``file`` under a name of its own (its imports are this tree's)."""
     name = "before_" + file.removesuffix(".py").replace("/", "_")
