@@ -201,6 +201,8 @@ def test_several_recordings_replay_in_lockstep_only_each_to_its_own_file(tmp_pat
     assert "-o names one replay's recording" in caplog.text
     assert cli.main(["replay", str(a), str(same), "--fast"]) == 2
     assert "named alike" in caplog.text
+    assert cli.main(["replay", str(a), str(b), "--fast", "--cluster", "tcp://127.0.0.1:9", "--jobs", "2"]) == 2
+    assert "a --cluster's scheduler decides" in caplog.text
 
 
 @pytest.mark.e2e
@@ -227,3 +229,24 @@ def test_several_recordings_replayed_at_once_equal_their_replays_one_by_one(tmp_
     assert any(keys.is_command(k) for k, _, _ in alone)
     for i in range(3):  # each replay the same as the one run alone (the same skin, the same strategy)
         assert messages(tmp_path / "out" / f"s{i}-replay-location.mcap") == alone
+
+    # The same replays on a Dask cluster (a local one, on loopback) whose workers run in another working directory:
+    # the files and the profile given relative to this command's, each replay the same again.
+    distributed = pytest.importorskip("distributed")
+    for i in range(3):
+        (tmp_path / "out" / f"s{i}-replay-location.mcap").unlink()
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None,
+                                  processes=True) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        on = subprocess.run([sys.executable, "-m", "nwr.services.cli", "--profile", "profile.toml", "--log-level",
+                             "WARNING", "replay", *(s.name for s in sources), "--fast", "--reflex", "location",
+                             "--cluster", cluster.scheduler_address],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert on.returncode == 0, on.stdout + on.stderr
+    assert "3 of 3 recordings" in on.stdout and "on the Dask cluster at tcp://127.0.0.1:" in on.stdout
+    for i in range(3):
+        assert messages(tmp_path / "out" / f"s{i}-replay-location.mcap") == alone
+    # No scheduler there: one clear line, nothing replayed.
+    none = subprocess.run([*cli, "replay", str(sources[0]), "--fast", "--cluster", "tcp://127.0.0.1:9",
+                           "--cluster-timeout", "1"], capture_output=True, text=True, timeout=120)
+    assert none.returncode == 2 and "no Dask scheduler answered" in none.stderr, none.stdout + none.stderr

@@ -343,8 +343,10 @@ class StateCheck:
             return f"joint {joints[i]} reported a non-finite position or speed (q {q[i]}, dq {dq[i]})"
         self._advance(now_ns)
         why = None
-        unchanged = (self.last_q is not None and self.last_dq is not None and np.array_equal(q, self.last_q)
-                     and np.array_equal(dq, self.last_dq))
+        # As floats: np.array_equal's dispatch costs more than six comparisons (the shapes are the same, the
+        # values finite).
+        unchanged = (self.last_q is not None and self.last_dq is not None and q.tolist() == self.last_q.tolist()
+                     and dq.tolist() == self.last_dq.tolist())
         if self.last_q is not None and self.last_dq is not None and not unchanged:
             if stamp_s is not None and self.last_stamp is not None:
                 dt = max(stamp_s - self.last_stamp, self.period_s)

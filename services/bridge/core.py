@@ -140,7 +140,8 @@ class BridgeCore(Commands):
 
     def _setpoint(self, h: float) -> Setpoint:
         tracker = self.tracker
-        at_rest = not (np.abs(tracker.dq) > REST_SPEED).any()
+        joints = tracker.joints  # (read once: the tracker's attributes are its parts')
+        at_rest = not (np.abs(joints.dq) > REST_SPEED).any()
         stopped = tracker.stop is None or tracker.stop.done
         if self.fault is not None or self.implausible or (self.status != "ok" and stopped and at_rest):
             mode: SetpointMode = "hold"
@@ -148,7 +149,7 @@ class BridgeCore(Commands):
             mode = "velocity"
         else:
             mode = "position"
-        return Setpoint(mode, tracker.q.copy(), tracker.dq.copy(), tracker.ddq.copy(), h)
+        return Setpoint(mode, joints.q.copy(), joints.dq.copy(), joints.ddq.copy(), h)
 
     # -- output -----------------------------------------------------------------------
     def state(self, seq: int, now_ns: int, q: np.ndarray, dq: np.ndarray, backend: str,

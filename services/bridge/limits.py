@@ -74,11 +74,9 @@ class JointLimits:
         """
         q1, v1, a1 = state
         bounded = -1
-        joints = self.joints
-        q0, dq0, ddq0 = joints.q, joints.dq, joints.ddq
-        for i, (q_min, q_max, _v_max, a_max, _k) in enumerate(self.env.per_joint):
-            q, v, a = float(q1[i]), float(v1[i]), float(a1[i])
-            j = self.j[i]
+        # The joints' values as floats, read once (an array's items one by one cost more than the checks).
+        for i, (q_min, q_max, _v_max, a_max, _k), q, v, a, j in zip(range(len(self.j)), self.env.per_joint,
+                                                                    q1.tolist(), v1.tolist(), a1.tolist(), self.j):
             # Far from both limits no stop reaches them: it lasts at most (|v| + a^2/2j) / a_max + 2 a_max / j
             # + |a| / j at speeds of at most |v| + a^2 / 2j.
             fastest = abs(v) + a * a / (2.0 * j)
@@ -88,8 +86,9 @@ class JointLimits:
             lo, hi = stop_extent(v, a, a_max, j)
             if q + hi <= q_max + LIMIT_SLACK_RAD and q + lo >= q_min - LIMIT_SLACK_RAD:
                 continue
-            dx, v, a = brake(float(dq0[i]), float(ddq0[i]), h, a_max, j)
-            q1[i], v1[i], a1[i] = float(q0[i]) + dx, v, a
+            joints = self.joints
+            dx, v, a = brake(float(joints.dq[i]), float(joints.ddq[i]), h, a_max, j)
+            q1[i], v1[i], a1[i] = float(joints.q[i]) + dx, v, a
             if bounded < 0:
                 bounded = i
         return bounded

@@ -27,6 +27,7 @@ to count and report, once per command.
 
 from __future__ import annotations
 
+import operator
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -54,12 +55,14 @@ class _Part(Generic[T]):
     def __init__(self, part: str) -> None:
         self.part = part
         self.name = ""
+        self.get = operator.attrgetter(part)
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
+        self.get = operator.attrgetter(f"{self.part}.{name}")  # both lookups in one call (read every cycle)
 
     def __get__(self, obj: object, owner: type | None = None) -> T:
-        value: T = getattr(getattr(obj, self.part), self.name)
+        value: T = self.get(obj)
         return value
 
     def __set__(self, obj: object, value: T) -> None:

@@ -14,8 +14,10 @@ Three ways, all from the recorded skin stream (``skin/pressure``):
   (:mod:`nwr.services.pipeline.lockstep`), as fast as they go, deterministic: the same
   file and strategy give the same messages every run. Several files replay
   at once, each in a process of its own (``--jobs``, default: the CPUs this
-  process may use), each into ``recordings/<FILE>-replay-<reflex>.mcap``,
-  with a progress bar.
+  process may use), or on a Dask cluster (``--cluster ADDRESS``: the
+  ``cluster`` extra; its workers have nwr installed and share this machine's
+  filesystem), each into ``recordings/<FILE>-replay-<reflex>.mcap``, with a
+  progress bar.
 
 Replay is open loop by default: a recorded press is replayed as recorded,
 even if the new reflex moves the pad away sooner. ``--fast --resimulate``
@@ -33,6 +35,7 @@ open-loop replay applies to them. A live replay never re-simulates (use
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import logging
 import multiprocessing
@@ -41,7 +44,8 @@ import shlex
 import subprocess
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Iterator
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -288,8 +292,49 @@ def replay_fast(args: argparse.Namespace, source: Path) -> FastReplay:
     return FastReplay(source, path, strategy, len(chosen), simulated, wall)
 
 
+def _cluster_jobs(args: argparse.Namespace, sources: list[Path]) -> list[tuple[argparse.Namespace, Path]]:
+    """Each replay's arguments and source with every path absolute: a cluster's workers have working directories
+    of their own, and read and write through the filesystem they share with this machine."""
+    directory = Path(profile_for(args).recorder.directory).resolve()
+    jobs = []
+    for source in sources:
+        one = argparse.Namespace(**vars(args))
+        one.output = str(directory / f"{source.stem}-replay-{args.reflex or 'external'}.mcap")
+        if args.profile and Path(args.profile).is_file():
+            one.profile = str(Path(args.profile).resolve())
+        jobs.append((one, source.resolve()))
+    return jobs
+
+
+@contextlib.contextmanager
+def _executor(args: argparse.Namespace, count: int) -> Iterator[tuple[Executor, str]]:
+    """Where the replays run, and how to say so: the Dask cluster at ``--cluster``, or ``--jobs`` processes here."""
+    if not args.cluster:
+        jobs = min(args.jobs or len(os.sched_getaffinity(0)), count)
+        # spawn: each replay in a fresh interpreter (nothing of this process's state, threads or loaded libraries)
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            yield pool, f"{jobs} at once"
+        return
+    if args.jobs:
+        raise ConfigError("--jobs counts this machine's processes: a --cluster's scheduler decides how many run "
+                          "at once")
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("--cluster needs Dask's scheduler client: pip install 'nwr[cluster]'") from None
+    try:
+        client = Client(args.cluster, timeout=args.cluster_timeout)
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(f"--cluster {args.cluster}: no Dask scheduler answered ({exc})") from exc
+    with client:
+        workers = len(client.scheduler_info(n_workers=-1).get("workers", {}))
+        # pure=False: a file replayed twice (two runs of this command) is two tasks, never a cached result
+        yield client.get_executor(pure=False), f"on the Dask cluster at {args.cluster} ({workers} workers)"
+
+
 def _replay_many(args: argparse.Namespace, sources: list[Path]) -> int:
-    """Several recordings in lockstep, each in a process of its own, ``--jobs`` at once, with a progress bar."""
+    """Several recordings in lockstep, each in a process of its own (``--jobs`` at once, or on a Dask
+    ``--cluster``), with a progress bar."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     if not args.fast:
@@ -301,17 +346,15 @@ def _replay_many(args: argparse.Namespace, sources: list[Path]) -> int:
     twice = sorted({stem for stem in stems if stems.count(stem) > 1})
     if twice:
         raise ConfigError(f"recordings {twice} are named alike: their replays would write the same file")
-    jobs = args.jobs or len(os.sched_getaffinity(0))
+    work = _cluster_jobs(args, sources) if args.cluster else [(args, source) for source in sources]
     done: list[FastReplay] = []
     failed_files: list[str] = []
     t0 = time.perf_counter()
-    # spawn: each replay in a fresh interpreter (nothing of this process's state, threads or loaded libraries)
-    with ProcessPoolExecutor(max_workers=min(jobs, len(sources)),
-                             mp_context=multiprocessing.get_context("spawn")) as pool, \
+    with _executor(args, len(sources)) as (pool, where), \
             Progress(TextColumn("replaying"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                      transient=True) as progress:
         task = progress.add_task("replay", total=len(sources))
-        futures = {pool.submit(replay_fast, args, source): source for source in sources}
+        futures = {pool.submit(replay_fast, one, source): source for one, source in work}
         for future in as_completed(futures):
             source = futures[future]
             try:
@@ -326,14 +369,14 @@ def _replay_many(args: argparse.Namespace, sources: list[Path]) -> int:
     wall = time.perf_counter() - t0
     simulated = sum(r.simulated_s for r in done)
     print(f"{len(done)} of {len(sources)} recordings ({simulated:.1f} s) replayed in lockstep in {wall:.2f} s, "
-          f"{min(jobs, len(sources))} at once ({simulated / wall:.0f}x real time in all)"
+          f"{where} ({simulated / wall:.0f}x real time in all)"
           + (f"; not replayed: {', '.join(failed_files)}" if failed_files else ""))
     return 1 if failed_files else 0
 
 
 def _run(args: argparse.Namespace) -> int:
     sources = [Path(f) for f in args.file]
-    if len(sources) > 1:
+    if len(sources) > 1 or args.cluster:
         return _replay_many(args, sources)
     source = sources[0]
     if args.fast:
@@ -411,4 +454,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", "-j", type=int, default=0,
                    help="with --fast and several files: how many replay at once, each in a process of its own "
                         "(default: the CPUs this process may use)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="with --fast: replay on the Dask cluster whose scheduler is at ADDRESS (tcp://HOST:PORT; "
+                        "the cluster extra: pip install 'nwr[cluster]'), one task per file; its workers need nwr "
+                        "installed and this machine's filesystem (the files are read and the replays written by "
+                        "absolute path)")
+    p.add_argument("--cluster-timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long to wait for the --cluster scheduler to answer (default 10)")
     p.set_defaults(handler=_run)
