@@ -72,6 +72,8 @@ def main() -> int:
     parser.add_argument("--touches", type=int, default=12, help="touches, on pads and peaks drawn at random")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--quiet-s", type=float, default=6.0, help="untouched figure-eight before the first touch")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="the thresholds (on and off, per joint) times this")
     parser.add_argument("--gap-s", type=float, default=2.5, help="untouched figure-eight between touches")
     args = parser.parse_args()
     import franky
@@ -87,7 +89,8 @@ def main() -> int:
     touches = [(float(args.quiet_s + k * (args.gap_s + RAMP_S + HOLD_S + RELEASE_S)), int(rng.choice(pads)),
                 float(rng.uniform(8.0, 25.0)), float(rng.uniform(0, 1 / SKIN_HZ))) for k in range(args.touches)]
     end_s = touches[-1][0] + RAMP_S + HOLD_S + RELEASE_S + args.gap_s
-    detector = TorqueDetector(model, np.array(ON_NM), np.array(OFF_NM), baseline="gravity")
+    detector = TorqueDetector(model, args.scale * np.array(ON_NM), args.scale * np.array(OFF_NM),
+                              baseline="gravity")
     rows: list[dict] = []
     flags: list[tuple[float, int, float]] = []  # (t, pad, force) of every detected state
     states = 0
@@ -165,7 +168,17 @@ def main() -> int:
           f"{sum(r['located'] == r['pad'] for r in rows)}; false positives on the untouched figure-eight: "
           f"{episodes} episodes, {len(false)} of {states - sum(1 for f in flags if f not in false)} states "
           f"({end_s - len(touches) * (RAMP_S + HOLD_S + RELEASE_S + 0.3):.0f} s untouched); "
-          f"{states} states in {end_s:.0f} s; load average {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores")
+          f"{states} states in {end_s:.0f} s")
+    on = args.scale * np.array(ON_NM)
+    off = args.scale * np.array(OFF_NM)
+    print(f"thresholds x {args.scale:g}: on {on.round(2).tolist()} N m, off {off.round(2).tolist()} N m; "
+          f"load average {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores")
+    # What the thresholds can feel at all: the least push along minus each pad's normal that reaches one, at home.
+    home_q = np.asarray(desc.home, dtype=float)
+    per_newton = -np.einsum("pk,pkj->pj", model.pad_normals(home_q), model.pad_jacobians(home_q))
+    least = [float(np.min(on / np.maximum(np.abs(a), 1e-9))) for a in per_newton]
+    print("least force felt at home, N: " + ", ".join(f"{p.name} {f:.0f}" for p, f in zip(desc.pads, least,
+                                                                                        strict=True)))
     return 0
 
 

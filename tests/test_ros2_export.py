@@ -19,8 +19,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from nwr.common import keys
 from nwr.common import messages as m
-from nwr.common.recordings import SESSION_METADATA, McapRecorder
-from nwr.common.recordings import read_recording
+from nwr.common.recordings import SESSION_METADATA, McapRecorder, read_recording
 from nwr.common.robot import load_description
 from nwr.services import cli
 from nwr.services.tools.recordings.rosbag_export import export_ros2
@@ -135,8 +134,8 @@ def test_a_frankas_external_torques_are_the_joint_states_efforts(tmp_path: Path)
     states = []
     for i in range(40):
         tau = [0.0] * n if i < 20 else [0.25 * (j + 1) * (-1) ** i for j in range(n)]  # before and after a push
-        states.append(m.RobotState(seq=i + 1, stamp_ns=10**9 + i * 2_000_000, q=[float(v) for v in fr3.home], dq=[0.0] * n,
-                                   status="ok", owner="cartesian", backend="franky", tau_ext=tau))
+        states.append(m.RobotState(seq=i + 1, stamp_ns=10**9 + i * 2_000_000, q=[float(v) for v in fr3.home],
+                                   dq=[0.0] * n, status="ok", owner="cartesian", backend="franky", tau_ext=tau))
     with src.open("wb") as f:
         rec = McapRecorder(f, "fr3")
         rec.metadata(SESSION_METADATA, {"robot": "fr3"})

@@ -3,11 +3,17 @@ offset, per-joint thresholds with hysteresis, and the pad whose push explains th
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
+from nwr.common import messages as m
+from nwr.common.clock import ManualClock
+from nwr.common.config import Profile
+from nwr.common.journal import Recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.gain.torque import TorqueDetector
+from nwr.services.gain.wiring import GainWiring
 
 DESC = load_description("fr3")
 MODEL = RobotModel(DESC)
@@ -133,3 +139,61 @@ def test_bad_input_and_settings_are_clear_errors() -> None:
         TorqueDetector(MODEL, OFF, ON)
     with pytest.raises(ValueError, match="baseline"):
         TorqueDetector(MODEL, ON, OFF, baseline="rnea")
+
+
+def wiring_with(enabled: bool, clock: ManualClock, pains: list[m.SkinPain], said: list[str]) -> GainWiring:
+    profile = msgspec.convert({"robot": {"name": "fr3", "description": "fr3"},
+                               "gain": {"torque": {"enabled": enabled, "baseline": "gravity"}}}, Profile)
+    return GainWiring(profile, journal=Recording(clock), out=lambda key, msg: pains.append(msg),
+                      diag=lambda level, code, *a, **k: said.append(code))
+
+
+def robot_state(clock: ManualClock, seq: int, external: np.ndarray, *, stale: bool = False) -> m.RobotState:
+    return m.RobotState(seq=seq, stamp_ns=clock.now_ns(), q=HOME.tolist(), dq=[0.0] * 7, status="ok",
+                        owner="cartesian", backend="franky", pose_stale=stale,
+                        tau_ext=applied(HOME, external).tolist())
+
+
+def skin(clock: ManualClock, seq: int, blind: int = -1) -> m.SkinPressure:
+    n = len(DESC.pads)
+    return m.SkinPressure(seq=seq, stamp_ns=clock.now_ns(), absolute_hpa=[1000.0] * n, baseline_hpa=[1000.0] * n,
+                          change_hpa=[0.0] * n, contact=[False] * n, valid=[i != blind for i in range(n)])
+
+
+def test_the_fallback_gives_a_blind_pad_the_gain_of_the_push_the_torques_locate_on_it() -> None:
+    clock = ManualClock(10**9)
+    pains: list[m.SkinPain] = []
+    said: list[str] = []
+    wiring = wiring_with(True, clock, pains, said)
+    assert sorted(i.name for i in wiring.subscriptions()) == ["pressure", "state"]
+    top = [p.name for p in DESC.pads].index("wrist_top")  # 24 N there: 10 N m on joint 4 at home
+    for seq in range(30):  # at rest: the offset learnt
+        clock.advance(0.02)
+        wiring.on_state(robot_state(clock, seq, np.zeros(7)))
+    wiring.on_pressure(skin(clock, 1, blind=top))
+    assert pains[-1].gain[top] == 0.0 and pains[-1].strongest is None and not pains[-1].torque_pads
+    clock.advance(0.02)
+    wiring.on_state(robot_state(clock, 30, push(HOME, top, 24.0)))  # 24 N of 30 N for gain 1
+    wiring.on_pressure(skin(clock, 2))  # the skin sees the pad (and no press there): the skin decides
+    assert pains[-1].gain[top] == 0.0 and not pains[-1].torque_pads
+    wiring.on_pressure(skin(clock, 3, blind=top))
+    pain = pains[-1]
+    assert pain.torque_pads == [top] and pain.gain[top] == pytest.approx(0.8) and pain.level[top] == 4
+    assert pain.strongest is not None and pain.strongest.pad == top and pain.strongest.gain == pytest.approx(0.8)
+    assert said == ["torque_contact"]
+    clock.advance(0.5)  # the state went quiet: too old to use
+    wiring.on_pressure(skin(clock, 4, blind=top))
+    assert not pains[-1].torque_pads and pains[-1].gain[top] == 0.0
+    wiring.on_state(robot_state(clock, 31, push(HOME, top, 24.0), stale=True))  # not measured: taring again
+    clock.advance(0.01)
+    wiring.on_state(robot_state(clock, 32, push(HOME, top, 24.0)))
+    wiring.on_pressure(skin(clock, 5, blind=top))
+    assert not pains[-1].torque_pads
+
+
+def test_off_by_default_the_gain_estimator_takes_no_robot_state() -> None:
+    clock = ManualClock(10**9)
+    pains: list[m.SkinPain] = []
+    wiring = wiring_with(False, clock, pains, [])
+    assert [i.name for i in wiring.subscriptions()] == ["pressure"] and wiring.torque is None
+    assert Profile().gain.torque.enabled is False

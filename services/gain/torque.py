@@ -42,9 +42,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 
-from nwr.common.robot import RobotModel
+from nwr.common import messages as m
+from nwr.common.robot import Pad, RobotModel
 
 BASELINES = ("none", "gravity")
 
@@ -157,3 +159,30 @@ class TorqueDetector:
             if left < best_left:
                 best, best_force, best_left = pad, force, left
         return best, best_force, best_left if math.isfinite(best_left) else 1.0
+
+
+def blind_fallback(pain: m.SkinPain, valid: list[bool], contact: TorqueContact, pads: tuple[Pad, ...],
+                   full_force_n: float, pl3_gain: float) -> m.SkinPain:
+    """``pain`` with the pad ``contact`` locates given the torque's gain where the skin is blind there.
+
+    Only a detected contact located on a pad that is invalid in the skin sample (``valid[pad]`` False) counts:
+    where the skin sees, the skin decides. Its gain is ``min(1, force / full_force_n)`` (PL 4 from
+    ``pl3_gain`` up, PL 3 below), never lower than what the skin gave the pad; it becomes the strongest
+    contact when its gain is the highest, and ``torque_pads`` names it. Otherwise ``pain`` unchanged.
+    """
+    pad = contact.pad
+    if not contact.detected or pad < 0 or pad >= len(valid) or valid[pad]:
+        return pain
+    gain = min(1.0, contact.force_n / full_force_n)
+    if not gain > pain.gain[pad]:
+        return pain
+    level = 4 if gain >= pl3_gain else 3
+    gains = list(pain.gain)
+    levels = list(pain.level)
+    gains[pad], levels[pad] = gain, level
+    strongest = pain.strongest
+    if strongest is None or gain > strongest.gain:
+        p = pads[pad]
+        strongest = m.Contact(pad=pad, name=p.name, region=p.region, change_hpa=0.0, level=level, gain=gain)
+    return msgspec.structs.replace(pain, gain=gains, level=levels, strongest=strongest,
+                                   torque_pads=sorted({*pain.torque_pads, pad}))
