@@ -181,8 +181,9 @@ class TorqueContactSection(_Section):
     enabled: bool = False
     # "none": tau_ext is already external (a real Franka); "gravity": the
     # controller reports the torque it applies (franky-sim), the URDF's gravity
-    # torques are removed first.
-    baseline: Literal["none", "gravity"] = "none"
+    # torques are removed first; "dynamics": the same, and the torques of the
+    # arm's own motion (inverse dynamics, the acceleration from the states).
+    baseline: Literal["none", "gravity", "dynamics"] = "none"
     # A contact starts when the residual reaches this on any joint, N m, and
     # ends once it is below on_nm x off_ratio on every joint.
     on_nm: Annotated[float, msgspec.Meta(gt=0, le=100)] = 6.0

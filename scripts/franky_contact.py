@@ -27,7 +27,12 @@ default period, streamed at 500 Hz), and scripted touches that press a pad
   (``--quiet-s``) and between touches: every detection there is a false
   positive.
 
-Prints one table row per touch and the false positives, with the load.
+Prints one table row per touch, the false positives, the untouched
+residual's p99 and maximum per joint, the least push each pad must get to be
+felt at home, and the load. franky-sim falls behind real time on a loaded
+machine, its arm lags, and its applied torque (what it reports) grows with
+the lag: run it where it may take SCHED_FIFO (``--priority``), as the e2e
+test does.
 """
 
 from __future__ import annotations
@@ -38,12 +43,14 @@ import time
 
 import numpy as np
 
+from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight, TaskSection
 from nwr.services.gain.torque import TorqueDetector
 from nwr.services.tools.hardware.franky_sim import HOST, home
 
 PUSH_N_PER_HPA = 1.25
+SIM_PRIORITY = 10
 SKIN_HZ = 25.0
 REFLEX_HPA = 6.0  # the continuous model's first gain above 0 (t2)
 RAMP_S, HOLD_S, RELEASE_S = 0.3, 0.6, 0.2
@@ -72,6 +79,9 @@ def main() -> int:
     parser.add_argument("--touches", type=int, default=12, help="touches, on pads and peaks drawn at random")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--quiet-s", type=float, default=6.0, help="untouched figure-eight before the first touch")
+    parser.add_argument("--priority", type=int, default=SIM_PRIORITY,
+                        help=f"SCHED_FIFO priority of this process, the simulator's threads included, where "
+                             f"permitted (default {SIM_PRIORITY}, as the e2e test's simulator; 0: off)")
     parser.add_argument("--scale", type=float, default=1.0,
                         help="the thresholds (on and off, per joint) times this")
     parser.add_argument("--gap-s", type=float, default=2.5, help="untouched figure-eight between touches")
@@ -81,6 +91,7 @@ def main() -> int:
     from franky_sim import SimulationServer
     from franky_sim.mujoco_simulator import MujocoSimulator
 
+    realtime(args.priority, "franky-sim")  # before the simulator's threads start: they inherit it
     desc = load_description("fr3")
     model = RobotModel(desc)
     task = FigureEight(TaskSection(), desc)
@@ -94,6 +105,7 @@ def main() -> int:
     rows: list[dict] = []
     flags: list[tuple[float, int, float]] = []  # (t, pad, force) of every detected state
     states = 0
+    residuals: list[tuple[float, tuple[float, ...]]] = []  # (t, r) of every state once tared
     with MujocoSimulator(enable_visualization=False) as sim:
         sim.add_robot()
         with SimulationServer(sim, hostname_candidates=[HOST]) as server:
@@ -133,6 +145,8 @@ def main() -> int:
                         d.xfrc_applied[body, 3:] += np.cross(point - d.xipos[body], force)
                 verdict = detector.update(q, np.asarray(state.tau_ext_hat_filtered, dtype=float))
                 states += 1
+                if verdict.tared:
+                    residuals.append((t, verdict.residual_nm))
                 if verdict.detected:
                     flags.append((t, verdict.pad, verdict.force_n))
                 time.sleep(max(0.0, PERIOD_S - (time.monotonic() - start - t)))
@@ -169,6 +183,9 @@ def main() -> int:
           f"{episodes} episodes, {len(false)} of {states - sum(1 for f in flags if f not in false)} states "
           f"({end_s - len(touches) * (RAMP_S + HOLD_S + RELEASE_S + 0.3):.0f} s untouched); "
           f"{states} states in {end_s:.0f} s")
+    quiet = np.abs([r for t, r in residuals if not any(a <= t < b for a, b in touched)])
+    print(f"untouched residual per joint, N m: p99 {np.percentile(quiet, 99, axis=0).round(2).tolist()}, "
+          f"max {quiet.max(axis=0).round(2).tolist()}")
     on = args.scale * np.array(ON_NM)
     off = args.scale * np.array(OFF_NM)
     print(f"thresholds x {args.scale:g}: on {on.round(2).tolist()} N m, off {off.round(2).tolist()} N m; "
@@ -177,8 +194,8 @@ def main() -> int:
     home_q = np.asarray(desc.home, dtype=float)
     per_newton = -np.einsum("pk,pkj->pj", model.pad_normals(home_q), model.pad_jacobians(home_q))
     least = [float(np.min(on / np.maximum(np.abs(a), 1e-9))) for a in per_newton]
-    print("least force felt at home, N: " + ", ".join(f"{p.name} {f:.0f}" for p, f in zip(desc.pads, least,
-                                                                                        strict=True)))
+    print("least force felt at home, N: " + ", ".join(f"{p.name} {f:.0f}" if f < 1e6 else f"{p.name} never"
+                                                      for p, f in zip(desc.pads, least, strict=True)))
     return 0
 
 

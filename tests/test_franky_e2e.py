@@ -26,8 +26,10 @@ import pytest
 from pipeline import DATA, Pipeline
 
 from nwr.common import messages as m
+from nwr.common.config import TorqueContactSection
 from nwr.common.recordings import read_recording
-from nwr.common.robot import load_description
+from nwr.common.robot import RobotModel, load_description
+from nwr.services.gain.torque import TorqueDetector
 from nwr.services.tools.hardware.franky_sim import simulator_process
 from nwr.services.tools.recordings import analysis
 
@@ -133,6 +135,27 @@ def test_frankas_external_torque_estimate_is_recorded(session: Session) -> None:
     before = [s for s in _states(session) if s.stamp_ns < session.killed_ns and not s.pose_stale]
     assert before and all(len(s.tau_ext) == 7 for s in before)
     assert all(np.isfinite(s.tau_ext).all() for s in before)
+
+
+def test_the_torque_contact_detector_feels_no_contact_on_the_untouched_arm(session: Session) -> None:
+    """The scripted skin pushes nothing in franky-sim: over the task and the reflexes, every detection of the
+    gain estimator's torque fallback (gain.torque's defaults, the dynamics baseline: franky-sim reports its
+    applied torque) would be a false positive. The gravity baseline, which takes the arm's own acceleration for
+    a push, is printed beside it."""
+    cfg = TorqueContactSection()
+    model = RobotModel(load_description("fr3"))
+    states = [s for s in _states(session) if s.stamp_ns < session.killed_ns and not s.pose_stale and s.tau_ext]
+    verdicts = {}
+    for baseline in ("dynamics", "gravity"):
+        detector = TorqueDetector(model, np.full(7, cfg.on_nm), np.full(7, cfg.on_nm * cfg.off_ratio),
+                                  baseline=baseline)
+        verdicts[baseline] = [detector.update(np.asarray(s.q), np.asarray(s.tau_ext), np.asarray(s.dq), s.stamp_ns)
+                              for s in states]
+        residual = np.abs([v.residual_nm for v in verdicts[baseline] if v.tared]).max(axis=0)
+        print(f"\ntorque residual ({baseline} baseline) over {len(states)} states of the untouched session, largest "
+              f"per joint (N m): {residual.round(2).tolist()}; "
+              f"{sum(v.onset for v in verdicts[baseline])} false contacts")
+    assert len(states) > 300 and not any(v.detected for v in verdicts["dynamics"])
 
 
 def test_a_lost_connection_is_reported_and_the_state_goes_on(session: Session) -> None:

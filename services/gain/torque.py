@@ -48,7 +48,9 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.robot import Pad, RobotModel
 
-BASELINES = ("none", "gravity")
+BASELINES = ("none", "gravity", "dynamics")
+# Two states further apart than this give no acceleration (a gap: the arm taken as unaccelerated), s.
+MAX_DIFF_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,8 @@ class TorqueDetector:
     _tare_sum: np.ndarray = field(init=False)
     _tared: int = field(init=False, default=0)
     _active: bool = field(init=False, default=False)
+    _last_dq: np.ndarray = field(init=False)
+    _last_ns: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         n = self.model.nq
@@ -96,6 +100,7 @@ class TorqueDetector:
             raise ValueError(f"tare_samples {self.tare_samples} must be >= 1 and follow {self.follow} in [0, 1)")
         self._offset = np.zeros(n)
         self._tare_sum = np.zeros(n)
+        self._last_dq = np.zeros(n)
 
     @property
     def active(self) -> bool:
@@ -106,18 +111,31 @@ class TorqueDetector:
         self._tared = 0
         self._tare_sum[:] = 0.0
         self._active = False
+        self._last_ns = 0
 
-    def update(self, q: np.ndarray, tau_ext: np.ndarray) -> TorqueContact:
-        """One robot state (joint positions, rad; estimated external torques, N m). Non-finite input: ValueError
-        (the caller's door refuses it first)."""
+    def update(self, q: np.ndarray, tau_ext: np.ndarray, dq: np.ndarray | None = None,
+               stamp_ns: int = 0) -> TorqueContact:
+        """One robot state (joint positions, rad; estimated external torques, N m; with the dynamics baseline its
+        velocities, rad/s, and stamp). Non-finite input: ValueError (the caller's door refuses it first)."""
         q = np.asarray(q, dtype=float)
         tau = np.asarray(tau_ext, dtype=float)
         n = self.model.nq
         if tau.shape != (n,) or not np.isfinite(tau).all():
             raise ValueError(f"tau_ext needs {n} finite values, got {tau}")
-        # A controller that reports its own torque holds the arm against gravity and against the push alike:
-        # the external torque is what its torque lacks of gravity's.
-        raw = self.model.gravity_torques(q) - tau if self.baseline == "gravity" else tau.copy()
+        # A controller that reports its own torque moves the arm against gravity and against the push alike:
+        # the external torque is what its torque lacks of the motion's.
+        if self.baseline == "dynamics":
+            v = np.zeros(n) if dq is None else np.asarray(dq, dtype=float)
+            if v.shape != (n,) or not np.isfinite(v).all():
+                raise ValueError(f"dq needs {n} finite values, got {v}")
+            dt = (stamp_ns - self._last_ns) / 1e9
+            acc = (v - self._last_dq) / dt if self._last_ns and 0 < dt <= MAX_DIFF_S else np.zeros(n)
+            self._last_dq, self._last_ns = v, stamp_ns
+            raw = self.model.inverse_dynamics(q, v, acc) - tau
+        elif self.baseline == "gravity":
+            raw = self.model.gravity_torques(q) - tau
+        else:
+            raw = tau.copy()
         if self._tared < self.tare_samples:
             self._tare_sum += raw
             self._tared += 1

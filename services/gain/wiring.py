@@ -84,7 +84,8 @@ class GainWiring(Wiring):
                 self.torque_contact = None
             return
         try:
-            contact = self.torque.update(np.asarray(state.q, dtype=float), np.asarray(state.tau_ext, dtype=float))
+            contact = self.torque.update(np.asarray(state.q, dtype=float), np.asarray(state.tau_ext, dtype=float),
+                                         np.asarray(state.dq, dtype=float), state.stamp_ns)
         except ValueError as exc:
             self.diag("warning", "bad_torque_state", str(exc))
             self.torque.reset()
