@@ -20,9 +20,9 @@ default period, streamed at 500 Hz), and scripted touches that press a pad
   so a reflex starts;
 - the torque detection's onset: the first robot state (``tau_ext_hat_filtered``
   read through franky every 2 ms) that :class:`nwr.services.gain.torque.TorqueDetector`
-  flags (the default thresholds of ``gain.torque``, the ``gravity`` baseline:
-  franky-sim reports its commanded torque there), with its pad and force
-  estimate;
+  flags (per-joint thresholds ``ON_NM``/``OFF_NM`` times ``--scale``; the
+  ``--baseline``, default ``dynamics``: franky-sim reports its applied torque
+  there), with its pad and force estimate;
 - both from the touch's start, ms; the figure-eight runs untouched first
   (``--quiet-s``) and between touches: every detection there is a false
   positive.
@@ -46,7 +46,7 @@ import numpy as np
 from nwr.common.pacing import realtime
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.task import FigureEight, TaskSection
-from nwr.services.gain.torque import TorqueDetector
+from nwr.services.gain.torque import BASELINES, TorqueDetector
 from nwr.services.tools.hardware.franky_sim import HOST, home
 
 PUSH_N_PER_HPA = 1.25
@@ -82,6 +82,8 @@ def main() -> int:
     parser.add_argument("--priority", type=int, default=SIM_PRIORITY,
                         help=f"SCHED_FIFO priority of this process, the simulator's threads included, where "
                              f"permitted (default {SIM_PRIORITY}, as the e2e test's simulator; 0: off)")
+    parser.add_argument("--baseline", default="dynamics", choices=BASELINES,
+                        help="the detector's baseline model (services/gain/torque.py)")
     parser.add_argument("--scale", type=float, default=1.0,
                         help="the thresholds (on and off, per joint) times this")
     parser.add_argument("--gap-s", type=float, default=2.5, help="untouched figure-eight between touches")
@@ -101,7 +103,7 @@ def main() -> int:
                 float(rng.uniform(8.0, 25.0)), float(rng.uniform(0, 1 / SKIN_HZ))) for k in range(args.touches)]
     end_s = touches[-1][0] + RAMP_S + HOLD_S + RELEASE_S + args.gap_s
     detector = TorqueDetector(model, args.scale * np.array(ON_NM), args.scale * np.array(OFF_NM),
-                              baseline="gravity")
+                              baseline=args.baseline)
     rows: list[dict] = []
     flags: list[tuple[float, int, float]] = []  # (t, pad, force) of every detected state
     states = 0
@@ -143,7 +145,8 @@ def main() -> int:
                         force = -PUSH_N_PER_HPA * p * normal
                         d.xfrc_applied[body, :3] += force
                         d.xfrc_applied[body, 3:] += np.cross(point - d.xipos[body], force)
-                verdict = detector.update(q, np.asarray(state.tau_ext_hat_filtered, dtype=float))
+                verdict = detector.update(q, np.asarray(state.tau_ext_hat_filtered, dtype=float),
+                                          np.asarray(state.dq, dtype=float), round(state.time.to_sec() * 1e9))
                 states += 1
                 if verdict.tared:
                     residuals.append((t, verdict.residual_nm))
@@ -188,7 +191,8 @@ def main() -> int:
           f"max {quiet.max(axis=0).round(2).tolist()}")
     on = args.scale * np.array(ON_NM)
     off = args.scale * np.array(OFF_NM)
-    print(f"thresholds x {args.scale:g}: on {on.round(2).tolist()} N m, off {off.round(2).tolist()} N m; "
+    print(f"{args.baseline} baseline, thresholds x {args.scale:g}: on {on.round(2).tolist()} N m, "
+          f"off {off.round(2).tolist()} N m; "
           f"load average {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores")
     # What the thresholds can feel at all: the least push along minus each pad's normal that reaches one, at home.
     home_q = np.asarray(desc.home, dtype=float)
