@@ -171,6 +171,29 @@ class EffectiveMassSection(_Section):
     regions: dict[str, BodyRegion] = msgspec.field(default_factory=lambda: {DEFAULT_BODY_REGION: BodyRegion()})
 
 
+class TorqueContactSection(_Section):
+    # The arm's own contact detection as a proprioceptive fallback (off by
+    # default): a pad that is invalid in a skin sample (the skin blind there)
+    # gets the gain of a contact the controller's estimated external torques
+    # (RobotState.tau_ext: a Franka's) locate on it, gain = force / full_force_n
+    # (services/gain/torque.py, docs/robots.md). A robot whose states carry no
+    # tau_ext never triggers it.
+    enabled: bool = False
+    # "none": tau_ext is already external (a real Franka); "gravity": the
+    # controller reports the torque it applies (franky-sim), the URDF's gravity
+    # torques are removed first; "dynamics": the same, and the torques of the
+    # arm's own motion (inverse dynamics, the acceleration from the states).
+    baseline: Literal["none", "gravity", "dynamics"] = "none"
+    # A contact starts when the residual reaches this on any joint, N m, and
+    # ends once it is below on_nm x off_ratio on every joint.
+    on_nm: Annotated[float, msgspec.Meta(gt=0, le=100)] = 6.0
+    off_ratio: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.65
+    # The force estimate (N, along minus the located pad's normal) that gives gain 1.
+    full_force_n: Annotated[float, msgspec.Meta(gt=1, le=200)] = 30.0
+    # A robot state older than this when a skin sample arrives is not used, s.
+    state_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.1
+
+
 class GainSection(_Section):
     # "continuous": the paper's piecewise scaled sigmoid; "discrete": PL steps;
     # "effective-mass": the continuous model with each pad's thresholds scaled
@@ -187,6 +210,8 @@ class GainSection(_Section):
     overrides: dict[str, PadGainOverride] = {}
     # The effective-mass model's parameters (used with model = "effective-mass").
     effective_mass: EffectiveMassSection = msgspec.field(default_factory=EffectiveMassSection)
+    # The arm's external torques as a fallback where the skin is blind.
+    torque: TorqueContactSection = msgspec.field(default_factory=TorqueContactSection)
 
 
 class RestartSection(_Section):

@@ -50,6 +50,10 @@ GUARDS: dict[str, Guard] = {
     "planner.restarts.interval_s": Guard("below", "s"),
     # How far and how fast a reflex moves the arm.
     "gain.pl3_gain": Guard("above"),
+    "gain.torque.on_nm": Guard("above", "N m"),
+    "gain.torque.off_ratio": Guard("below"),
+    "gain.torque.full_force_n": Guard("above", "N"),
+    "gain.torque.state_timeout_s": Guard("above", "s"),
     # The effective-mass model: how much more sensitive a moving pad becomes, and what it predicts.
     "gain.effective_mass.floor": Guard("above"),
     "gain.effective_mass.rest_speed_m_s": Guard("above", "m/s"),

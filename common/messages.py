@@ -203,6 +203,8 @@ class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown
     impact_n: list[Finite] = []
     threshold_scale: list[Finite] = []
     impact_basis: str = ""
+    # The pads whose gain came from the arm's external torques, the skin blind there (gain.torque).
+    torque_pads: list[int] = []
 
 
 class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_unknown_fields=True):

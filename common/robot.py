@@ -927,6 +927,17 @@ class RobotModel:
         tau = pin.rnea(self.model, data, q, v, a) - pin.computeGeneralizedGravity(self.model, data, q)
         return float(v @ tau)
 
+    def inverse_dynamics(self, q: Any, dq: Any, ddq: Any) -> np.ndarray:
+        """The joint torques that move the arm with ``dq``, ``ddq`` at ``q`` against gravity, N m (RNEA, the URDF's
+        inertias)."""
+        return np.array(pin.rnea(self.model, self._dynamics, self._as_q(q), np.asarray(dq, dtype=float),
+                                 np.asarray(ddq, dtype=float)))
+
+    def gravity_torques(self, q: Any) -> np.ndarray:
+        """The joint torques that hold the arm still against gravity at ``q``, N m (the URDF's inertias, gravity
+        along the URDF root's -z)."""
+        return np.array(pin.computeGeneralizedGravity(self.model, self._dynamics, self._as_q(q)))
+
     def mass_matrix(self, q: Any) -> np.ndarray:
         """The joint-space mass matrix M(q) (nq, nq), kg m^2, symmetric (the URDF's inertias; CRBA)."""
         upper = pin.crba(self.model, self._dynamics, self._as_q(q))

@@ -6,8 +6,10 @@ Pure: numbers and Structs in, message objects of a ``rosbags`` type store out
 (the bag's and the default live one: ``/``):
 
 - ``joint_states`` (``sensor_msgs/msg/JointState``): a ``robot/state``, the
-  joints named and ordered as in the robot description, positions and
-  velocities, no efforts;
+  joints named and ordered as in the robot description, positions,
+  velocities and, where the controller estimates them (a Franka's
+  ``tau_ext``), the estimated external torques as efforts (N m; empty
+  otherwise, as ROS leaves a field it does not know);
 - ``nwr/skin/absolute_hpa``, ``nwr/skin/change_hpa``
   (``std_msgs/msg/Float64MultiArray``): a ``skin/pressure``, one value per pad
   in the skin file's order (one dimension, label ``pads``), NaN where the pad
@@ -81,7 +83,7 @@ class Ros2Builder:
     def joint_state(self, state: m.RobotState) -> Any:
         return self.t(JOINT_STATE_TYPE, header=self.header(state.stamp_ns + self.offset_ns), name=self.joints,
                       position=np.array(state.q, dtype=np.float64), velocity=np.array(state.dq, dtype=np.float64),
-                      effort=np.array([], dtype=np.float64))
+                      effort=np.array(state.tau_ext, dtype=np.float64))
 
     def pad_array(self, values: Iterable[float], valid: list[bool]) -> Any:
         data = np.array([v if ok else math.nan for v, ok in zip(values, valid, strict=True)], dtype=np.float64)

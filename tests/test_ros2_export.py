@@ -18,9 +18,11 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from nwr.common import keys
-from nwr.common.recordings import read_recording
+from nwr.common import messages as m
+from nwr.common.recordings import SESSION_METADATA, McapRecorder, read_recording
 from nwr.common.robot import load_description
 from nwr.services import cli
+from nwr.services.tools.recordings.rosbag_export import export_ros2
 
 DESC = load_description()
 PADS = [p.name for p in DESC.pads]
@@ -87,6 +89,7 @@ def test_the_export_is_a_rosbag2_directory_that_rosbags_reads_back(exported: Pat
     for (t, msg), r in zip(bag["/joint_states"], states, strict=True):
         assert t == r.log_time_ns and list(msg.name) == list(DESC.joints)
         assert list(msg.position) == r.message.q and list(msg.velocity) == r.message.dq
+        assert list(msg.effort) == r.message.tau_ext == []  # a UR's state: no external torque estimated
         assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == r.message.stamp_ns
     for (_, absolute), (_, change), r in zip(bag["/nwr/skin/absolute_hpa"], bag["/nwr/skin/change_hpa"], skin,
                                              strict=True):
@@ -122,6 +125,28 @@ def test_an_export_imported_again_gives_the_same_skin_samples_and_joint_states(i
         assert a == b or all(repr(x) == repr(y) for x, y in zip(a, b, strict=True)), key  # NaN != NaN in ==
     skin = [r.message for r in second if r.key == keys.SKIN_PRESSURE]
     assert skin[60].valid == [i < 9 for i in range(10)] and skin[75].valid == [i != 0 for i in range(10)]
+
+
+def test_a_frankas_external_torques_are_the_joint_states_efforts(tmp_path: Path) -> None:
+    fr3 = load_description("fr3")
+    n = len(fr3.joints)
+    src = tmp_path / "fr3.mcap"
+    states = []
+    for i in range(40):
+        tau = [0.0] * n if i < 20 else [0.25 * (j + 1) * (-1) ** i for j in range(n)]  # before and after a push
+        states.append(m.RobotState(seq=i + 1, stamp_ns=10**9 + i * 2_000_000, q=[float(v) for v in fr3.home],
+                                   dq=[0.0] * n, status="ok", owner="cartesian", backend="franky", tau_ext=tau))
+    with src.open("wb") as f:
+        rec = McapRecorder(f, "fr3")
+        rec.metadata(SESSION_METADATA, {"robot": "fr3"})
+        for s in states:
+            rec.write("nwr/fr3/robot/state", s, s.stamp_ns)
+        rec.finish()
+    out = tmp_path / "fr3-ros2"
+    export_ros2(src, out, description="fr3")
+    bag = read_bag(out)["/joint_states"]
+    assert [list(msg.effort) for _, msg in bag] == [s.tau_ext for s in states]
+    assert list(bag[0][1].name) == list(fr3.joints) and len(bag[-1][1].effort) == n
 
 
 def test_unusable_export_input_is_one_line(imported: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:

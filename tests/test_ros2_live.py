@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -368,6 +369,12 @@ def test_the_messages_serialize_with_either_distributions_definitions(distro: st
                          (build.reflex(status, DESC.base_frame), "visualization_msgs/msg/MarkerArray")):
         again = types.deserialize_cdr(bytes(types.serialize_cdr(msg, msgtype)), msgtype)
         assert type(again).__name__ == type(msg).__name__
+    torques = [0.5, -1.25, 0.0, 23.0, 0.0, 0.0]  # a controller that estimates its external torques: the efforts
+    with_tau = build.joint_state(msgspec.structs.replace(state(2), tau_ext=torques))
+    again = types.deserialize_cdr(bytes(types.serialize_cdr(with_tau, "sensor_msgs/msg/JointState")),
+                                  "sensor_msgs/msg/JointState")
+    assert list(again.effort) == torques and list(again.velocity) == [0.2] * len(torques)
+    assert list(build.joint_state(state(3)).effort) == []  # none estimated: empty, as ROS leaves an unknown field
     assert build.reflex(status, DESC.base_frame) is None  # no change, no marker
     string = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"  # the design document's
     assert rz.type_hash(types, "std_msgs/msg/String", humble=distro == "humble") == (

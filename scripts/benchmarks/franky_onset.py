@@ -28,6 +28,7 @@ import numpy as np
 
 from nwr.common.recordings import read_recording
 from nwr.common.robot import load_description
+from nwr.services.tools.hardware.franky_sim import simulator_process
 from nwr.services.tools.recordings import analysis
 
 # The simulator real-time below the bridge (20), as in tests/test_franky_e2e.py (where permitted).
@@ -45,15 +46,7 @@ def onsets_ms(path: Path) -> list[float]:
 
 
 def session(tmp: Path, run: int, script: str, priority: int) -> list[float]:
-    with (tmp / f"franky-sim-{run}.log").open("w") as log:
-        sim = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.hardware.franky_sim",
-                                "--realtime-priority", str(priority)],
-                               stdout=subprocess.PIPE, stderr=log, text=True)
-    try:
-        assert sim.stdout is not None
-        line = sim.stdout.readline()
-        if not line.startswith("ready"):
-            raise SystemExit(f"franky-sim did not start: {(tmp / f'franky-sim-{run}.log').read_text()[-2000:]}")
+    with simulator_process(tmp / f"franky-sim-{run}.log", "--realtime-priority", str(priority)):
         out = tmp / f"run{run}.mcap"
         demo = subprocess.run([sys.executable, "-m", "nwr.services.cli", "--profile", str(tmp / "profile.toml"),
                                "demo", "--script", script, "--output", str(out), "--backend", "franky",
@@ -61,11 +54,6 @@ def session(tmp: Path, run: int, script: str, priority: int) -> list[float]:
                               capture_output=True, text=True, timeout=600)
         print(demo.stdout.strip().splitlines()[-1] if demo.stdout.strip() else demo.stderr[-2000:])
         return onsets_ms(out)
-    finally:
-        sim.terminate()
-        sim.wait(30)
-        if sim.stdout is not None:
-            sim.stdout.close()
 
 
 def main() -> int:

@@ -6,8 +6,10 @@ and Foxglove opens with its ROS 2 decoders. Its topics, all of standard ROS 2
 types (CDR, their ``.msg`` definitions in the file):
 
 - ``/joint_states`` (``sensor_msgs/msg/JointState``): every ``robot/state``,
-  the joints named and ordered as in the robot description, positions and
-  velocities, no efforts;
+  the joints named and ordered as in the robot description, positions,
+  velocities and, where the controller estimates them (a Franka's
+  ``tau_ext``), the estimated external torques as efforts (N m; empty
+  otherwise);
 - ``/nwr/skin/absolute_hpa`` and ``/nwr/skin/change_hpa``
   (``std_msgs/msg/Float64MultiArray``): every ``skin/pressure``, one value
   per pad in the skin file's pad order (one dimension, label ``pads``, size
