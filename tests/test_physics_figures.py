@@ -18,6 +18,8 @@ from nwr.common.robot import RobotModel, load_description
 from nwr.services.tools.recordings import analysis, compare, summary, table
 from nwr.services.tools.recordings.replay import simulate
 from nwr.services.tools.recordings.verify import verify
+from nwr.services.view.core import encode_frame
+from nwr.services.view.export import load_records, make_core
 from nwr.services.worlds.people import ISO_TS_15066
 
 DESC = load_description()
@@ -110,6 +112,26 @@ def test_a_lockstep_physics_session_of_two_fingers_verifies_and_measures_both(tw
     sessions = [compare.load_session(two_fingers, DESC, model), compare.load_session(two_fingers, DESC, model)]
     world = compare.world_table(sessions, compare.line_up(sessions, 0.3))
     assert world is not None and world.count("upper_arm_top") == 2 and "peak force (N)" in world
+
+
+@pytest.mark.slow
+def test_the_view_of_a_lockstep_physics_session_shows_both_fingers_and_the_force_on_them(two_fingers: Path) -> None:
+    records, _ = load_records(two_fingers)
+    core = make_core()
+    seen: dict[str, float] = {}
+    outputs = 0
+    for record in records:
+        core.apply(record.message)
+        if isinstance(record.message, m.WorldContacts):
+            frame = core.frame(record.log_time_ns)
+            for mark in frame.people:
+                name = DESC.pads[mark.pad].name
+                seen[name] = max(seen.get(name, 0.0), mark.force_n)
+                assert mark.arrow is not None and mark.arrow.length > 0.0
+            outputs += sum(1 for o in encode_frame(frame) if o.topic == "/nwr/people")
+    assert outputs > 10
+    assert sorted(seen) == ["forearm_top", "upper_arm_top"], seen
+    assert all(10.0 < force < 40.0 for force in seen.values()), seen
 
 
 def print_summary(path: Path) -> int:
