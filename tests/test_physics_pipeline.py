@@ -62,6 +62,8 @@ def test_todays_touch_scripts_fit_the_physics_world() -> None:
     ([Touch(pad="forearm_top", start_s=1.0 + 0.01 * i, duration_s=0.5, peak_hpa=9.0) for i in range(5)],
      r"5 touches at once at 1.04 s; the physics world holds 4 fingers"),
     ([Touch(pad="knee", start_s=1.0, duration_s=0.5, peak_hpa=9.0)], r"names pad 'knee'"),
+    ([Touch(pad="forearm_top", start_s=1.0, duration_s=0.5, peak_hpa=9.0, body_area="elbow")],
+     r"names body_area 'elbow'; ISO/TS 15066's are forehead, temple, .*forearm_muscle"),
 ])
 def test_a_script_the_world_cannot_play_is_refused_before_anything_moves(touches: list[Touch], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -149,6 +151,11 @@ def test_a_touch_the_world_cannot_take_enters_nothing() -> None:
     world = HostedWorld(DESC, SETTINGS, DESC.home)
     with pytest.raises(ConfigError, match="beyond a finger's plausible push"):
         world.touch(touch_message(0, FOREARM_TOP, start_s=0.0, peak_hpa=60.0), 0)
+    odd = touch_message(0, FOREARM_TOP, start_s=0.0, peak_hpa=5.0)
+    with pytest.raises(ConfigError, match="body_area 'elbow' is none of ISO/TS 15066's: not pressed"):
+        world.touch(msgspec.structs.replace(odd, body_area="elbow"), 0)
+    with pytest.raises(ConfigError, match="follow_m_s = 3.0; expected 0 to 1.0 m/s"):
+        world.touch(msgspec.structs.replace(odd, follow_m_s=3.0), 0)
     for seq in range(4):
         world.touch(touch_message(seq, FOREARM_TOP, start_s=0.0, peak_hpa=5.0), 0)
     with pytest.raises(ConfigError, match="no free finger"):

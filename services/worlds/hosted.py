@@ -32,7 +32,10 @@ same world, bit for bit.
   the pad, a pad that moves into it faster than that presses harder, and
   one that withdraws faster loses it. At the touch's end its target moves
   off the pad (:data:`LIFT_M`; a following finger stops following), and the
-  finger leaves the world :data:`LINGER_S` later.
+  finger leaves the world :data:`LINGER_S` later. A touch's ``body_area``
+  (the ISO/TS 15066 body area it names) is checked here and judged by in
+  the force figures (:func:`nwr.services.tools.recordings.analysis.world_figures`);
+  the world's finger stays a finger (its shape, mass and tissue spring).
 - **Outputs.** Each skin sample the world delivers (``world/skin``, the
   device's absolute pressures) and, while any body part is in the world,
   their contact figures (``world/contacts``), stamped with the bridge time
@@ -53,7 +56,7 @@ from nwr.common.errors import ConfigError
 from nwr.common.launch import MAX_FOLLOW_M_S, Touch, TouchScript
 from nwr.common.robot import RobotDescription
 from nwr.services.gateway.core import touch_profile
-from nwr.services.worlds.people import KINDS
+from nwr.services.worlds.people import ISO_TS_15066, KINDS
 from nwr.services.worlds.physics import BodyPart, PhysicsSettings, PhysicsWorld
 from nwr.services.worlds.skin import force_for_pressure
 
@@ -67,7 +70,8 @@ MAX_CATCH_UP_S = 0.05
 def touch_of(msg: m.SkinTouch) -> Touch:
     """The touch script's touch a ``skin/touch`` message carries."""
     return Touch(pad=msg.name, start_s=msg.start_s, duration_s=msg.duration_s, peak_hpa=msg.peak_hpa,
-                 shape=msg.shape, ramp_s=msg.ramp_s, follow_m_s=msg.follow_m_s)
+                 shape=msg.shape, ramp_s=msg.ramp_s, follow_m_s=msg.follow_m_s,
+                 body_area=msg.body_area)
 
 
 def touch_end_s(touch: Touch) -> float:
@@ -86,6 +90,9 @@ def check_script(script: TouchScript, settings: PhysicsSettings, desc: RobotDesc
     limit_hpa = float(saturation * math.tanh(plausible / (area_m2 * 100.0 * saturation)))
     names = {p.name: p.id for p in desc.pads}
     for touch in script.touch:
+        if touch.body_area and touch.body_area not in ISO_TS_15066:
+            raise ConfigError(f"touch on {touch.pad} at {touch.start_s} s names body_area {touch.body_area!r}; "
+                              f"ISO/TS 15066's are {', '.join(ISO_TS_15066)}")
         if touch.pad not in names and not (touch.pad.isdigit() and int(touch.pad) < len(desc.pads)):
             raise ConfigError(f"touch script names pad {touch.pad!r}; the skin has {sorted(names)}")
         force = finger_force(touch.peak_hpa, settings)
@@ -171,6 +178,9 @@ class HostedWorld:
         if not 0 <= msg.pad < len(self.desc.pads):
             raise ConfigError(f"touch {msg.seq} on pad {msg.pad}: the skin has pads 0..{len(self.desc.pads) - 1}")
         touch = touch_of(msg)
+        if touch.body_area and touch.body_area not in ISO_TS_15066:
+            raise ConfigError(f"touch {msg.seq} on {msg.name}: body_area {touch.body_area!r} is none of ISO/TS "
+                              "15066's: not pressed")
         if not 0.0 <= touch.follow_m_s <= MAX_FOLLOW_M_S:
             raise ConfigError(f"touch {msg.seq} on {msg.name}: follow_m_s = {touch.follow_m_s}; expected 0 to "
                               f"{MAX_FOLLOW_M_S} m/s (a hand's speed): not pressed")
