@@ -14,14 +14,16 @@ from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.launch import load_script
-from nwr.common.recordings import Recorded
+from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.tools.recordings import analysis, compare, summary, table
 from nwr.services.tools.recordings.replay import simulate
 from nwr.services.tools.recordings.verify import verify
 from nwr.services.view.core import encode_frame
 from nwr.services.view.export import load_records, make_core
+from nwr.services.worlds.hosted import finger_force
 from nwr.services.worlds.people import ISO_TS_15066, load_limits
+from nwr.services.worlds.settings import PhysicsSettings
 
 DESC = load_description()
 PAD = DESC.pad("forearm_top").id
@@ -158,6 +160,27 @@ def test_the_view_of_a_lockstep_physics_session_shows_both_fingers_and_the_force
     assert outputs > 10
     assert sorted(seen) == ["forearm_top", "upper_arm_top"], seen
     assert all(10.0 < force < 40.0 for force in seen.values()), seen
+
+
+@pytest.mark.slow
+def test_a_slow_press_whose_finger_follows_the_arm_is_felt_at_the_scripts_force_and_verifies(tmp_path) -> None:
+    profile = Profile()
+    profile.bridge.backend, profile.gateway.source = "physics", "physics"
+    path = tmp_path / "slow-press.mcap"
+    simulate(profile, "slow-press", "uniform", path)
+    touch = load_script("slow-press").touch[0]
+    assert touch.follow_m_s > 0.0
+    records, _ = read_recording(path, only=analysis.summarized)
+    touches = analysis.summarize(records, DESC, RobotModel(DESC))
+    mine = [t for t in touches if t.pad == PAD]
+    # Held where it met the pad, the task carried the pad away before the ramp's push built (1.2 N at most, no
+    # touch felt); followed, the ramp is felt, answered by a reflex, at about the force the script asks for.
+    assert mine and any(t.reflex_seq for t in mine), mine
+    peak = max(t.peak_force_n or 0.0 for t in mine)
+    assert 0.8 * finger_force(touch.peak_hpa, PhysicsSettings()) < peak < 30.0, peak
+    assert max(t.into_finger_mm or 0.0 for t in mine) < 5.0
+    results = verify(path)
+    assert all(r.verdict == "identical" for r in results) and len(results) == 4, [r.format() for r in results]
 
 
 def print_summary(path: Path) -> int:
