@@ -46,7 +46,7 @@ class Touch(_Section):
     # moves, at up to this speed, m/s (0: it stays where its owner holds it, so the pad can leave it).
     follow_m_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_FOLLOW_M_S)] = 0.0
     # The physics world only: the ISO/TS 15066 body area the person touches with, whose limits the touch's force
-    # figures are judged by (a name of services/worlds/iso_ts_15066.toml, e.g. "forearm_muscle"; empty: the body
+    # figures are judged by (a name of services/worlds/data/iso_ts_15066.toml, e.g. "forearm_muscle"; empty: the body
     # part's own, a finger's: "forefinger_pad_d").
     body_area: str = ""
 

@@ -23,7 +23,7 @@ maximum permissible quasi-static force and, per specific body area, the
 maximum permissible quasi-static pressure; transient contact (the body part
 can recoil) may reach twice both, except on the skull, forehead and face,
 where transient contact is not permitted. :data:`ISO_TS_15066` holds the
-table's values from the data file ``iso_ts_15066.toml`` beside this module:
+table's values from the data file ``data/iso_ts_15066.toml`` beside this module:
 written down as widely reproduced, each row compared with one or two public
 reproductions of the table (the file says which; all agree), but not with
 the standard's own text. Check them against the standard before quoting them
@@ -87,7 +87,7 @@ class Region:
 
 #: The data file of ISO/TS 15066's limits: a row per specific body area, each with the reproductions its values
 #: were compared with (its header says which).
-ISO_TS_15066_FILE = Path(__file__).with_name("iso_ts_15066.toml")
+ISO_TS_15066_FILE = Path(__file__).with_name("data") / "iso_ts_15066.toml"
 
 
 class _Area(msgspec.Struct, forbid_unknown_fields=True):
