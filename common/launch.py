@@ -26,6 +26,9 @@ from nwr.common.config import (
 )
 from nwr.common.errors import ConfigError
 
+# The fastest a touch's finger follows a moving pad, m/s: about a quick reach's peak hand speed.
+MAX_FOLLOW_M_S = 1.0
+
 
 class Touch(_Section):
     # Pad name (or id as a string) of the robot's skin.
@@ -39,6 +42,13 @@ class Touch(_Section):
     shape: Literal["step", "ramp"] = "step"
     # Rise and fall time of a ramp, s.
     ramp_s: NonNegative = 0.3
+    # The physics world only: a finger that follows the pad, its owner's hand keeping it on the pad as the arm
+    # moves, at up to this speed, m/s (0: it stays where its owner holds it, so the pad can leave it).
+    follow_m_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_FOLLOW_M_S)] = 0.0
+    # The physics world only: the ISO/TS 15066 body area the person touches with, whose limits the touch's force
+    # figures are judged by (a name of services/worlds/data/iso_ts_15066.toml, e.g. "forearm_muscle"; empty: the body
+    # part's own, a finger's: "forefinger_pad_d").
+    body_area: str = ""
 
 
 class TouchScript(_Section):

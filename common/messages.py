@@ -119,6 +119,11 @@ class SkinTouch(msgspec.Struct, tag="skin_touch", tag_field="kind", forbid_unkno
     # (gateway.sim.closed_loop), and the indentation depth it used, m.
     closed_loop: bool = False
     depth_m: Finite = 0.0
+    # The physics world's finger follows the pad at up to this speed, m/s (the touch script's follow_m_s; 0: it
+    # stays where its owner holds it).
+    follow_m_s: Finite = 0.0
+    # The ISO/TS 15066 body area the touch script names for it (its force figures' limits; "": the body part's own).
+    body_area: str = ""
 
 
 class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unknown_fields=True):

@@ -14,7 +14,11 @@ one table, a row per scripted touch:
   moves, so this is how far the pad moved into it; in the physics world the
   finger gives way;
 - into (mm): physics only, how far the arm pushed the finger back from where
-  it met the pad (``into``): how far the pad moved into the finger;
+  its owner holds it (``into``): how far the pad moved into the finger. A
+  finger held where it met the pad is held there; one that follows the arm
+  (a touch's ``follow_m_s``: the packaged ``slow-press``) is held where it
+  has caught up with the pad, so its "toward" says little and "into" is the
+  figure;
 - force (N): physics, the measured peak contact force on the person
   (``peak_force``); scripted, the force that makes the pressure the pad felt
   at its peak on a still pad (the physics world's inverse skin model: the

@@ -12,13 +12,18 @@ import pytest
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
 from nwr.common.launch import load_script
-from nwr.common.recordings import Recorded
+from nwr.common.recordings import Recorded, read_recording
 from nwr.common.robot import RobotModel, load_description
 from nwr.services.tools.recordings import analysis, compare, summary, table
 from nwr.services.tools.recordings.replay import simulate
 from nwr.services.tools.recordings.verify import verify
-from nwr.services.worlds.people import ISO_TS_15066
+from nwr.services.view.core import encode_frame
+from nwr.services.view.export import load_records, make_core
+from nwr.services.worlds.hosted import finger_force
+from nwr.services.worlds.people import ISO_TS_15066, load_limits
+from nwr.services.worlds.settings import PhysicsSettings
 
 DESC = load_description()
 PAD = DESC.pad("forearm_top").id
@@ -37,9 +42,9 @@ def touch_at(pad: int, start_s: float) -> analysis.TouchSummary:
                                  round((start_s + 1) * S), 0, 10, 15.0)
 
 
-def recorded(*people: list[m.WorldPerson]) -> list[Recorded]:
+def recorded(*people: list[m.WorldPerson], body_area: str = "") -> list[Recorded]:
     scripted = m.SkinTouch(seq=4, stamp_ns=S, pad=PAD, name="forearm_top", origin_ns=0, start_s=1.0,
-                           duration_s=1.0, peak_hpa=15.0, shape="step", ramp_s=0.0)
+                           duration_s=1.0, peak_hpa=15.0, shape="step", ramp_s=0.0, body_area=body_area)
     return [Recorded(keys.SKIN_TOUCH, S, scripted),
             *(Recorded(keys.WORLD_CONTACTS, S + i, m.WorldContacts(seq=i, stamp_ns=S + i, world_ns=i, people=p))
               for i, p in enumerate(people))]
@@ -61,6 +66,31 @@ def test_a_touch_gets_its_fingers_measured_peaks_and_the_limits_of_the_body_area
     # Another pad's touch, and one long after the finger met the pad, are not this finger's.
     for other in (elsewhere, later):
         assert other.peak_force_n is None and other.of_limit is None and other.body_area == ""
+
+
+def test_a_touch_that_names_a_body_area_is_judged_by_that_areas_limits() -> None:
+    mine = touch_at(PAD, 1.1)
+    analysis.world_figures([mine], recorded([person(4, 20.0, 120.0, 0.03, 0.004)], body_area="forearm_muscle"))
+    forearm = ISO_TS_15066["forearm_muscle"]
+    assert mine.body_area == "forearm_muscle" and (forearm.region, forearm.label) == (
+        "lower arms and wrist joints", "forearm muscle")
+    assert (mine.force_limit_n, mine.pressure_limit_n_cm2) == (forearm.force_n, forearm.pressure_n_cm2) == (160, 180)
+    assert (mine.transient_force_limit_n, mine.transient_pressure_limit_n_cm2) == (320, 360)
+    assert mine.of_limit == pytest.approx(max(20.0 / 160.0, 120.0 / 180.0))
+
+
+def test_iso_ts_15066s_values_come_from_their_data_file_each_row_compared_with_a_reproduction(tmp_path) -> None:
+    assert len(ISO_TS_15066) == 29 and all(r.checked and r.label for r in ISO_TS_15066.values())
+    assert load_limits() == ISO_TS_15066
+    bad = tmp_path / "limits.toml"
+    bad.write_text('[[area]]\nname = "palm_d"\nlabel = "palm"\nregion = "hands"\npressure_n_cm2 = -1\n'
+                   'force_n = 140\n')
+    with pytest.raises(ConfigError, match=r"limits.toml: Expected `float` >= 0|limits.toml: .*pressure_n_cm2"):
+        load_limits(bad)
+    twice = 'name = "palm_d"\nlabel = "palm"\nregion = "hands"\npressure_n_cm2 = 260\nforce_n = 140\n'
+    bad.write_text(f"[[area]]\n{twice}\n[[area]]\n{twice}")
+    with pytest.raises(ConfigError, match="body area 'palm_d' is given twice"):
+        load_limits(bad)
 
 
 def test_the_quality_table_gives_the_worst_force_and_counts_the_touches_beyond_the_limits() -> None:
@@ -110,6 +140,47 @@ def test_a_lockstep_physics_session_of_two_fingers_verifies_and_measures_both(tw
     sessions = [compare.load_session(two_fingers, DESC, model), compare.load_session(two_fingers, DESC, model)]
     world = compare.world_table(sessions, compare.line_up(sessions, 0.3))
     assert world is not None and world.count("upper_arm_top") == 2 and "peak force (N)" in world
+
+
+@pytest.mark.slow
+def test_the_view_of_a_lockstep_physics_session_shows_both_fingers_and_the_force_on_them(two_fingers: Path) -> None:
+    records, _ = load_records(two_fingers)
+    core = make_core()
+    seen: dict[str, float] = {}
+    outputs = 0
+    for record in records:
+        core.apply(record.message)
+        if isinstance(record.message, m.WorldContacts):
+            frame = core.frame(record.log_time_ns)
+            for mark in frame.people:
+                name = DESC.pads[mark.pad].name
+                seen[name] = max(seen.get(name, 0.0), mark.force_n)
+                assert mark.arrow is not None and mark.arrow.length > 0.0
+            outputs += sum(1 for o in encode_frame(frame) if o.topic == "/nwr/people")
+    assert outputs > 10
+    assert sorted(seen) == ["forearm_top", "upper_arm_top"], seen
+    assert all(10.0 < force < 40.0 for force in seen.values()), seen
+
+
+@pytest.mark.slow
+def test_a_slow_press_whose_finger_follows_the_arm_is_felt_at_the_scripts_force_and_verifies(tmp_path) -> None:
+    profile = Profile()
+    profile.bridge.backend, profile.gateway.source = "physics", "physics"
+    path = tmp_path / "slow-press.mcap"
+    simulate(profile, "slow-press", "uniform", path)
+    touch = load_script("slow-press").touch[0]
+    assert touch.follow_m_s > 0.0
+    records, _ = read_recording(path, only=analysis.summarized)
+    touches = analysis.summarize(records, DESC, RobotModel(DESC))
+    mine = [t for t in touches if t.pad == PAD]
+    # Held where it met the pad, the task carried the pad away before the ramp's push built (1.2 N at most, no
+    # touch felt); followed, the ramp is felt, answered by a reflex, at about the force the script asks for.
+    assert mine and any(t.reflex_seq for t in mine), mine
+    peak = max(t.peak_force_n or 0.0 for t in mine)
+    assert 0.8 * finger_force(touch.peak_hpa, PhysicsSettings()) < peak < 30.0, peak
+    assert max(t.into_finger_mm or 0.0 for t in mine) < 5.0
+    results = verify(path)
+    assert all(r.verdict == "identical" for r in results) and len(results) == 4, [r.format() for r in results]
 
 
 def print_summary(path: Path) -> int:

@@ -62,6 +62,8 @@ def test_todays_touch_scripts_fit_the_physics_world() -> None:
     ([Touch(pad="forearm_top", start_s=1.0 + 0.01 * i, duration_s=0.5, peak_hpa=9.0) for i in range(5)],
      r"5 touches at once at 1.04 s; the physics world holds 4 fingers"),
     ([Touch(pad="knee", start_s=1.0, duration_s=0.5, peak_hpa=9.0)], r"names pad 'knee'"),
+    ([Touch(pad="forearm_top", start_s=1.0, duration_s=0.5, peak_hpa=9.0, body_area="elbow")],
+     r"names body_area 'elbow'; ISO/TS 15066's are forehead, temple, .*forearm_muscle"),
 ])
 def test_a_script_the_world_cannot_play_is_refused_before_anything_moves(touches: list[Touch], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -110,10 +112,50 @@ def test_a_pad_that_moves_into_the_finger_presses_harder_and_pushes_it_back() ->
     assert 0.006 < people[0].pushed_m < 0.011 and people[0].peak_pushed_m >= people[0].pushed_m
 
 
+def carry_away(follow_m_s: float, away_m: float, over_s: float) -> tuple[float, float, float]:
+    """A 9 hPa press on forearm_top while the arm carries the pad ``away_m`` back along its normal over
+    ``over_s`` (smoothly, from 0.6 s): the pad's pressure before, at the end of the move and 0.3 s later."""
+    world = HostedWorld(DESC, SETTINGS, DESC.home)
+    q0 = np.asarray(DESC.home, dtype=float)
+    run_hosted(world, 0.1, q0)
+    msg = touch_message(0, FOREARM_TOP, start_s=0.1, peak_hpa=9.0, duration_s=3.0)
+    world.touch(msgspec.structs.replace(msg, follow_m_s=follow_m_s), 100_000_000)
+    run_hosted(world, 0.6, q0, start_ns=100_000_000)
+    before = float(world.world.pressure_hpa()[FOREARM_TOP])
+    normal = MODEL.pad_normal(q0, FOREARM_TOP)
+    q1 = q0 - np.linalg.pinv(MODEL.pad_jacobian(q0, FOREARM_TOP)[:3]) @ (normal * away_m)
+    steps = round(over_s / 0.002)
+    for i, now in enumerate(range(602_000_000, 600_000_001 + steps * 2_000_000, 2_000_000)):
+        x = min(1.0, (i + 1) / steps)
+        world.advance(now, q0 + (q1 - q0) * x * x * (3 - 2 * x), np.zeros(6))
+    moved = float(world.world.pressure_hpa()[FOREARM_TOP])
+    end = 600_000_000 + steps * 2_000_000
+    run_hosted(world, end / 1e9 + 0.3, q1, start_ns=end)
+    return before, moved, float(world.world.pressure_hpa()[FOREARM_TOP])
+
+
+def test_a_finger_that_follows_keeps_pressing_a_pad_carried_away_slowly_and_loses_one_withdrawn_fast() -> None:
+    # Carried 40 mm away over 1 s (about 60 mm/s at most): a finger held where it met the pad loses it (its
+    # spring travel is 9 hPa's 11.6 N / 500 N/m = 23 mm); one that follows at up to 0.3 m/s keeps pressing.
+    held = carry_away(0.0, 0.04, 1.0)
+    follows = carry_away(0.3, 0.04, 1.0)
+    assert abs(held[0] - 9.0) < 1.0 and abs(follows[0] - 9.0) < 1.0
+    assert held[1] < 0.5 and held[2] < 0.5
+    assert abs(follows[1] - 9.0) < 1.5 and abs(follows[2] - 9.0) < 0.5
+    # Withdrawn 40 mm in 0.1 s (up to 0.6 m/s): faster than its owner follows (0.05 m/s), the pad leaves it.
+    slow_owner = carry_away(0.05, 0.04, 0.1)
+    assert slow_owner[1] < 0.5
+
+
 def test_a_touch_the_world_cannot_take_enters_nothing() -> None:
     world = HostedWorld(DESC, SETTINGS, DESC.home)
     with pytest.raises(ConfigError, match="beyond a finger's plausible push"):
         world.touch(touch_message(0, FOREARM_TOP, start_s=0.0, peak_hpa=60.0), 0)
+    odd = touch_message(0, FOREARM_TOP, start_s=0.0, peak_hpa=5.0)
+    with pytest.raises(ConfigError, match="body_area 'elbow' is none of ISO/TS 15066's: not pressed"):
+        world.touch(msgspec.structs.replace(odd, body_area="elbow"), 0)
+    with pytest.raises(ConfigError, match="follow_m_s = 3.0; expected 0 to 1.0 m/s"):
+        world.touch(msgspec.structs.replace(odd, follow_m_s=3.0), 0)
     for seq in range(4):
         world.touch(touch_message(seq, FOREARM_TOP, start_s=0.0, peak_hpa=5.0), 0)
     with pytest.raises(ConfigError, match="no free finger"):

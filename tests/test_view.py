@@ -312,6 +312,45 @@ def test_encoded_frame_decodes_against_its_schemas():
     assert list(skin["gain"]) == core.names and skin["gain"]["forearm_top"] == pytest.approx(0.4)
 
 
+def person(name: str, kind: str, pads: list[int], force: float) -> m.WorldPerson:
+    return m.WorldPerson(name=name, kind=kind, touch=-1, pads=pads, force_n=force, peak_force_n=force,
+                         pressure_n_cm2=1.0, peak_pressure_n_cm2=1.0, energy_j=0.0, pushed_m=0.0, peak_pushed_m=0.0)
+
+
+def test_a_physics_worlds_body_parts_show_as_contacts_with_force_arrows_and_go_when_they_leave():
+    core = c.ViewCore(DESC, MODEL)
+    core.apply(state(DESC.home))
+    forearm, wrist_1, wrist_2 = (DESC.pad(n).id for n in ("forearm_top", "wrist_1", "wrist_2"))
+    core.apply(m.WorldContacts(seq=0, stamp_ns=1_000_000_000, world_ns=0, people=[
+        person("touch-0", "finger", [forearm], 25.0), person("palm", "palm", [wrist_1, wrist_2], 40.0),
+        person("touch-1", "finger", [], 0.0)]))  # in the world, touching nothing: not drawn
+    frame = core.frame(1_100_000_000)
+    assert [(p.name, p.pad, p.force_n) for p in frame.people] == [
+        ("touch-0", forearm, 25.0), ("palm", wrist_1, 20.0), ("palm", wrist_2, 20.0)]
+    decode = {s.topic: protobuf_decoder(s.schema_name, s.schema_encoding, s.schema)
+              for s in core.channels if s.message_encoding == "protobuf"}
+    people = decode["/nwr/people"]({o.topic: o for o in c.encode_frame(frame)}["/nwr/people"].data)
+    assert len(people.deletions) == 1  # the last frame's people go first
+    by_id = {e.id: e for e in people.entities}
+    assert sorted(by_id) == ["person/palm/wrist_1", "person/palm/wrist_2", "person/touch-0/forearm_top"]
+    finger = by_id["person/touch-0/forearm_top"]
+    pad = DESC.pads[forearm]
+    assert finger.frame_id == pad.link and finger.frame_locked
+    centre = finger.spheres[0].pose.position
+    assert [centre.x, centre.y, centre.z] == pytest.approx(pad.point)
+    arrow = finger.arrows[0]
+    assert arrow_length(arrow) == pytest.approx(25.0 * c.FORCE_ARROW_M_PER_N)
+    # The force on the person: from the arm out into them, along the pad's outward normal.
+    o = arrow.pose.orientation
+    assert pin.Quaternion(o.w, o.x, o.y, o.z).toRotationMatrix()[:, 0] == pytest.approx(pad.normal, abs=1e-9)
+    assert arrow_length(by_id["person/palm/wrist_1"].arrows[0]) == pytest.approx(20.0 * c.FORCE_ARROW_M_PER_N)
+    # The world stops publishing when the last part leaves: stale contacts show nobody.
+    gone = core.frame(1_000_000_000 + c.PEOPLE_STALE_NS + 1)
+    assert gone.people == []
+    people = decode["/nwr/people"]({o.topic: o for o in c.encode_frame(gone)}["/nwr/people"].data)
+    assert len(people.deletions) == 1 and not people.entities
+
+
 def test_skin_channel_has_a_property_per_pad_of_the_robot():
     assert c.ViewCore(DESC, MODEL).channels == CHANNELS
     assert {s.topic for s in c.channel_specs(["a", "b"])} == {s.topic for s in CHANNELS} == c.VIEW_TOPICS

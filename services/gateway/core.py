@@ -368,7 +368,8 @@ def touch_message(seq: int, stamp_ns: int, origin_ns: int, active: ActiveTouch, 
         normal=active.normal.tolist() if known and active.normal is not None else None,
         q=[float(x) for x in q] if known and q is not None else None,
         pose_stamp_ns=pose_stamp_ns if known else 0,
-        closed_loop=touches.closed_loop, depth_m=touches.depth_m,
+        closed_loop=touches.closed_loop, depth_m=touches.depth_m, follow_m_s=touch.follow_m_s,
+        body_area=touch.body_area,
     )
 
 

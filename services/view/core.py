@@ -18,6 +18,15 @@ Channels (see :func:`channel_specs`):
 - ``/nwr/pads``, ``/nwr/contact``, ``/nwr/reflex``: ``foxglove.SceneUpdate``
   of the pads (a patch per pad coloured by its gain, ringed by its LEDs), the
   contact arrow and the reflex's ghost;
+- ``/nwr/people``: ``foxglove.SceneUpdate`` of a physics world's body parts
+  on the arm (``world/contacts``): per body part and pad it touches, a
+  sphere at the contact and an arrow of the force on the person (from the
+  arm into them, :data:`FORCE_ARROW_M_PER_N`). The message names the pads a
+  part touches, not where on them: the contact is drawn at the pad's point,
+  where the world's touch-script fingers press; a part across several pads
+  has its force split evenly among them. Contacts older than
+  :data:`PEOPLE_STALE_NS` are gone (the world publishes them only while a
+  body part is in it);
 - ``/nwr/skin``, ``/nwr/planner``, ``/nwr/robot``, ``/nwr/onset``: JSON with a
   JSON Schema, for plots and state-transition panels. Each schema is in the
   form Foxglove's and Lichtblick's loader takes (every property typed, objects
@@ -74,6 +83,8 @@ NEUTRAL: RGBA = (0.72, 0.74, 0.77, 1.0)  # a pad with G = 0
 LED_IDLE: RGBA = (0.10, 0.35, 1.00, 1.0)  # AIRSKIN LEDs in the study: blue...
 LED_TARGET: RGBA = (1.00, 0.05, 0.05, 1.0)  # ...and red on the pad to touch
 GHOST: RGBA = (0.20, 0.85, 1.00, 0.35)
+PERSON: RGBA = (0.95, 0.75, 0.60, 1.0)  # a body part's contact
+FORCE: RGBA = (0.85, 0.10, 0.75, 1.0)  # the force on it
 TUBE_RGBA = "0.80 0.82 0.85 1"
 HOUSING_RGBA = "0.35 0.38 0.42 1"
 
@@ -87,6 +98,10 @@ ARROW_HEAD_FRACTION = 0.3
 ARROW_SHAFT_DIAMETER_M = 0.015
 ARROW_HEAD_DIAMETER_M = 0.04
 GHOST_LINE_M = 0.05
+FORCE_ARROW_M_PER_N = 0.004  # a force arrow's length per newton on the person (a finger's 25 N: 10 cm)...
+FORCE_ARROW_MAX_M = 0.3  # ...at most (75 N and more)
+PERSON_SPHERE_M = 0.018  # a contact's sphere: a fingertip's width
+PEOPLE_STALE_NS = 200_000_000  # world/contacts older than this show nobody (they come at the skin's rate)
 GHOST_JOINT_M = 0.09
 # Visual geometry of the generated URDF: every pad sits on an air cushion
 # this thick; a link with no pad on its side gets this radius.
@@ -190,6 +205,33 @@ def contact_arrow(patch: PadPatch, gain: float, max_length_m: float = ARROW_MAX_
         return None
     length = max_length_m * min(float(gain), 1.0)
     return Arrow(patch.link, patch.point + length * patch.normal, -patch.normal, length, gain_color(gain))
+
+
+@dataclass(frozen=True)
+class PersonMark:
+    """A body part on a pad: where it touches (the pad's point, link frame) and the force on it (N), as an arrow
+    from the contact out along the pad's normal (from the arm into the person)."""
+
+    name: str
+    kind: str
+    pad: int
+    force_n: float
+    point: np.ndarray
+    arrow: Arrow | None
+
+
+def person_marks(patches: Sequence[PadPatch], contacts: m.WorldContacts) -> list[PersonMark]:
+    """The body parts of ``contacts`` on the pads they touch (a part touching none is not drawn)."""
+    marks = []
+    for person in contacts.people:
+        pads = [p for p in person.pads if 0 <= p < len(patches)]
+        for pad in pads:
+            patch = patches[pad]
+            force = float(person.force_n) / len(pads)
+            length = min(FORCE_ARROW_M_PER_N * force, FORCE_ARROW_MAX_M)
+            arrow = Arrow(patch.link, patch.point.copy(), patch.normal.copy(), length, FORCE) if length > 0 else None
+            marks.append(PersonMark(person.name, person.kind, pad, force, patch.point.copy(), arrow))
+    return marks
 
 
 # -- URDF and transforms -----------------------------------------------------------
@@ -403,6 +445,8 @@ class Frame:
     ghost: Ghost | None
     # Plottable JSON messages due with this frame: (topic, message).
     signals: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    # A physics world's body parts on the arm.
+    people: list[PersonMark] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -433,6 +477,7 @@ class ViewCore:
         self.pressure: m.SkinPressure | None = None
         self.pain: m.SkinPain | None = None
         self.statuses: dict[str, m.PlannerStatus] = {}
+        self.contacts: m.WorldContacts | None = None
         # What was already published, so that event-like signals go out once.
         self._skin_sent: tuple[int, int] | None = None
         self._status_sent: dict[str, int] = {}
@@ -449,6 +494,8 @@ class ViewCore:
                 self.pain = message
             case m.PlannerStatus():
                 self.statuses[message.name] = message
+            case m.WorldContacts():
+                self.contacts = message
             case _:
                 pass
 
@@ -482,6 +529,9 @@ class ViewCore:
             contact_pad = strongest.pad if contact is not None else -1
         ghost = reflex_ghost(self.model, status, q) if status is not None else None
         frame = Frame(now_ns, q, transforms, pads, contact, contact_pad, ghost)
+        contacts = self.contacts
+        if contacts is not None and now_ns - contacts.stamp_ns <= PEOPLE_STALE_NS:
+            frame.people = person_marks(self.patches, contacts)
         self._signals(frame, state, pressure, pain, status)
         return frame
 
@@ -579,6 +629,8 @@ def channel_specs(pad_names: Sequence[str]) -> tuple[ChannelSpec, ...]:
         _protobuf("/nwr/pads", SceneUpdate, "pads coloured by gain, LED rings (red: the study's target)"),
         _protobuf("/nwr/contact", SceneUpdate, "the strongest contact: an arrow into the pad, length ~ gain"),
         _protobuf("/nwr/reflex", SceneUpdate, "the reflex's planned end (ghost arm or Cartesian displacement)"),
+        _protobuf("/nwr/people", SceneUpdate,
+                  "a physics world's body parts on the arm: a sphere per contact, an arrow of the force on the person"),
         ChannelSpec("/nwr/skin", "json", "nwr.view.Skin", "jsonschema", _object({
             "pressure_seq": {"type": "integer"}, "pain_seq": {"type": "integer"}, "stamp_ns": {"type": "integer"},
             "change_hpa": _per_pad(pad_names, "number"), "level": _per_pad(pad_names, "integer"),
@@ -704,6 +756,20 @@ def encode_frame(frame: Frame) -> list[Output]:
         out.append(Output("/nwr/reflex", t, SceneUpdate(entities=[entity]).encode()))
     else:
         out.append(Output("/nwr/reflex", t, _delete_all(stamp).encode()))
+    people = [SceneEntity(
+        timestamp=stamp, frame_id=mark.arrow.frame if mark.arrow else frame.pads[mark.pad].patch.link,
+        id=f"person/{mark.name}/{frame.pads[mark.pad].patch.name}", frame_locked=True,
+        metadata=[KeyValuePair(key="person", value=mark.name), KeyValuePair(key="kind", value=mark.kind),
+                  KeyValuePair(key="pad", value=frame.pads[mark.pad].patch.name),
+                  KeyValuePair(key="force_n", value=f"{mark.force_n:.2f}")],
+        spheres=[SpherePrimitive(pose=_pose(mark.point, _IDENTITY), size=_v(np.full(3, PERSON_SPHERE_M)),
+                                 color=_c(PERSON))],
+        arrows=[_arrow(mark.arrow)] if mark.arrow is not None else [],
+    ) for mark in frame.people]
+    # Each frame replaces the last one's people (deletions apply before entities: a part that left is gone).
+    update = SceneUpdate(deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)],
+                         entities=people)
+    out.append(Output("/nwr/people", t, update.encode()))
     return out
 
 

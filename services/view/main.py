@@ -52,7 +52,8 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
     try:
         with Node("view", profile.robot.name, profile.zenoh, door=Door.of(profile)) as node:
             node.install_signal_handlers()
-            for relative in (keys.ROBOT_STATE, keys.SKIN_PRESSURE, keys.SKIN_PAIN, keys.planner_status("*")):
+            for relative in (keys.ROBOT_STATE, keys.SKIN_PRESSURE, keys.SKIN_PAIN, keys.planner_status("*"),
+                             keys.WORLD_CONTACTS):
                 node.subscribe(relative, core.apply)  # stores the newest message, nothing more
             log.info("serving %s at up to %.0f Hz on ws://%s:%d (open it in Foxglove: Open connection)",
                      profile.robot.name, args.rate, args.host, view.port)

@@ -23,8 +23,19 @@ same world, bit for bit.
   that stays put (:meth:`PhysicsWorld.force_for_pressure`, following the
   script's profile: a ramp's target moves deeper step by step), and stays
   where its owner holds it: a pad that moves into it presses harder, one
-  that withdraws loses it. At the touch's end its target moves off the pad
-  (:data:`LIFT_M`), and the finger leaves the world :data:`LINGER_S` later.
+  that withdraws loses it. A touch with ``follow_m_s`` (a finger that
+  follows the arm) is held on the pad instead: the point its owner holds it
+  at (its *anchor*) moves toward where it would rest on the pad now, along
+  the pad's normal now, at most ``follow_m_s`` per second (a person's hand
+  keeping up with a moving surface; :data:`~nwr.common.launch.MAX_FOLLOW_M_S`
+  at most), so that the script's force is applied however the task carries
+  the pad, a pad that moves into it faster than that presses harder, and
+  one that withdraws faster loses it. At the touch's end its target moves
+  off the pad (:data:`LIFT_M`; a following finger stops following), and the
+  finger leaves the world :data:`LINGER_S` later. A touch's ``body_area``
+  (the ISO/TS 15066 body area it names) is checked here and judged by in
+  the force figures (:func:`nwr.services.tools.recordings.analysis.world_figures`);
+  the world's finger stays a finger (its shape, mass and tissue spring).
 - **Outputs.** Each skin sample the world delivers (``world/skin``, the
   device's absolute pressures) and, while any body part is in the world,
   their contact figures (``world/contacts``), stamped with the bridge time
@@ -42,10 +53,10 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
-from nwr.common.launch import Touch, TouchScript
+from nwr.common.launch import MAX_FOLLOW_M_S, Touch, TouchScript
 from nwr.common.robot import RobotDescription
 from nwr.services.gateway.core import touch_profile
-from nwr.services.worlds.people import KINDS
+from nwr.services.worlds.people import ISO_TS_15066, KINDS
 from nwr.services.worlds.physics import BodyPart, PhysicsSettings, PhysicsWorld
 from nwr.services.worlds.skin import force_for_pressure
 
@@ -59,7 +70,8 @@ MAX_CATCH_UP_S = 0.05
 def touch_of(msg: m.SkinTouch) -> Touch:
     """The touch script's touch a ``skin/touch`` message carries."""
     return Touch(pad=msg.name, start_s=msg.start_s, duration_s=msg.duration_s, peak_hpa=msg.peak_hpa,
-                 shape=msg.shape, ramp_s=msg.ramp_s)
+                 shape=msg.shape, ramp_s=msg.ramp_s, follow_m_s=msg.follow_m_s,
+                 body_area=msg.body_area)
 
 
 def touch_end_s(touch: Touch) -> float:
@@ -78,6 +90,9 @@ def check_script(script: TouchScript, settings: PhysicsSettings, desc: RobotDesc
     limit_hpa = float(saturation * math.tanh(plausible / (area_m2 * 100.0 * saturation)))
     names = {p.name: p.id for p in desc.pads}
     for touch in script.touch:
+        if touch.body_area and touch.body_area not in ISO_TS_15066:
+            raise ConfigError(f"touch on {touch.pad} at {touch.start_s} s names body_area {touch.body_area!r}; "
+                              f"ISO/TS 15066's are {', '.join(ISO_TS_15066)}")
         if touch.pad not in names and not (touch.pad.isdigit() and int(touch.pad) < len(desc.pads)):
             raise ConfigError(f"touch script names pad {touch.pad!r}; the skin has {sorted(names)}")
         force = finger_force(touch.peak_hpa, settings)
@@ -114,7 +129,8 @@ def finger_force(change_hpa: float, settings: PhysicsSettings) -> float:
 
 @dataclass(eq=False)
 class _Finger:
-    """A touch's finger: the touch, its script clock's zero (bridge time), its part as it entered."""
+    """A touch's finger: the touch, its script clock's zero (bridge time), its part as it entered, where its
+    owner holds it (``anchor``: where it entered, or for a following finger where it caught up with the pad)."""
 
     name: str
     seq: int
@@ -123,6 +139,8 @@ class _Finger:
     part: BodyPart
     into: np.ndarray  # the direction it presses in (-normal of the pad)
     k: float
+    pad: int
+    anchor: np.ndarray
     peak_pushed: float = 0.0
     lifted: bool = False  # its touch has ended: its target is off the pad
 
@@ -130,11 +148,11 @@ class _Finger:
         return (bridge_ns - self.origin_ns) / 1e9
 
     def target(self, force_n: float) -> np.ndarray:
-        return np.asarray(self.part.position) + self.into * (force_n / self.k)
+        return self.anchor + self.into * (force_n / self.k)
 
     def pushed(self, at: np.ndarray) -> float:
-        """How far the arm pushed it back from where it entered, along the pad's outward normal, m."""
-        return float((np.asarray(self.part.position) - at) @ self.into)
+        """How far the arm pushed it back from where its owner holds it, along the pad's outward normal, m."""
+        return float((self.anchor - at) @ self.into)
 
 
 class HostedWorld:
@@ -160,6 +178,12 @@ class HostedWorld:
         if not 0 <= msg.pad < len(self.desc.pads):
             raise ConfigError(f"touch {msg.seq} on pad {msg.pad}: the skin has pads 0..{len(self.desc.pads) - 1}")
         touch = touch_of(msg)
+        if touch.body_area and touch.body_area not in ISO_TS_15066:
+            raise ConfigError(f"touch {msg.seq} on {msg.name}: body_area {touch.body_area!r} is none of ISO/TS "
+                              "15066's: not pressed")
+        if not 0.0 <= touch.follow_m_s <= MAX_FOLLOW_M_S:
+            raise ConfigError(f"touch {msg.seq} on {msg.name}: follow_m_s = {touch.follow_m_s}; expected 0 to "
+                              f"{MAX_FOLLOW_M_S} m/s (a hand's speed): not pressed")
         name = f"touch-{msg.seq}"
         if name in self.fingers:
             raise ConfigError(f"touch {msg.seq} is in the world already")
@@ -170,7 +194,8 @@ class HostedWorld:
                               f"force, beyond a finger's plausible push ({plausible:.0f} N): not pressed")
         part = self.world.press(name, msg.pad, max(peak, 1e-3))
         k = part.stiffness_n_m if part.stiffness_n_m is not None else self.settings.person_stiffness_n_m
-        finger = _Finger(name, msg.seq, touch, msg.origin_ns, part, np.asarray(part.facing, dtype=float), k)
+        finger = _Finger(name, msg.seq, touch, msg.origin_ns, part, np.asarray(part.facing, dtype=float), k,
+                         msg.pad, np.asarray(part.position))
         self.fingers[name] = finger
         self._aim(finger, now_ns)
         return part
@@ -237,5 +262,19 @@ class HostedWorld:
             finger.lifted = True
             self.world.retarget(finger.name, finger.target(-LIFT_M * finger.k))
         else:
+            if finger.touch.follow_m_s > 0.0:
+                self._follow(finger)
             force = finger_force(touch_profile(finger.touch, t), self.settings)
             self.world.retarget(finger.name, finger.target(force))
+
+    def _follow(self, finger: _Finger) -> None:
+        """A following finger's owner moves it on with the pad: its anchor toward where it rests on the pad now
+        (the pad's surface point, out along its normal by the finger's extent), at most ``follow_m_s`` per
+        step's time; it presses along the pad's normal now."""
+        point, normal = self.world.pad_surface(finger.pad)
+        rest = point + normal * KINDS[finger.part.kind].extent_m
+        gap = rest - finger.anchor
+        distance = float(np.linalg.norm(gap))
+        reach = finger.touch.follow_m_s * self.step_ns / 1e9
+        finger.anchor = rest if distance <= reach else finger.anchor + gap * (reach / distance)
+        finger.into = -normal

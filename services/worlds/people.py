@@ -23,9 +23,11 @@ maximum permissible quasi-static force and, per specific body area, the
 maximum permissible quasi-static pressure; transient contact (the body part
 can recoil) may reach twice both, except on the skull, forehead and face,
 where transient contact is not permitted. :data:`ISO_TS_15066` holds the
-table's values as widely reproduced from it, written down from memory: they
-were not checked against the standard's text here. Check them against the
-standard before quoting them in a risk assessment. The energy figure
+table's values from the data file ``data/iso_ts_15066.toml`` beside this module:
+written down as widely reproduced, each row compared with one or two public
+reproductions of the table (the file says which; all agree), but not with
+the standard's own text. Check them against the standard before quoting them
+in a risk assessment. The energy figure
 ``energy_j = F_T**2 / (2 k)`` is derived from the transient force limit and
 the region's effective spring constant (Table A.3), as ISO/TS 15066's
 transfer-energy relation does; it is not a quoted value.
@@ -34,7 +36,13 @@ transfer-energy relation does; it is not a quoted value.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Annotated, Literal
+
+import msgspec
+import msgspec.toml
+
+from nwr.common.errors import ConfigError
 
 Kind = Literal["finger", "palm", "forearm"]
 
@@ -56,6 +64,9 @@ class Region:
     transient_factor: float = 2.0
     spring_n_mm: float = 0.0
     mass_kg: float = 0.0
+    label: str = ""
+    # The public reproductions of the table its values were compared with (the data file's header).
+    checked: tuple[str, ...] = ()
 
     @property
     def transient_pressure_n_cm2(self) -> float:
@@ -74,42 +85,46 @@ class Region:
         return self.transient_force_n ** 2 / (2.0 * self.spring_n_mm * 1000.0)
 
 
+#: The data file of ISO/TS 15066's limits: a row per specific body area, each with the reproductions its values
+#: were compared with (its header says which).
+ISO_TS_15066_FILE = Path(__file__).with_name("data") / "iso_ts_15066.toml"
+
+
+class _Area(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    label: str
+    region: str
+    pressure_n_cm2: Annotated[float, msgspec.Meta(gt=0)]
+    force_n: Annotated[float, msgspec.Meta(gt=0)]
+    transient_factor: Annotated[float, msgspec.Meta(ge=0)] = 2.0
+    spring_n_mm: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+    mass_kg: Annotated[float, msgspec.Meta(ge=0)] = 0.0
+    checked: list[str] = []
+
+
+class _Table(msgspec.Struct, forbid_unknown_fields=True):
+    area: list[_Area]
+
+
+def load_limits(path: Path = ISO_TS_15066_FILE) -> dict[str, Region]:
+    """ISO/TS 15066's limits per specific body area, keyed by its short name, from the data file. ConfigError
+    naming the file for one that does not decode or names an area twice."""
+    try:
+        table = msgspec.toml.decode(path.read_bytes(), type=_Table)
+    except (OSError, msgspec.DecodeError) as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    out: dict[str, Region] = {}
+    for a in table.area:
+        if a.name in out:
+            raise ConfigError(f"{path}: body area {a.name!r} is given twice")
+        out[a.name] = Region(a.region, a.name, a.pressure_n_cm2, a.force_n, a.transient_factor, a.spring_n_mm,
+                             a.mass_kg, a.label, tuple(a.checked))
+    return out
+
+
 #: ISO/TS 15066:2016 Table A.2 (and A.3 where a body part uses it), one row per specific body area, keyed by a
-#: short name. D / ND: dominant / non-dominant hand.
-ISO_TS_15066: dict[str, Region] = {
-    r.area: r
-    for r in (
-        Region("skull and forehead", "forehead", 130.0, 130.0, transient_factor=0.0),
-        Region("skull and forehead", "temple", 110.0, 130.0, transient_factor=0.0),
-        Region("face", "masticatory_muscle", 110.0, 65.0, transient_factor=0.0),
-        Region("neck", "neck_muscle", 140.0, 150.0),
-        Region("neck", "seventh_neck_muscle", 210.0, 150.0),
-        Region("back and shoulders", "shoulder_joint", 160.0, 210.0),
-        Region("back and shoulders", "fifth_lumbar_vertebra", 210.0, 210.0),
-        Region("chest", "sternum", 120.0, 140.0),
-        Region("chest", "pectoral_muscle", 170.0, 140.0),
-        Region("abdomen", "abdominal_muscle", 140.0, 110.0),
-        Region("pelvis", "pelvic_bone", 210.0, 180.0),
-        Region("upper arms and elbow joints", "deltoid_muscle", 190.0, 150.0, spring_n_mm=30.0, mass_kg=3.0),
-        Region("upper arms and elbow joints", "humerus", 220.0, 150.0, spring_n_mm=30.0, mass_kg=3.0),
-        Region("lower arms and wrist joints", "radial_bone", 190.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
-        Region("lower arms and wrist joints", "forearm_muscle", 180.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
-        Region("lower arms and wrist joints", "arm_nerve", 180.0, 160.0, spring_n_mm=40.0, mass_kg=2.0),
-        Region("hands and fingers", "forefinger_pad_d", 300.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "forefinger_pad_nd", 270.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "forefinger_end_joint_d", 280.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "forefinger_end_joint_nd", 220.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "thenar_eminence", 200.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "palm_d", 260.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "palm_nd", 260.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "back_of_hand_d", 200.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("hands and fingers", "back_of_hand_nd", 190.0, 140.0, spring_n_mm=75.0, mass_kg=0.6),
-        Region("thighs and knees", "thigh_muscle", 250.0, 220.0),
-        Region("thighs and knees", "kneecap", 220.0, 220.0),
-        Region("lower legs", "middle_of_shin", 220.0, 130.0),
-        Region("lower legs", "calf_muscle", 210.0, 130.0),
-    )
-}
+#: short name (:data:`ISO_TS_15066_FILE`). D / ND: dominant / non-dominant hand.
+ISO_TS_15066: dict[str, Region] = load_limits()
 
 
 @dataclass(frozen=True)

@@ -316,12 +316,12 @@ def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:
 def world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
     """A physics world's measured figures per touch, from its body parts' contact figures (``world/contacts``):
     the peak contact force on the person (``peak_force_n``), the peak pressure, the energy put into them, how
-    far the arm pushed them back, and ISO/TS 15066's limits for the body area they are judged by (the kind of
-    body part's, :data:`nwr.services.worlds.people.KINDS`: a touch script's finger is the dominant hand's
-    forefinger pad). The body part is the one that stood for the scripted touch (``skin/touch``) met on the
-    touch's pad at its start (within 0.5 s, and its ramp). Touches of a recording without a physics world keep
-    None."""
-    from nwr.services.worlds.people import KINDS, region_of
+    far the arm pushed them back, and ISO/TS 15066's limits for the body area they are judged by (the one the
+    scripted touch names, ``body_area``, else the kind of body part's, :data:`nwr.services.worlds.people.KINDS`:
+    a touch script's finger is the dominant hand's forefinger pad). The body part is the one that stood for the
+    scripted touch (``skin/touch``) met on the touch's pad at its start (within 0.5 s, and its ramp). Touches of
+    a recording without a physics world keep None."""
+    from nwr.services.worlds.people import ISO_TS_15066, KINDS
 
     people: dict[int, list[m.WorldPerson]] = {}  # skin/touch seq -> its body part's figures, in time order
     for r in records:
@@ -343,8 +343,9 @@ def world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
         touch.peak_pressure_n_cm2 = max(p.peak_pressure_n_cm2 for p in seen)
         touch.energy_j = max(p.energy_j for p in seen)
         kind = seen[-1].kind
-        if kind in KINDS:
-            region = region_of(kind)
+        area = match.body_area if match.body_area in ISO_TS_15066 else KINDS[kind].area if kind in KINDS else ""
+        if area:
+            region = ISO_TS_15066[area]
             touch.body_area = region.area
             touch.force_limit_n, touch.pressure_limit_n_cm2 = region.force_n, region.pressure_n_cm2
             touch.transient_force_limit_n = region.transient_force_n

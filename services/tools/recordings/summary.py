@@ -74,7 +74,7 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
 def iso_notes(touches: list[Any]) -> list[str]:
     """A line per ISO/TS 15066 body area the physics world's touches were judged by: its limits, and the touches
     beyond them."""
-    from nwr.services.worlds.people import ISO_TS_15066
+    from nwr.services.worlds.people import ISO_TS_15066, KINDS
 
     notes = []
     for area in sorted({t.body_area for t in touches if t.body_area}):
@@ -84,8 +84,9 @@ def iso_notes(touches: list[Any]) -> list[str]:
         notes.append(f"of ISO limit: the larger of peak force and peak pressure as a share of ISO/TS 15066's "
                      f"quasi-static limits for {r.region}, {area.replace('_', ' ')} ({r.force_n:g} N, "
                      f"{r.pressure_n_cm2:g} N/cm^2; transient {r.transient_force_n:g} N, "
-                     f"{r.transient_pressure_n_cm2:g} N/cm^2; a touch script's fingers are judged as this area; "
-                     f"values unchecked against the standard's text, docs/worlds.md): "
+                     f"{r.transient_pressure_n_cm2:g} N/cm^2; a touch script's fingers are judged as "
+                     f"{KINDS['finger'].area.replace('_', ' ')} unless a touch names its body_area; values "
+                     f"compared with public reproductions of the table, not the standard's text, docs/worlds.md): "
                      + (f"{len(over)} of {len(mine)} touches beyond them" if over else f"all {len(mine)} within"))
     return notes
 
