@@ -58,8 +58,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.sparse import csr_array
-from scipy.sparse.csgraph import connected_components
 
 from nwr.common.errors import ConfigError
 from nwr.common.robot import (
@@ -86,8 +84,9 @@ _PATCH_KEYS = frozenset({"name", "region", "link", "axis_point", "axis", "ref", 
 _TAXEL_KEYS = frozenset({"patch", "region", "link", "point", "normal", "area_m2"})
 # Two taxels of one link nearer than this are one taxel entered twice.
 _SAME_POINT_M = 1e-4
-# A patch of more taxels than this is a unit slip (a pitch in mm).
-MAX_TAXELS = 20000
+# A skin of more taxels than this is a unit slip (a pitch in mm); the neighbour graph is an N x N matrix
+# (25 MB at this size).
+MAX_TAXELS = 5000
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,8 +109,8 @@ class TaxelSkin:
     points: np.ndarray
     normals: np.ndarray
     areas: np.ndarray
-    # The neighbour graph (taxels of one link nearer than neighbour_m), a symmetric boolean sparse matrix.
-    neighbours: csr_array
+    # The neighbour graph (taxels of one link nearer than neighbour_m), a symmetric boolean N x N matrix.
+    neighbours: np.ndarray
 
     def __len__(self) -> int:
         return len(self.areas)
@@ -240,29 +239,45 @@ def contacts(skin: TaxelSkin, pressure: np.ndarray, threshold: float) -> list[Ta
         pressing = np.flatnonzero(np.isfinite(pressure) & (pressure >= threshold))
     if pressing.size == 0:
         return []
-    sub = skin.neighbours[pressing][:, pressing]
-    count, labels = connected_components(sub, directed=False)
+    labels = _components(skin.neighbours[np.ix_(pressing, pressing)])
+    count = int(labels.max()) + 1
     p = pressure[pressing]
     weights = np.bincount(labels, weights=p, minlength=count)
     force = np.bincount(labels, weights=p * skin.areas[pressing], minlength=count) * skin.pa_per_unit
+    points = np.stack([np.bincount(labels, weights=p * skin.points[pressing, d], minlength=count)
+                       for d in range(3)], axis=1) / weights[:, None]
+    normals = np.stack([np.bincount(labels, weights=p * skin.normals[pressing, d], minlength=count)
+                        for d in range(3)], axis=1)
+    lengths = np.linalg.norm(normals, axis=1)
     found = []
     for cluster in np.argsort(-force, kind="stable"):
-        members = labels == cluster
-        taxels = pressing[members]
-        w = p[members]
-        point = (w @ skin.points[taxels]) / weights[cluster]
-        normal = w @ skin.normals[taxels]
-        length = float(np.linalg.norm(normal))
-        peak = int(np.argmax(w))
-        first = taxels[peak]
+        members = pressing[labels == cluster]
+        peak = int(members[np.argmax(pressure[members])])
+        patch = skin.patch_index[peak]
         found.append(TaxelContact(
-            link=skin.links[skin.link_index[first]], patch=skin.patches[skin.patch_index[first]],
-            region=skin.patch_regions[skin.patch_index[first]], taxels=tuple(int(t) for t in taxels),
-            force_n=float(force[cluster]), peak=float(w[peak]), peak_taxel=int(first), point=point,
+            link=skin.links[skin.link_index[peak]], patch=skin.patches[patch], region=skin.patch_regions[patch],
+            taxels=tuple(members.tolist()), force_n=float(force[cluster]), peak=float(pressure[peak]),
+            peak_taxel=peak, point=points[cluster],
             # Opposite normals cancel only on a cluster wrapped around a link thinner than neighbour_m: then
             # the peak taxel's normal.
-            normal=normal / length if length > 1e-9 else skin.normals[first].copy()))
+            normal=normals[cluster] / lengths[cluster] if lengths[cluster] > 1e-9 else skin.normals[peak].copy()))
     return found
+
+
+def _components(adjacent: np.ndarray) -> np.ndarray:
+    """Connected components of a symmetric boolean adjacency matrix: each node's label is the least index of
+    its component, relabelled 0..count-1 in order of those least indices (min-label propagation with pointer
+    jumping: a few numpy passes for a cluster under a finger)."""
+    k = len(adjacent)
+    labels = np.arange(k)
+    while True:
+        spread = np.where(adjacent, labels[None, :], k).min(axis=1)
+        new = np.minimum(labels, spread)
+        new = new[new]  # pointer jumping: a node takes its label's label
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return np.unique(labels, return_inverse=True)[1]
 
 
 def in_base(contact: TaxelContact, link_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -366,10 +381,8 @@ def _expand_patch(table: dict[str, Any], path: Path, where: str) -> tuple[np.nda
 
 
 def _neighbour_graph(points: np.ndarray, link_index: np.ndarray, neighbour_m: float, path: Path,
-                     patches: list[str], patch_index: np.ndarray) -> csr_array:
-    n = len(points)
-    rows: list[np.ndarray] = []
-    cols: list[np.ndarray] = []
+                     patches: list[str], patch_index: np.ndarray) -> np.ndarray:
+    graph = np.zeros((len(points), len(points)), dtype=bool)
     for link in np.unique(link_index):
         ids = np.flatnonzero(link_index == link)
         d = np.linalg.norm(points[ids, None, :] - points[None, ids, :], axis=2)
@@ -380,11 +393,9 @@ def _neighbour_graph(points: np.ndarray, link_index: np.ndarray, neighbour_m: fl
             raise ConfigError(f"{path}: taxels {a} (patch {patches[patch_index[a]]!r}) and {b} (patch "
                               f"{patches[patch_index[b]]!r}) are at one point {np.round(points[a], 4).tolist()}: "
                               "expected each taxel once")
-        i, j = np.nonzero(d < neighbour_m)
-        rows.append(ids[i])
-        cols.append(ids[j])
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    return csr_array((np.ones(len(r), dtype=bool), (r, c)), shape=(n, n))
+        graph[np.ix_(ids, ids)] = d < neighbour_m
+    graph.flags.writeable = False
+    return graph
 
 
 def _readonly_int(array: np.ndarray) -> np.ndarray:

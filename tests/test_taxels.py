@@ -42,7 +42,7 @@ def test_the_packaged_skin_is_300_taxels_on_its_tubes() -> None:
 
 
 def test_neighbours_are_symmetric_within_one_link_and_connect_each_patch() -> None:
-    graph = SKIN.neighbours.toarray()
+    graph = SKIN.neighbours
     assert np.array_equal(graph, graph.T) and not graph.diagonal().any()
     i, j = np.nonzero(graph)
     assert np.array_equal(SKIN.link_index[i], SKIN.link_index[j])
@@ -130,7 +130,7 @@ def test_explicit_taxels_extend_the_patches(tmp_path: Path) -> None:
     skin = load_taxel_skin(_bad(tmp_path, TEXT + TAXEL), DESC)
     assert len(skin) == 301 and skin.links[-1] == "shoulder_link" and skin.patches[-1] == "lid"
     assert skin.patch_regions[-1] == "shoulder" and skin.areas[-1] == 4e-4
-    assert skin.neighbours[[300]].nnz == 0
+    assert not skin.neighbours[300].any()
 
 
 # --------------------------------------------------------------------------- the simulated finger
@@ -249,3 +249,24 @@ def test_a_contacts_levels_come_from_its_force_and_the_skins_thresholds() -> Non
         gains.append(continuous_gain(contact.force_n, thresholds))
     assert levels == [1, 2, 3, 4, 4]
     assert gains[:2] == [0.0, 0.0] and 0.0 < gains[2] < 0.35 < gains[3] < 1.0 and gains[4] == 1.0
+
+
+def test_the_components_are_scipys_on_random_graphs_and_a_long_chain() -> None:
+    from scipy.sparse.csgraph import connected_components
+
+    from nwr.common.taxels import _components
+
+    rng = np.random.default_rng(7)
+    graphs = []
+    for size, density in [(1, 0.0), (2, 1.0), (5, 0.3), (40, 0.05), (300, 0.004), (300, 0.02)]:
+        upper = np.triu(rng.random((size, size)) < density, 1)
+        graphs.append(upper | upper.T)
+    chain = np.zeros((300, 300), dtype=bool)
+    order = rng.permutation(300)
+    chain[order[:-1], order[1:]] = True  # one path through every node, in a random order
+    graphs.append(chain | chain.T)
+    for graph in graphs:
+        count, expected = connected_components(graph, directed=False)
+        labels = _components(graph)
+        assert labels.max() + 1 == count
+        assert np.array_equal(labels, expected)
