@@ -39,7 +39,8 @@ Levels
 ------
 The paper's thresholds (2/6/12/20 hPa) are an AIRSKIN pad's air pressure: they mean nothing for a taxel.
 A taxel contact's pain level and gain come from the same functions of :mod:`nwr.services.gain.core` applied
-to its *force* (the sum of pressure x area over its cluster, N) and the skin file's ``force_thresholds_n``:
+to its *force* (the sum of pressure x area over its cluster, N) and the skin file's ``force_thresholds_n``
+(:attr:`TaxelSkin.level_thresholds_n`: a billionth under them, for the sum's rounding):
 a force is what a person feels and what a skin of any pitch measures alike. The AIRSKIN skin keeps the
 paper's values to the digit.
 
@@ -82,6 +83,9 @@ _SKIN_KEYS = frozenset({"unit", "neighbour_m", "force_thresholds_n"})
 _PATCH_KEYS = frozenset({"name", "region", "link", "axis_point", "axis", "ref", "radius", "along_m",
                          "angles_deg", "pitch_m"})
 _TAXEL_KEYS = frozenset({"patch", "region", "link", "point", "normal", "area_m2"})
+# The relative rounding of a contact's force (a sum of pressure x area over its taxels) that still reaches a
+# threshold.
+FORCE_ROUNDING = 1e-9
 # Two taxels of one link nearer than this are one taxel entered twice.
 _SAME_POINT_M = 1e-4
 # A skin of more taxels than this is a unit slip (a pitch in mm); the neighbour graph is an N x N matrix
@@ -118,6 +122,13 @@ class TaxelSkin:
     @property
     def pa_per_unit(self) -> float:
         return _PA_PER_UNIT[self.unit]
+
+    @property
+    def level_thresholds_n(self) -> tuple[float, ...]:
+        """The force thresholds a contact's level and gain are computed against: ``force_thresholds_n`` less
+        :data:`FORCE_ROUNDING` of each (a contact's force is a sum over its taxels: a finger pressing exactly
+        a threshold's force sums to within a few ulps either side of it, and must reach its level)."""
+        return tuple(t * (1.0 - FORCE_ROUNDING) for t in self.force_thresholds_n)
 
 
 @dataclass(frozen=True)

@@ -240,15 +240,16 @@ def test_a_contact_in_the_base_frame_is_its_link_frame_posed() -> None:
 
 
 def test_a_contacts_levels_come_from_its_force_and_the_skins_thresholds() -> None:
-    thresholds = SKIN.force_thresholds_n
+    thresholds = SKIN.level_thresholds_n
     levels, gains = [], []
-    for force in [0.2, 1.0, 3.0, 7.0, 12.0]:
+    for force in [0.2, 1.0, 3.0, 7.0, 12.0, *SKIN.force_thresholds_n]:
         pressure = finger_pressure(SKIN, "upper_arm_link", SKIN.points[52], 0.03, force)
         (contact,) = contacts(SKIN, pressure, 1e-6)
         levels.append(pain_level(contact.force_n, thresholds))
         gains.append(continuous_gain(contact.force_n, thresholds))
-    assert levels == [1, 2, 3, 4, 4]
-    assert gains[:2] == [0.0, 0.0] and 0.0 < gains[2] < 0.35 < gains[3] < 1.0 and gains[4] == 1.0
+    # A finger pressing exactly a threshold's force reaches its level, whatever the sum's rounding.
+    assert levels == [1, 2, 3, 4, 4, 2, 3, 4, 4]
+    assert gains[:2] == [0.0, 0.0] and 0.0 < gains[2] < 0.35 < gains[3] < 1.0 and gains[4] == gains[8] == 1.0
 
 
 def test_the_components_are_scipys_on_random_graphs_and_a_long_chain() -> None:
@@ -270,3 +271,67 @@ def test_the_components_are_scipys_on_random_graphs_and_a_long_chain() -> None:
         labels = _components(graph)
         assert labels.max() + 1 == count
         assert np.array_equal(labels, expected)
+
+
+# --------------------------------------------------------------------------- the scripted taxel skin
+
+
+def test_a_pads_change_maps_to_the_force_of_its_pain_level() -> None:
+    from nwr.services.gateway.taxels import force_of
+
+    pads_t, force_t = (2.0, 6.0, 12.0, 20.0), SKIN.force_thresholds_n
+    assert [force_of(p, pads_t, force_t) for p in (0.0, 1.0, 2.0, 4.0, 6.0, 12.0, 20.0)] == pytest.approx(
+        [0.0, 0.25, 0.5, 1.25, 2.0, 5.0, 10.0])
+    assert force_of(30.0, pads_t, force_t) == pytest.approx(10.0 + 10.0 * 5.0 / 8.0)  # the last slope on
+    rng = np.random.default_rng(11)
+    for change in rng.uniform(0.0, 40.0, 500):
+        assert pain_level(force_of(change, pads_t, force_t), force_t) == pain_level(change, pads_t)
+
+
+def test_every_packaged_script_presses_its_pads_levels_on_the_taxels_it_covers() -> None:
+    from nwr.common.launch import TouchScript, load_script
+    from nwr.services.gateway.taxels import ScriptedTaxels, covering_taxel
+
+    pads_t = (2.0, 6.0, 12.0, 20.0)
+    covered = {pad.name for pad in DESC.pads if covering_taxel(SKIN, pad) is not None}
+    assert covered == {"upper_arm_top", "upper_arm_bottom", "forearm_top", "forearm_bottom"}
+    checked = 0
+    for name in ["contacts", "demo", "slow-press", "survey", "two-fingers"]:
+        script = load_script(name)
+        mine = TouchScript(duration_s=script.duration_s, touch=[t for t in script.touch if t.pad in covered])
+        source = ScriptedTaxels(SKIN, DESC.pads, mine, pads_t)
+        for index, touch in enumerate(mine.touch):
+            peak_t = touch.start_s + touch.duration_s / 2 + (touch.ramp_s if touch.shape == "ramp" else 0.0)
+            found = contacts(SKIN, source.sample(peak_t), 1e-9)
+            ours = [c for c in found if source.taxels[index] in c.taxels]
+            assert len(ours) == 1, (name, index)
+            # Alone on its patch, the contact is the whole finger; with another touch under way nearby, more.
+            assert ours[0].force_n >= source.forces[index] * (1 - 1e-12)
+            assert ours[0].patch == touch.pad
+            if len(found) == 1 and ours[0].force_n == pytest.approx(source.forces[index]):
+                assert pain_level(ours[0].force_n, SKIN.level_thresholds_n) == pain_level(touch.peak_hpa, pads_t)
+                checked += 1
+            # Before and after the touch, nothing of it.
+            end = touch.start_s + touch.duration_s + (2 * touch.ramp_s if touch.shape == "ramp" else 0.0)
+            assert source.force(index, touch.start_s - 1e-6) == 0.0 == source.force(index, end + 1e-6)
+    assert checked > 20
+
+
+def test_a_script_touching_an_uncovered_pad_is_refused_by_name() -> None:
+    from nwr.common.launch import load_script
+    from nwr.services.gateway.taxels import ScriptedTaxels
+
+    with pytest.raises(ConfigError, match=r"touches pads \['elbow_outer', 'shoulder_outer', 'wrist_1', 'wrist_3'\]"):
+        ScriptedTaxels(SKIN, DESC.pads, load_script("demo"), (2.0, 6.0, 12.0, 20.0))
+
+
+def test_a_ramp_touch_follows_its_profile_on_the_taxels() -> None:
+    from nwr.common.launch import Touch, TouchScript
+    from nwr.services.gateway.taxels import ScriptedTaxels
+
+    script = TouchScript(duration_s=3.0, touch=[
+        Touch(pad="forearm_top", start_s=1.0, duration_s=0.5, peak_hpa=16.0, shape="ramp", ramp_s=0.2)])
+    source = ScriptedTaxels(SKIN, DESC.pads, script, (2.0, 6.0, 12.0, 20.0))
+    assert source.forces == [pytest.approx(7.5)]
+    totals = [source.sample(t) @ SKIN.areas * 1e3 for t in (0.99, 1.0, 1.1, 1.2, 1.45, 1.7, 1.8, 1.9)]
+    assert totals == pytest.approx([0.0, 0.0, 3.75, 7.5, 7.5, 7.5, 3.75, 0.0])
