@@ -12,6 +12,8 @@ times in one process (the medians of the rounds printed, and their ratio):
   (:func:`nwr.common.taxels.finger_pressure`), the sample's contacts (:func:`nwr.common.taxels.contacts`:
   clusters, centroids, normals) and each contact's level and gain from its force.
 - **taxels, untouched**: the same on a sample no taxel of which presses (the common case).
+- **scripted source**: the scripted taxel skin's sample (:class:`nwr.services.gateway.taxels.ScriptedTaxels`)
+  with the ``two-fingers`` script's two touches under way: what the gateway's Python adds to make one.
 
 The figures are CPU time of this one thread (``time.thread_time_ns``), not wall time, and leave out Zenoh's
 threads (put, receive), which :mod:`docs/performance.md`'s pipeline runs measure. The machine's load is
@@ -33,7 +35,9 @@ from nwr.common import messages as m
 from nwr.common.config import load_profile
 from nwr.common.robot import ROBOTS_DIR, load_description
 from nwr.common.taxels import contacts, finger_pressure, load_taxel_skin
+from nwr.common.launch import load_script
 from nwr.services.gain.core import GainEstimator, continuous_gain, pain_level
+from nwr.services.gateway.taxels import ScriptedTaxels
 
 # A taxel presses from this reading, kPa (a tenth of the lightest contact's force spread over a fingertip).
 PRESS_KPA = 0.05
@@ -83,7 +87,16 @@ def main() -> None:
             codec.encode(sample)
         return run
 
-    cases = {"pads": pads, "taxels": taxels(taxel_payload, 4.0), "taxels, untouched": taxels(untouched_payload, 0.0)}
+    profile = load_profile(None)
+    source = ScriptedTaxels(skin, desc.pads, load_script("two-fingers"), profile.gain.thresholds_hpa)
+    clock = [3.0]
+
+    def scripted() -> None:
+        clock[0] = 3.0 + (clock[0] - 3.0 + 1e-3) % 1.5  # within the two touches
+        source.sample(clock[0])
+
+    cases = {"pads": pads, "taxels": taxels(taxel_payload, 4.0), "taxels, untouched": taxels(untouched_payload, 0.0),
+             "scripted source": scripted}
     assert len(contacts(skin, touched, PRESS_KPA)) == 1
     rounds: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(args.rounds):
