@@ -335,3 +335,27 @@ def test_a_ramp_touch_follows_its_profile_on_the_taxels() -> None:
     assert source.forces == [pytest.approx(7.5)]
     totals = [source.sample(t) @ SKIN.areas * 1e3 for t in (0.99, 1.0, 1.1, 1.2, 1.45, 1.7, 1.8, 1.9)]
     assert totals == pytest.approx([0.0, 0.0, 3.75, 7.5, 7.5, 7.5, 3.75, 0.0])
+
+
+def test_contacts_partition_any_sample_into_its_components() -> None:
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        pressure = rng.exponential(0.3, len(SKIN)) * (rng.random(len(SKIN)) < rng.uniform(0.0, 0.6))
+        garbage = rng.random(len(SKIN)) < 0.02
+        pressure[garbage] = rng.choice([math.nan, math.inf, -math.inf, -5.0], int(garbage.sum()))
+        threshold = float(rng.uniform(0.01, 0.5))
+        found = contacts(SKIN, pressure, threshold)
+        pressing = np.flatnonzero(np.isfinite(pressure) & (pressure >= threshold))
+        # Every pressing taxel in exactly one contact, and the contacts are the graph's components.
+        assert sorted(t for c in found for t in c.taxels) == pressing.tolist()
+        count, labels = connected_components(SKIN.neighbours[np.ix_(pressing, pressing)], directed=False)
+        assert len(found) == count
+        for contact in found:
+            assert len(set(labels[np.searchsorted(pressing, contact.taxels)])) == 1
+            assert len({SKIN.link_index[t] for t in contact.taxels}) == 1
+            w = pressure[list(contact.taxels)]
+            assert contact.force_n == pytest.approx(float(w @ SKIN.areas[list(contact.taxels)]) * 1e3)
+            assert contact.peak == w.max() and np.linalg.norm(contact.normal) == pytest.approx(1.0)
+        assert [c.force_n for c in found] == sorted((c.force_n for c in found), reverse=True)
