@@ -253,6 +253,7 @@ def contacts(skin: TaxelSkin, pressure: np.ndarray, threshold: float) -> list[Ta
     labels = _components(skin.neighbours[np.ix_(pressing, pressing)])
     count = int(labels.max()) + 1
     p = pressure[pressing]
+    # Sequential sums (bincount), not a matrix product: the same bits on every machine, for nwr verify.
     weights = np.bincount(labels, weights=p, minlength=count)
     force = np.bincount(labels, weights=p * skin.areas[pressing], minlength=count) * skin.pa_per_unit
     points = np.stack([np.bincount(labels, weights=p * skin.points[pressing, d], minlength=count)
@@ -288,7 +289,8 @@ def _components(adjacent: np.ndarray) -> np.ndarray:
         if np.array_equal(new, labels):
             break
         labels = new
-    return np.unique(labels, return_inverse=True)[1]
+    roots = labels == np.arange(k)  # each component's least index labels it
+    return (np.cumsum(roots) - 1)[labels]
 
 
 def in_base(contact: TaxelContact, link_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
