@@ -33,9 +33,9 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import load_profile
+from nwr.common.launch import load_script
 from nwr.common.robot import ROBOTS_DIR, load_description
 from nwr.common.taxels import contacts, finger_pressure, load_taxel_skin
-from nwr.common.launch import load_script
 from nwr.services.gain.core import GainEstimator, continuous_gain, pain_level
 from nwr.services.gateway.taxels import ScriptedTaxels
 
