@@ -131,10 +131,11 @@ class TaxelSkin:
         return tuple(t * (1.0 - FORCE_ROUNDING) for t in self.force_thresholds_n)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TaxelContact:
     """One touched cluster: its taxels, force, peak, pressure-weighted centroid and mean outward normal in
-    the frame of its link; ``peak_taxel`` is the id of its most pressed taxel."""
+    the frame of its link; ``peak_taxel`` is the id of its most pressed taxel. Compared by identity, as
+    :class:`~nwr.common.robot.Pad` (numpy fields)."""
 
     link: str
     patch: str
