@@ -485,21 +485,26 @@ def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(point - (a + t * ab)))
 
 
+def link_offset(model: pin.Model, link: str, point: np.ndarray) -> float:
+    """How far ``point`` (m, in the frame of ``link``) is from the link's skeleton: the segments from the
+    link's origin to the joints it carries and the links fixed to it."""
+    frame = model.frames[model.getFrameId(link)]
+    joint = frame.parentJoint
+    # In the frame of the joint that moves the link: the link's origin, the joints it carries and the
+    # links fixed to it.
+    ends = [model.jointPlacements[child].translation for child in range(1, model.njoints)
+            if model.parents[child] == joint]
+    ends += [other.placement.translation for other in model.frames
+             if other.parentJoint == joint and other.type == pin.FrameType.BODY]
+    origin = frame.placement.translation
+    at = frame.placement.act(np.asarray(point, dtype=float))
+    return min([_segment_distance(at, origin, end) for end in ends], default=float(np.linalg.norm(at - origin)))
+
+
 def _check_pads_on_links(model: pin.Model, pads: tuple[Pad, ...], skin_path: Path) -> None:
     """Every pad's point within :data:`MAX_PAD_OFFSET_M` of its link's skeleton; else ConfigError naming it."""
     for pad in pads:
-        frame = model.frames[model.getFrameId(pad.link)]
-        joint = frame.parentJoint
-        # In the frame of the joint that moves the link: the link's origin, the joints it carries and the
-        # links fixed to it.
-        ends = [model.jointPlacements[child].translation for child in range(1, model.njoints)
-                if model.parents[child] == joint]
-        ends += [other.placement.translation for other in model.frames
-                 if other.parentJoint == joint and other.type == pin.FrameType.BODY]
-        origin = frame.placement.translation
-        point = frame.placement.act(pad.point)
-        offset = min([_segment_distance(point, origin, end) for end in ends], default=float(np.linalg.norm(
-            point - origin)))
+        offset = link_offset(model, pad.link, pad.point)
         if offset > MAX_PAD_OFFSET_M:
             raise ConfigError(
                 f"{skin_path}: pad {pad.name!r}: point = {pad.point.tolist()} is {offset:.3f} m from link "
