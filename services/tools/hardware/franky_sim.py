@@ -21,16 +21,16 @@ import gc
 import logging
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from nwr.common.pacing import realtime
 from nwr.common.robot import load_description
+from nwr.services.tools.hardware import stand_in
 
 log = logging.getLogger(__name__)
 
@@ -61,33 +61,10 @@ def home(hostname: str, q_home: np.ndarray) -> float:
         gc.collect()  # franky closes the connection when its robot is destroyed: the bridge connects next
 
 
-@contextlib.contextmanager
-def simulator_process(log_path: Path, *args: str) -> Iterator[subprocess.Popen[str]]:
+def simulator_process(log_path: Path, *args: str) -> contextlib.AbstractContextManager[subprocess.Popen[str]]:
     """``python -m nwr.services.tools.hardware.franky_sim ARGS`` in a process of its own, ready (it printed
-    ``ready``: the server accepts connections, the arm at home), then ended (SIGTERM, SIGKILL after 10 s; a
-    caller may have killed it already). Its log goes to ``log_path``; a simulator that does not come up raises
-    RuntimeError with the log's tail."""
-    with open(log_path, "w") as log:  # its log: a pipe nobody drains would block it
-        process = subprocess.Popen([sys.executable, "-m", "nwr.services.tools.hardware.franky_sim", *args],
-                                   stdout=subprocess.PIPE, stderr=log, text=True)
-        try:
-            assert process.stdout is not None
-            line = process.stdout.readline()
-            if not line.startswith(f"ready {HOST}"):
-                log.flush()
-                raise RuntimeError(f"franky-sim did not start ({line.strip() or 'no ready line'}): "
-                                   f"{Path(log_path).read_text()[-2000:]}")
-            yield process
-        finally:
-            if process.poll() is None:
-                process.terminate()
-                try:
-                    process.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
-            if process.stdout is not None:
-                process.stdout.close()
+    ``ready``: the server accepts connections, the arm at home), then ended (:func:`..hardware.stand_in`)."""
+    return stand_in("nwr.services.tools.hardware.franky_sim", log_path, *args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
