@@ -241,3 +241,40 @@ def test_a_session_of_two_hands_and_touches_on_the_way_back(tmp_path: Path, caps
             # A touch felt while another withdrawal moves the arm at speed: that motion brakes first.
             allowed = 0.015 if first.phase == "REFLEX" else 0.005
             assert approach.max() <= allowed, (touch.name, approach.max())
+
+
+class _Line:
+    """A one-joint arm whose only pad sits at x = q[0] (m) and faces +x: depth past a touch is plain arithmetic."""
+
+    @staticmethod
+    def pad_point(q: np.ndarray, pad: int) -> np.ndarray:
+        return np.array([q[0], 0.0, 0.0])
+
+    @staticmethod
+    def pad_normal(q: np.ndarray, pad: int) -> np.ndarray:
+        return np.array([1.0, 0.0, 0.0])
+
+
+def _past_after_mm(xs_during: list[float], xs_after: list[float]) -> tuple[float, float]:
+    """``pressed_toward_mm`` and ``past_after_mm`` of a touch from 0 to 1 s on the one-joint arm at these pad
+    positions (mm; states every 10 ms, the touch's onset at 0)."""
+    xs = [0.0, *xs_during, *xs_after]
+    t = np.array([10_000_000 * i for i in range(len(xs))], dtype=np.int64)
+    touch = analysis.TouchSummary(0, "pad", "region", 0, int(t[len(xs_during)]), 0, 0, 10.0)
+    analysis._contact_figures(touch, _Line(), t, np.array([[x / 1e3] for x in xs]))  # type: ignore[arg-type]
+    assert touch.pressed_toward_mm is not None and touch.past_after_mm is not None
+    return touch.pressed_toward_mm, touch.past_after_mm
+
+
+def test_a_pad_left_where_the_touch_pushed_it_is_not_back_past_it() -> None:
+    # Carried 17.6 mm into a finger while it pressed (braking a withdrawal already under way), still there when
+    # the touch ends, then away to 4.4 mm and a return to 4.7 mm: the way back takes it 0.3 mm further in.
+    pressed, past_after = _past_after_mm([8.6, 14.6, 17.5, 17.6], [17.6, 17.6, 14.3, 4.4, 4.4, 4.7, 3.0])
+    assert pressed == pytest.approx(17.6) and past_after == pytest.approx(0.3)
+
+
+def test_a_return_through_a_recent_touch_is_back_past_it() -> None:
+    # Withdrawn 50 mm, then a return 15 mm through where the touch was: 15 mm, however far it had withdrawn.
+    assert _past_after_mm([-20.0, -50.0], [-50.0, -20.0, 15.0, 10.0])[1] == pytest.approx(15.0)
+    # Left 5 mm in, then pushed 12 mm further in: the 12 mm count.
+    assert _past_after_mm([5.0], [5.0, 17.0])[1] == pytest.approx(12.0)

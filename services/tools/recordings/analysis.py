@@ -71,7 +71,9 @@ class TouchSummary:
     # Every touch, whichever reflex ran (a second hand's as well as the strongest's): its pad's furthest move
     # toward where the touch met it (along its normal there) while the touch lasted, mm; and, after the touch
     # ended, while it was recent (CONTACT_RECENT_S), the furthest the arm took the pad back past that place
-    # (within CONTACT_RADIUS_M of it across the normal: where the person was), mm (0: never past it).
+    # (within CONTACT_RADIUS_M of it across the normal: where the person was), mm (0: never past it), beyond the
+    # furthest out it had been since the touch ended (a pad the touch's own motion left past the place, and that
+    # stays there, counts in pressed_toward_mm only).
     pressed_toward_mm: float | None = None
     past_after_mm: float | None = None
     # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
@@ -365,12 +367,17 @@ def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray
     along = [float((model.pad_point(q, touch.pad) - p0) @ n0) for q in state_q[pressed]]
     touch.pressed_toward_mm = 1e3 * max([0.0, *along])
     after = (state_t > touch.end_ns) & (state_t <= touch.end_ns + round(CONTACT_RECENT_S * 1e9))
-    past = 0.0
+    # Back past: beyond the furthest out the pad has been since the touch ended (the contact point at most), so
+    # that a pad still where the touch's own motion left it (pressed_toward_mm) is not counted again.
+    past, out = 0.0, np.inf
     for q in state_q[after]:
         offset = model.pad_point(q, touch.pad) - p0
         depth = float(offset @ n0)
         if np.linalg.norm(offset - depth * n0) <= CONTACT_RADIUS_M:
-            past = max(past, depth)
+            out = min(out, max(depth, 0.0))
+            past = max(past, depth - out)
+        else:  # away from where the person was: coming back counts from the contact point
+            out = 0.0
     touch.past_after_mm = 1e3 * past
 
 
@@ -505,7 +512,7 @@ QUALITY_HEADER = ["strategy", "reflexes", f"pad toward >{APPROACH_MM:g} mm", "wo
 # peak jerk: the touched pad's, median over the touches (at the state rate); any touched pad toward: every touch
 # with a gain (a second hand's too, not only the reflex's), its pad moving toward where it was touched while the
 # touch lasted; back past a recent touch: the arm taking a touched pad back through where the touch had been, within
-# 3 s of its end.
+# 3 s of its end, beyond the furthest out it had been since that end.
 
 
 def quality_rows(rows: list[Quality]) -> list[list[str]]:
