@@ -757,7 +757,7 @@ def encode_frame(frame: Frame) -> list[Output]:
     else:
         out.append(Output("/nwr/reflex", t, _delete_all(stamp).encode()))
     people = [SceneEntity(
-        timestamp=stamp, frame_id=mark.arrow.frame if mark.arrow else frame.pads[mark.pad].patch.link,
+        timestamp=stamp, frame_id=frame.pads[mark.pad].patch.link,
         id=f"person/{mark.name}/{frame.pads[mark.pad].patch.name}", frame_locked=True,
         metadata=[KeyValuePair(key="person", value=mark.name), KeyValuePair(key="kind", value=mark.kind),
                   KeyValuePair(key="pad", value=frame.pads[mark.pad].patch.name),
