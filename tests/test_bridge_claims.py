@@ -118,6 +118,29 @@ def test_a_frozen_report_is_caught_within_the_frozen_time_while_the_commands_mov
     assert (k - 100) * DT <= StateBounds().frozen_s + 2 * DT
 
 
+def test_a_controller_clock_that_stands_still_is_caught_while_the_arm_is_commanded_nearly_still():
+    """Reports that stop coming (the stamp stands still) while the commands barely move: the frozen check cannot
+    tell, the controller's clock can: caught after STILL_CLOCK_FACTOR * frozen_s, never before."""
+    from nwr.services.bridge.checks import STILL_CLOCK_FACTOR
+    sc = check()
+    q, t, stamp = np.zeros(2), 0, 0.0
+    for _ in range(200):  # a still arm whose reports keep coming: believed, identical values and all
+        t += 2 * MS
+        stamp += DT
+        assert sc.observe(q, np.zeros(2), t, stamp) is None
+        sc.command("position", q, q, np.zeros(2), t)
+    limit = STILL_CLOCK_FACTOR * StateBounds().frozen_s
+    for k in range(1, 1000):  # the stream stops: the same report, its stamp with it
+        t += 2 * MS
+        why = sc.observe(q, np.zeros(2), t, stamp)
+        target = q + np.array([1e-6 * k, 0.0])  # 0.5 mrad/s: never the frozen check's 1 mrad in the limit
+        sc.command("position", target, target, np.array([5e-4, 0.0]), t)
+        if why is not None:
+            break
+    assert why is not None and "clock has stood" in why, why
+    assert limit - 2 * DT <= k * DT <= limit + 2 * DT
+
+
 def test_reports_that_arrive_late_then_in_a_burst_are_no_jump():
     """A client starved for 40 ms sees the same report again and again, then the newest: not a jump."""
     sc = check()

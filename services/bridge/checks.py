@@ -247,6 +247,10 @@ class Reach:
 
 # A report that stops changing is frozen once the commands have moved a joint this far since, rad.
 FROZEN_MOTION_RAD = 1e-3
+# A controller whose own clock (the reports' stamps) stands still this many times ``frozen_s`` has stopped
+# reporting, whatever the commands do (an arm commanded nearly still included); longer than the frozen check's
+# limit, so that a loaded machine's late report is no alarm.
+STILL_CLOCK_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
@@ -272,7 +276,8 @@ class StateCheck:
     description's ``v_max`` allows since the last report (plus ``jump_rad``)
     and change its speed no more than ``a_max`` allows (plus
     ``speed_jump_rad_s``), and change at all within ``frozen_s`` while the
-    commands move. :meth:`observe` returns why a report is not believed,
+    commands move; a controller that stamps its reports must advance its
+    clock within ``STILL_CLOCK_FACTOR * frozen_s``, moving or not. :meth:`observe` returns why a report is not believed,
     naming the joint and the size, or None.
     """
 
@@ -300,6 +305,8 @@ class StateCheck:
         self.last_stamp: float | None = None  # and the controller's time of it
         self.frozen_ns: int | None = None  # since when the reports have not changed
         self.frozen_at = q.copy()  # the commanded pose when they stopped changing
+        self.clock_stamp: float | None = None  # the controller's newest stamp
+        self.clock_ns = now_ns  # when it was first seen
 
     def _advance(self, now_ns: int) -> None:
         h = (now_ns - self.t_ns) / 1e9
@@ -376,6 +383,11 @@ class StateCheck:
                        "a frozen stream")
         else:
             self.frozen_ns = None
+        if stamp_s is not None and stamp_s != self.clock_stamp:
+            self.clock_stamp, self.clock_ns = stamp_s, now_ns
+        elif stamp_s is not None and why is None and (now_ns - self.clock_ns) / 1e9 >= STILL_CLOCK_FACTOR * b.frozen_s:
+            why = (f"the controller's clock has stood at {stamp_s:.3f} s for {(now_ns - self.clock_ns) / 1e6:.0f} ms "
+                   f"(limit {STILL_CLOCK_FACTOR * b.frozen_s * 1e3:.0f} ms): its reports have stopped")
         if why is None:
             error = np.abs(q - self.expected) - (b.error_rad + b.lag_s * self.speed)
             if (error > 0.0).any():
