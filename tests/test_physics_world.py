@@ -173,6 +173,36 @@ def test_the_skin_samples_at_its_rate_with_its_noise_and_latency() -> None:
     assert 1010.0 <= world.sampler.baseline_hpa.min() and world.sampler.baseline_hpa.max() <= 1016.0
 
 
+def test_a_sample_is_the_mean_of_its_period_so_a_contact_lost_for_one_step_dims_it_never_blanks_it() -> None:
+    from nwr.services.worlds.skin import SkinSampler
+
+    def run(mean: bool) -> list[float]:
+        sampler = SkinSampler(1, rate_hz=25.0, latency_s=0.0, noise_hpa=0.0, base_hpa=0.0, spread_hpa=0.0, seed=1,
+                              mean=mean)
+        got = []
+        for k in range(1, 201):  # 1 ms steps: a 4 hPa press that drops to 0 at every sample's own step
+            sample = sampler.observe(k * 1_000_000, np.array([0.0 if k % 40 == 0 else 4.0]))
+            if sample is not None:
+                got.append(float(sample.change_hpa[0]))
+        return got
+
+    assert run(mean=False) == [0.0] * 5  # the instant: blank at every sample, the touch split or lost
+    assert run(mean=True) == pytest.approx([4.0 * 39 / 40] * 5)
+
+
+def test_a_physics_journal_from_before_the_mean_is_verified_as_it_sampled() -> None:
+    from nwr.services.worlds.settings import journaled
+
+    old = {"bridge": {"backend": "physics", "plugins": {"physics": {"seed": 7}}}, "gateway": {"source": "physics"}}
+    assert journaled(old)["bridge"]["plugins"]["physics"] == {"seed": 7, "skin_sample": "instant"}
+    assert old["bridge"]["plugins"]["physics"] == {"seed": 7}  # the journal's own data untouched
+    assert journaled({"bridge": {"backend": "physics"}})["bridge"]["plugins"]["physics"]["skin_sample"] == "instant"
+    new = {"bridge": {"backend": "physics", "plugins": {"physics": {"skin_sample": "mean"}}}}
+    assert journaled(new) is new
+    scripted = {"bridge": {"backend": "sim", "plugins": {"physics": {}}}}
+    assert journaled(scripted) is scripted
+
+
 # ------------------------------------------------------------------------------ people
 
 

@@ -285,7 +285,7 @@ class PhysicsWorld:
         self._cushion_face_cm2 = (2.0 * s.cushion_half_width_m) ** 2 * 1e4
         self.sampler = SkinSampler(len(desc.pads), rate_hz=s.skin_rate_hz, latency_s=s.skin_latency_s,
                                    noise_hpa=s.skin_noise_hpa, base_hpa=s.skin_base_hpa,
-                                   spread_hpa=s.skin_spread_hpa, seed=s.seed)
+                                   spread_hpa=s.skin_spread_hpa, seed=s.seed, mean=s.skin_sample == "mean")
         self._pad_force = np.zeros(len(desc.pads))
         self._pressure = np.zeros(len(desc.pads))
         self._contacts: list[tuple[int, int, int, np.ndarray, np.ndarray, np.ndarray, float]] = []
@@ -342,8 +342,7 @@ class PhysicsWorld:
         self._time_ns = now_ns
         self._read_contacts()
         self._arm = self._arm_state()
-        if self.sampler.due(now_ns):
-            self.sampler.take(now_ns, self._pressure)
+        self.sampler.observe(now_ns, self._pressure)
 
     def run(self, q_command: Any, seconds: float, dq_command: Any = None) -> None:
         """Step for ``seconds`` (rounded to whole steps) with one command."""

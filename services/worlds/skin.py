@@ -28,7 +28,11 @@ Sampling
 --------
 :class:`SkinSampler` samples every pad at the skin's rate (AIRSKIN: about
 25 Hz) on the world's step clock (at the first step at or after each
-period; a period that is a whole number of steps gives an even rate), adds
+period; a period that is a whole number of steps gives an even rate): each
+sample the mean of the pressure over the steps since the last one (the
+device's averaging between readings: a contact lost for a step dims a
+sample, never blanks it), or the pressure at the sample's step
+(``mean=False``, as recordings made before the mean); it adds
 white noise (a seeded generator: the
 same seed gives the same noise), and delivers each sample ``latency_s``
 after it was taken, as absolute pressures over a per-pad no-contact
@@ -83,7 +87,7 @@ class SkinSampler:
     """Samples the pads at a fixed rate on the world's clock, with noise and latency; deterministic per seed."""
 
     def __init__(self, n_pads: int, *, rate_hz: float, latency_s: float, noise_hpa: float, base_hpa: float,
-                 spread_hpa: float, seed: int) -> None:
+                 spread_hpa: float, seed: int, mean: bool = True) -> None:
         self.period_ns = round(1e9 / rate_hz)
         self.latency_ns = round(latency_s * 1e9)
         self.noise_hpa = noise_hpa
@@ -94,6 +98,22 @@ class SkinSampler:
         self._next_ns = self.period_ns  # the first sample one period in
         self._seq = 0
         self._pending: deque[SkinSample] = deque()
+        self.mean = mean
+        self._sum = np.zeros(n_pads)  # the pressure summed over the steps since the last sample
+        self._steps = 0
+
+    def observe(self, now_ns: int, change_hpa: np.ndarray) -> SkinSample | None:
+        """The pads' pressure changes at one world step (every step, in order); the sample taken, if due."""
+        if self.mean:
+            self._sum += change_hpa
+            self._steps += 1
+        if not self.due(now_ns):
+            return None
+        if self.mean:
+            change_hpa = self._sum / self._steps
+            self._sum = np.zeros_like(self._sum)
+            self._steps = 0
+        return self.take(now_ns, change_hpa)
 
     def due(self, now_ns: int) -> bool:
         """Whether a sample is due at world time ``now_ns``."""
