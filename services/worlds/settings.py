@@ -94,8 +94,10 @@ def journaled(profile: Any) -> Any:
     bridge = profile.get("bridge") if isinstance(profile, dict) else None
     if not isinstance(bridge, dict) or bridge.get("backend") != "physics":
         return profile
-    plugins = bridge.get("plugins") if isinstance(bridge.get("plugins"), dict) else {}
-    table = plugins.get("physics") if isinstance(plugins.get("physics"), dict) else {}
+    plugins = bridge.get("plugins")
+    plugins = plugins if isinstance(plugins, dict) else {}
+    table = plugins.get("physics")
+    table = table if isinstance(table, dict) else {}
     if "skin_sample" in table:
         return profile
     return {**profile, "bridge": {**bridge, "plugins": {**plugins, "physics": {**table, "skin_sample": "instant"}}}}
