@@ -33,8 +33,8 @@ lint: $(BIN)/nwr   ## ruff (style, bugs, imports) and mypy (types) over the code
 test-fast: $(BIN)/nwr  ## the fast tests only
 	$(BIN)/python -m pytest -m "not slow and not e2e"
 
-bench: $(BIN)/nwr  ## measure the reflex path of the real pipeline (several minutes); writes bench/<time>/
-	$(BIN)/nwr bench
+bench: $(BIN)/nwr  ## measure the reflex path, pinned to two CPUs then unpinned, and judge the targets; writes bench/<time>/
+	$(BIN)/nwr bench --cpus 0-1 --also-unpinned
 
 bench-quick: $(BIN)/nwr  ## the benchmark's smoke run (81-132 s on the shared 2-core machine, load 2.7-4.3)
 	$(BIN)/nwr bench --quick

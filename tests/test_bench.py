@@ -23,6 +23,7 @@ from nwr.services.gateway.core import Gateway, SimSkin, sim_settings
 from nwr.services.tools.bench import core as bench_core
 from nwr.services.tools.bench import main as bench
 from nwr.services.tools.bench import ros1 as bench_ros1
+from nwr.services.tools.bench import targets
 
 DESC = load_description()
 MS = 1_000_000
@@ -204,7 +205,10 @@ def test_quick_bench_measures_every_configuration(tmp_path):
     assert result["machine"]["cores"] >= 1
     assert result["machine"]["pinned"] and result["machine"]["cpus"] == cpus
     summary = result["summary"]
-    assert len(summary) == 4
+    assert len(summary) == 5 and "idle 25 Hz embedded" in summary
+    idle = summary.pop("idle 25 Hz embedded")  # nobody touches the arm: its cost only
+    assert idle["latency_ms"]["onset"]["n"] == 0 and idle["cpu_percent_total"] > 0
+    assert set(idle["cpu_percent"]) >= {"gateway", "gain", "planner", "bridge", "recorder"}
     for name, s in summary.items():
         latency = s["latency_ms"]
         for metric in ("onset", "sample", "gateway->gain", "gain->planner", "planner->bridge",
@@ -240,6 +244,14 @@ def test_quick_bench_measures_every_configuration(tmp_path):
         assert "ROS 1 q100 p50" in proc.stdout and "ROS 1 q1 p50" in proc.stdout
     assert "Reflex onset against the baseline" in (out / "bench.md").read_text()
     assert result["recorder_soak"]["lost"] == 0
+    # The verdict on every target, from this run's figures: replay and verify timed on its own recording.
+    assert result["replay"]["replay_x"] > 1.0 and result["replay"]["verify_x"] > 1.0, result["replay"]
+    judged = {v.target: v for v in targets.verdicts(result)}
+    measured = [t for t, v in judged.items() if v.state != "NOT MEASURED"]
+    assert len(measured) >= 10, judged
+    assert all(v.state == "MET" or v.why for v in judged.values()), judged  # every miss says why
+    assert "The targets" in (out / "bench.md").read_text()
+    assert all(v.target in proc.stdout for v in judged.values())
 
 
 @pytest.mark.slow
@@ -289,3 +301,63 @@ def test_the_strategies_bench_times_every_reflex_cycle_against_the_cartesian_one
     for r in rows:
         assert 0 < r["cycle p50 us"] <= r["cycle p99 us"] <= r["cycle max us"]
         assert r["onset p50 us"] > 0 and r["p99 / period"] > 0
+
+
+def _summary(rate_hz: float, onset: tuple[float, float], hop: float, cores: float, cpu: dict[str, float],
+             overruns: int = 0, lost: float = 0.0, bare: float = 0.6) -> dict:
+    st = lambda p50, p99=float("nan"): {"n": 30, "p50": p50, "p90": p50, "p99": p99, "max": p99}  # noqa: E731
+    return {"rate_hz": rate_hz, "cpu_percent": cpu, "cpu_percent_total": sum(cpu.values()),
+            "latency_ms": {"onset": st(*onset), "planner->bridge: hop": st(hop), "planner->bridge: planning": st(0.1),
+                           "gateway->gain": st(0.2, 0.5), "gain->planner": st(0.2, 0.6),
+                           "planner->bridge": st(0.3, 9.0), "lower bound: onset": st(cores)},
+            "loops": {"bridge": {"ticks": 4096, "overruns": overruns}, "planner": {"ticks": 4096, "overruns": 0}},
+            "lost": {"robot/command/cartesian": lost, "skin/pressure": 0.0}, "bare": {"p50": bare, "p99": 3 * bare}}
+
+
+def test_the_targets_are_judged_on_the_runs_own_figures_and_every_miss_says_why():
+    services = {"gateway": 2.0, "gain": 1.0, "planner": 3.0, "bridge": 9.0, "recorder": 2.0}
+    good = {"machine": {"load_before": 0.4}, "ros1": {"ran": True},
+            "replay": {"session_s": 40.0, "replay_x": 60.0, "verify_x": 80.0, "start_s": 0.4},
+            "summary": {
+                "cartesian 25 Hz embedded": {**_summary(25.0, (1.0, 3.0), 0.25, 0.12, services),
+                                             "ros1 q1": {}, "ros1 q100": {}},
+                "cartesian 1 kHz embedded": _summary(1000.0, (1.2, 4.0), 0.3, 0.12,
+                                                     {**services, "bridge": 30.0, "gain": 20.0}),
+                "cartesian 25 Hz router": _summary(25.0, (1.3, 3.5), 0.3, 0.12, services, bare=0.9),
+                "idle 25 Hz embedded": _summary(25.0, (float("nan"), float("nan")), float("nan"), float("nan"),
+                                                {"gateway": 1.0, "bridge": 5.0, "planner": 1.0}),
+            }}
+    judged = targets.verdicts(good)
+    assert [v.state for v in judged].count("MET") == len(judged) - 1  # all but the taxel skin
+    assert next(v for v in judged if "taxel" in v.target).state == "NOT MEASURED"
+
+    bad = json.loads(json.dumps(good))
+    s = bad["summary"]
+    s["cartesian 25 Hz embedded"]["latency_ms"]["planner->bridge: hop"]["p50"] = 1.4  # waited for a cycle
+    s["cartesian 25 Hz embedded"]["latency_ms"]["lower bound: onset"]["p50"] = 0.29
+    s["cartesian 25 Hz embedded"]["loops"]["bridge"]["overruns"] = 3
+    s["cartesian 1 kHz embedded"]["latency_ms"]["onset"]["p99"] = 26.0
+    s["cartesian 1 kHz embedded"]["cpu_percent"]["planner"] = 70.0
+    s["cartesian 1 kHz embedded"]["cpu_percent_total"] = 140.0
+    s["cartesian 1 kHz embedded"]["lost"]["robot/command/cartesian"] = 2.0
+    s["idle 25 Hz embedded"]["cpu_percent"]["bridge"] = 16.6
+    s["idle 25 Hz embedded"]["cpu_percent_total"] = 18.6
+    s["cartesian 25 Hz router"]["latency_ms"]["onset"]["p50"] = 1.8
+    bad["replay"]["replay_x"] = 13.0
+    bad["machine"]["load_before"] = 3.5
+    judged = {v.target.split(" (")[0].split(":")[0]: v for v in targets.verdicts(bad)}
+    missed = {t: v for t, v in judged.items() if v.state == "MISSED"}
+    assert set(missed) == {"a reflex's first command acted on when it arrives", "the cores' per-sample time halved",
+                           "idle pipeline < 10 % of a core", "1 kHz skin", "zero overruns in a quiet demo",
+                           "overruns cost no command", "nwr replay --fast at 50x real time per session",
+                           "the router adds <= 0.5 ms"}, missed
+    assert all(v.why for v in missed.values())
+    assert "bridge 16.6 %" in judged["idle pipeline < 10 % of a core"].why
+    assert "planner->bridge 9.00 ms" in next(v.why for v in targets.verdicts(bad) if "onset p99" in v.target)
+    assert "not quiet (load 3.50)" in judged["zero overruns in a quiet demo"].why
+    assert "cartesian 1 kHz embedded: 2" in judged["overruns cost no command"].why
+
+    header, rows = targets.verdict_rows({"pinned": good, "unpinned": bad})
+    assert header[:4] == ["target", "pinned", "figure", "why (if missed)"] and header[4] == "unpinned"
+    assert len(rows) == len(targets.verdicts(good)) and {r[1] for r in rows} <= {"MET", "NOT MEASURED"}
+    assert targets.verdicts({})[0].state == "NOT MEASURED"  # an empty run judges nothing

@@ -44,6 +44,7 @@ import re
 import resource
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -67,6 +68,7 @@ from nwr.services.pipeline.supervisor import failed, spawn, stop_all, wait_for_r
 from nwr.services.recorder.disk import SessionRecorder
 from nwr.services.tools.bench import bare as bench_bare
 from nwr.services.tools.bench import ros1 as bench_ros1
+from nwr.services.tools.bench import targets as bench_targets
 from nwr.services.tools.bench.bare import proc_cost
 from nwr.services.tools.bench.core import (
     lower_bound,
@@ -112,6 +114,7 @@ def configurations(quick: bool, onsets: int) -> list[Config]:
             Config("cartesian 1 kHz embedded", "cartesian", 1000.0, "embedded", n, state_rate_hz=500.0),
             Config("cartesian 25 Hz router", "cartesian", 25.0, "router", n),
             Config("cartesian 1 kHz router", "cartesian", 1000.0, "router", n, state_rate_hz=500.0),
+            Config("idle 25 Hz embedded", "cartesian", 25.0, "embedded", 0, duration_s=6.0),
         ]
     return [
         Config("uniform 25 Hz embedded", "uniform", 25.0, "embedded", onsets),
@@ -293,6 +296,7 @@ def run_once(config: Config, rep: int, base_port: int, work: Path, profile: Prof
         "peak_rss_mb": rss,
         "loops": loops,
         "raw_ms": {"onset": traces.onset, "lower_bound_onset": lb_onset},
+        "recording": str(output), "script_s": duration,
     }
 
 
@@ -320,6 +324,26 @@ def chain_figures(run: bench_bare.BareRun) -> dict[str, float]:
     """A baseline chain's run as the bench reports it: latency p50/p99 (ms), samples lost, CPU %."""
     return {**bench_bare.percentiles(run.latency_ms), "lost": float(run.sent - run.received),
             "cpu_percent_total": run.cpu_percent_total}
+
+
+def replay_speed(recording: Path, strategy: str, session_s: float, work: Path) -> dict[str, Any]:
+    """``nwr replay --fast`` and ``nwr verify`` on a recording of the bench, each the whole command as a user runs
+    it (interpreter start included): how many times real time (``session_s`` / the command's wall time), and the
+    interpreter's start alone (``nwr --help``)."""
+    cli = [sys.executable, "-m", "nwr.services.cli", "--log-level", "WARNING"]
+
+    def timed(*argv: str) -> float:
+        t = time.perf_counter()
+        proc = subprocess.run([*cli, *argv], capture_output=True, text=True, timeout=600, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"nwr {' '.join(argv[:2])} exited {proc.returncode}: {proc.stderr.strip()[-300:]}")
+        return time.perf_counter() - t
+
+    start = timed("--help")
+    replay = timed("replay", str(recording), "--fast", "--reflex", strategy, "-o", str(work / "replayed.mcap"))
+    verify = timed("verify", str(recording))
+    return {"session_s": session_s, "replay_x": session_s / replay, "verify_x": session_s / verify,
+            "start_s": start}
 
 
 def _as_toml(data: dict[str, Any]) -> str:
@@ -602,6 +626,9 @@ def report_markdown(result: dict[str, Any]) -> str:
         markdown_table(cost_header, cost),
         "",
     ]
+    target_header, target_rows = bench_targets.verdict_rows({"this run": result})
+    lines += ["The targets (`nwr.services.tools.bench.targets`: each judged on this run's figures):", "",
+              markdown_table(target_header, target_rows), ""]
     for failure in result.get("failures", []):
         lines += [f"Failed: {failure['config']}, repetition {failure['rep'] + 1}: {failure['error']}", ""]
     soak = result.get("recorder_soak")
@@ -661,6 +688,13 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
                     result["failures"].append({"config": config.name, "rep": rep, "error": str(exc)})
                     continue
                 result["runs"].append(run)
+                if "replay" not in result and config.rate_hz == 25.0 and config.onsets and config.strategy == \
+                        "cartesian" and config.topology == "embedded":
+                    try:
+                        result["replay"] = replay_speed(Path(run["recording"]), config.strategy, run["script_s"],
+                                                        work)
+                    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+                        result["replay"] = {"error": f"timing the replay failed: {exc}"}
                 lat = run["latency_ms"]
                 print(f" {time.monotonic() - t:.0f} s: onset p99 {_f(lat['onset']['p99'])} ms "
                       f"({lat['onset']['n']}), sample p99 {_f(lat['sample']['p99'])} ms ({lat['sample']['n']}), "
@@ -703,7 +737,10 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     print(text_table(header, rows))
     print()
     print(text_table(cost_header, cost))
+    print()
+    print(text_table(*bench_targets.verdict_rows({"this run": result})))
     print(f"\nraw numbers: {out_dir / 'bench.json'}; table: {out_dir / 'bench.md'} ({result['elapsed_s']:.0f} s)")
+    result["output"] = str(out_dir)
     return result
 
 
@@ -738,10 +775,27 @@ def _jsonable(x: Any) -> Any:
 
 
 def _handler(args: argparse.Namespace) -> int:
-    result = run_bench(args)
-    unmatched = sum(s["matching"]["unmatched_samples"] for s in result["summary"].values())
-    if unmatched:
-        log.warning("%d skin samples had no decision of the active planner", unmatched)
+    if args.also_unpinned and not args.cpus:
+        raise ConfigError("--also-unpinned goes with --cpus: the pinned run first, then the same unpinned")
+    everything = os.sched_getaffinity(0)
+    base = Path(args.output) if args.output else Path("bench") / dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    pinned = argparse.Namespace(**{**vars(args), "output": str(base / "pinned")}) if args.also_unpinned else args
+    results = {f"pinned to CPU(s) {args.cpus}" if args.cpus else "this run": run_bench(pinned)}
+    if args.also_unpinned:
+        os.sched_setaffinity(0, everything)
+        unpinned = argparse.Namespace(**{**vars(args), "cpus": None, "output": str(base / "unpinned")})
+        print(f"\nthe same bench, unpinned (CPUs {sorted(everything)}):", flush=True)
+        results[f"unpinned ({len(everything)} CPUs)"] = run_bench(unpinned)
+        header, rows = bench_targets.verdict_rows(results)
+        print("\nthe targets, pinned and unpinned side by side:")
+        print(text_table(header, rows))
+        both = base / "targets.md"
+        both.write_text("# nwr bench: the targets, pinned and unpinned\n\n" + markdown_table(header, rows) + "\n")
+        print(f"\nside by side: {both}")
+    for result in results.values():
+        unmatched = sum(s["matching"]["unmatched_samples"] for s in result["summary"].values())
+        if unmatched:
+            log.warning("%d skin samples had no decision of the active planner", unmatched)
     return 0
 
 
@@ -768,6 +822,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cpus", metavar="LIST",
                    help="pin the bench and every process it starts to these CPUs (e.g. 0 or 0-1,4): what the "
                         "pipeline does with fewer cores than the machine has")
+    p.add_argument("--also-unpinned", action="store_true",
+                   help="with --cpus: the bench pinned into <output>/pinned, then the whole bench again unpinned "
+                        "into <output>/unpinned, and the targets of both side by side in <output>/targets.md; "
+                        "`make bench` does this")
     p.add_argument("--output", "-o", help="directory for bench.json and bench.md (default: bench/<time>/)")
     p.add_argument("--keep", action="store_true", help="keep every run's recording, logs and profile")
     p.add_argument("--tracking", action="store_true",
