@@ -245,7 +245,7 @@ def test_quick_bench_measures_every_configuration(tmp_path):
     assert "Reflex onset against the baseline" in (out / "bench.md").read_text()
     assert result["recorder_soak"]["lost"] == 0
     # The verdict on every target, from this run's figures: replay and verify timed on its own recording.
-    assert result["replay"]["replay_x"] > 1.0 and result["replay"]["verify_x"] > 1.0, result["replay"]
+    assert result["replay"].get("replay_x", 0) > 1.0 and result["replay"].get("verify_x", 0) > 1.0, result["replay"]
     judged = {v.target: v for v in targets.verdicts(result)}
     measured = [t for t, v in judged.items() if v.state != "NOT MEASURED"]
     assert len(measured) >= 10, judged
