@@ -49,7 +49,8 @@ def tables(block: str) -> list[tuple[list[str], list[dict[str, str]]]]:
         spans = [(0 if k == 0 else spans[k - 1][1], end) for k, (_, end) in enumerate(spans)]
         head = []
         j = i - 1
-        while j >= 0 and lines[j].strip() and not lines[j].startswith("Recording "):
+        # The header's lines, up to a blank line, the recording's line or a table's caption ("...:").
+        while j >= 0 and lines[j].strip() and not lines[j].startswith("Recording ") and not lines[j].endswith(":"):
             head.insert(0, lines[j])
             j -= 1
         headers = [" ".join(h[a:b].strip() for h in head if h[a:b].strip()) for a, b in spans]
@@ -73,7 +74,8 @@ def shape(block: str) -> dict[str, Any]:
         "tables": [header for header, _ in found],
         "touch columns": touch_header,
         "touches": [(t["pad"], t["PL"], t["reflex"]) for t in touches],
-        "fingers": [row.get("pad") for header, rows in found[1:] if "pad" in header for row in rows],
+        "fingers": [row["pad"] for header, rows in found[1:] if "pad" in header for row in rows
+                    if re.fullmatch(r"[\d.]+", row["t (s)"])],  # the rows, not the note under them
         "quality columns": quality_header,
         "quality rows": [q["strategy"] for q in quality],
         "first line": re.sub(r"\d+ messages", "N messages", block.splitlines()[0]),

@@ -191,8 +191,9 @@ def main() -> int:
                   f"{statistics.median(b[1] for b in bridge):.1f} ms, overruns "
                   f"{statistics.median(b[2] for b in bridge):.0f}; onset p50 "
                   f"{statistics.median(onset) if onset else float('nan'):.2f} ms; world time lost "
-                  f"{statistics.median(lost) if lost else 0.0:.3f} s; as expected {sum(r.as_expected for r in mine)}"
-                  f"/{len(mine)}; load {min(r.load[0] for r in mine):.1f}-{max(r.load[1] for r in mine):.1f}")
+                  f"{f'{statistics.median(lost):.3f} s' if lost else '- (no world)'}; as expected "
+                  f"{sum(r.as_expected for r in mine)}/{len(mine)}; load {min(r.load[0] for r in mine):.1f}-"
+                  f"{max(r.load[1] for r in mine):.1f}")
     return 0
 
 

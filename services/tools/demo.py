@@ -246,7 +246,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "recordings/<session>.mcap and print one row per touch.")
     add_launch_arguments(demo)
     demo.add_argument("--fast", action="store_true",
-                      help="no processes: the simulated skin, the cores and the simulated arm chained in this process "
-                           "on simulated time (lockstep), as fast as they go; deterministic")
+                      help="no processes: the world (skin and arm: physics or scripted), the cores and the bridge "
+                           "chained in this process on simulated time (lockstep), as fast as they go; deterministic")
     add_table_arguments(demo)
     demo.set_defaults(script="demo", handler=run_demo, default_world="physics")
