@@ -49,8 +49,9 @@ def test_scripted_session_end_to_end(tmp_path, pipeline: Pipeline, reflex):
     thread = threading.Thread(target=intruder, args=(stop, counts, pipeline.zenoh, reflex), daemon=True)
     thread.start()
     try:
-        proc = pipeline.run("demo", "--script", str(SHORT_SCRIPT), "--output", str(output), "--reflex", reflex,
-                            timeout_s=120)
+        # The scripted world: the peaks below are the script's (the physics world's: tests/test_physics_e2e.py).
+        proc = pipeline.run("demo", "--world", "scripted", "--script", str(SHORT_SCRIPT), "--output", str(output),
+                            "--reflex", reflex, timeout_s=120)
     finally:
         stop.set()
         thread.join(5)

@@ -142,8 +142,8 @@ def test_forged_status_on_the_embedded_network(tmp_path: Path, pipeline: Pipelin
     thread = threading.Thread(target=attacker, daemon=True)
     thread.start()
     try:
-        proc = pipeline.run("demo", "--script", str(_script(tmp_path)), "--planners", f"{ACTIVE},{STANDBY}",
-                            "--output", str(output), timeout_s=150)
+        proc = pipeline.run("demo", "--world", "scripted", "--script", str(_script(tmp_path)),
+                            "--planners", f"{ACTIVE},{STANDBY}", "--output", str(output), timeout_s=150)
     finally:
         stop.set()
         thread.join(5)

@@ -260,6 +260,54 @@ def test_a_launch_chooses_the_world_and_refuses_half_of_one_or_a_script_it_canno
         world_for(args(world="physics", script=str(hard)), Profile())
 
 
+def test_nwr_demo_runs_the_physics_world_by_default_and_says_where_it_cannot(tmp_path, caplog) -> None:
+    """`nwr demo` with no --world: the physics world; the scripted world, with a warning that says why, for the
+    scripted skin's closed loop, a robot without collision shapes or a script the physics world refuses;
+    silently for a backend given or a profile's arm or skin; `--world scripted` and `nwr up` as before."""
+    import logging
+
+    from nwr.common.config import load_profile
+    from nwr.services.cli import build_parser
+    from nwr.services.tools.demo import layout_for, world_for
+
+    parser = build_parser()
+
+    def world(*argv: str, profile: Profile | None = None) -> tuple[str, Profile, str]:
+        profile = profile or Profile()
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="nwr.services.tools.demo"):
+            got = world_for(parser.parse_args(list(argv)), profile)
+        return got, profile, caplog.text
+
+    got, profile, said = world("demo")
+    assert got == "physics" and (profile.bridge.backend, profile.gateway.source) == ("physics", "physics")
+    assert "`nwr demo`'s default" in said
+    assert world("demo", "--fast", "--script", "two-fingers")[0] == "physics"
+    assert layout_for(parser.parse_args(["demo"]), Profile(), None).bridge == ["--backend", "physics"]
+    for argv in (("demo", "--world", "scripted"), ("up",), ("demo", "--backend", "sim")):
+        got, profile, said = world(*argv)
+        assert (got, profile.bridge.backend, profile.gateway.source, said) == ("scripted", "sim", "sim", ""), argv
+    real = Profile()
+    real.bridge.backend = "ur_rtde"
+    assert world("demo", profile=real)[:2] == ("scripted", real) and real.bridge.backend == "ur_rtde"
+    ros = Profile()
+    ros.gateway.source = "ros2"
+    assert world("demo", profile=ros)[0] == "scripted" and ros.gateway.source == "ros2"
+
+    hard = tmp_path / "hard.toml"
+    hard.write_text('duration_s = 3.0\n[[touch]]\npad = "wrist_1"\nstart_s = 1.0\nduration_s = 0.5\npeak_hpa = 45.0\n')
+    for argv, profile, why in [(("demo", "--closed-loop"), None, "closed loop is the scripted world's"),
+                               (("demo", "--script", str(hard)), None, "beyond a finger's plausible push"),
+                               (("demo", "--fast"), load_profile("fr3"), "no collision shapes for the fr3")]:
+        got, profile, said = world(*argv, profile=profile)
+        assert got == "scripted" and profile.bridge.backend == "sim", argv
+        assert "WARNING" in said and "the scripted world" in said and why in said, (argv, said)
+    with pytest.raises(ConfigError, match="beyond a finger's plausible push"):
+        world("demo", "--world", "physics", "--script", str(hard))  # asked for: refused, never replaced
+    with pytest.raises(ConfigError, match="--closed-loop is the scripted world's"):
+        world("demo", "--world", "physics", "--closed-loop")
+
+
 def test_a_world_that_diverges_under_the_bridge_stops_the_arm_where_it_was_with_a_diagnostic(
         monkeypatch: pytest.MonkeyPatch) -> None:
     from nwr.common.clock import ManualClock

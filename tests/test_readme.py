@@ -1,9 +1,10 @@
 """The README's example of `nwr demo`'s output has the shape of what the command prints today.
 
 The example is written by ``scripts/readme_example.py`` from a live run. Here
-the same touch script runs in lockstep (seconds, not a minute), and its output
-goes through the same summary code: the tables' columns, one row per touch
-(pad, pain level, reflex or not) and the lines after them must be the README's.
+the same touch script runs in lockstep (seconds, not a minute) in the world
+``nwr demo`` chooses by default (the physics world), and its output goes
+through the same summary code: the tables' columns, one row per touch (pad,
+pain level, reflex or not) and the lines after them must be the README's.
 Latencies and distances differ from run to run, and lockstep measures no
 latency, so those are not compared.
 """
@@ -18,6 +19,8 @@ from typing import Any
 import pytest
 
 from nwr.common.config import load_profile
+from nwr.services.cli import build_parser
+from nwr.services.tools.demo import world_for
 from nwr.services.tools.recordings.replay import simulate
 from nwr.services.tools.recordings.summary import print_summary
 
@@ -46,7 +49,8 @@ def tables(block: str) -> list[tuple[list[str], list[dict[str, str]]]]:
         spans = [(0 if k == 0 else spans[k - 1][1], end) for k, (_, end) in enumerate(spans)]
         head = []
         j = i - 1
-        while j >= 0 and lines[j].strip() and not lines[j].startswith("Recording "):
+        # The header's lines, up to a blank line, the recording's line or a table's caption ("...:").
+        while j >= 0 and lines[j].strip() and not lines[j].startswith("Recording ") and not lines[j].endswith(":"):
             head.insert(0, lines[j])
             j -= 1
         headers = [" ".join(h[a:b].strip() for h in head if h[a:b].strip()) for a, b in spans]
@@ -61,11 +65,17 @@ def tables(block: str) -> list[tuple[list[str], list[dict[str, str]]]]:
 
 def shape(block: str) -> dict[str, Any]:
     """What a run of the demo's touch script prints, whatever the run's timings: the tables' columns, per touch its
-    pad, pain level and whether it caused a reflex, and the lines that do not depend on the run."""
-    (touch_header, touches), (quality_header, quality) = tables(block)
+    pad, pain level and whether it caused a reflex, the physics world's fingers (pads), the strategy's rows, and
+    the lines that do not depend on the run."""
+    found = tables(block)
+    touch_header, touches = found[0]
+    quality_header, quality = next(t for t in found[1:] if t[0][:1] == ["strategy"])
     return {
+        "tables": [header for header, _ in found],
         "touch columns": touch_header,
         "touches": [(t["pad"], t["PL"], t["reflex"]) for t in touches],
+        "fingers": [row["pad"] for header, rows in found[1:] if "pad" in header for row in rows
+                    if re.fullmatch(r"[\d.]+", row["t (s)"])],  # the rows, not the note under them
         "quality columns": quality_header,
         "quality rows": [q["strategy"] for q in quality],
         "first line": re.sub(r"\d+ messages", "N messages", block.splitlines()[0]),
@@ -76,6 +86,7 @@ def shape(block: str) -> dict[str, Any]:
 
 def test_the_readme_shows_what_nwr_demo_prints(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     profile = load_profile()
+    assert world_for(build_parser().parse_args(["demo", "--fast"]), profile) == "physics"  # `make demo`'s world
     path, _, _ = simulate(profile, "demo", profile.planner.strategy, tmp_path / "session.mcap")
     capsys.readouterr()
     assert print_summary(path, "demo", profile) == 0
@@ -88,6 +99,8 @@ def test_the_shape_tells_a_table_of_other_columns_or_touches_apart() -> None:
     shown = readme_example.readme_block((ROOT / "README.md").read_text(encoding="utf-8"))
     same = shape(shown)
     assert len(same["touch columns"]) >= 10 and len(same["touches"]) == 9 and same["quality rows"] == ["cartesian"]
+    assert same["fingers"] == [pad for pad, _, _ in same["touches"]]  # the physics world's table of its fingers
+    assert shape(shown.replace("forearm_top", "forearm_bot", 2))["fingers"] != same["fingers"]
     assert "withdrawal (mm)" in same["touch columns"] and "other pad closer (mm)" in same["touch columns"]
     fewer = shown.replace("no  ", "yes ", 1)
     assert shape(fewer)["touches"] != same["touches"]

@@ -322,8 +322,8 @@ def test_live_session_records_ground_truth_and_its_fast_replay_makes_the_same_de
     profile.write_text(f'[zenoh]\nbase_port = 18250\n[recorder]\ndirectory = "{tmp_path}"\n')
     cli = [sys.executable, "-m", "nwr.services.cli", "--profile", str(profile), "--log-level", "WARNING"]
     live = tmp_path / "live.mcap"
-    demo = subprocess.run([*cli, "demo", "--script", str(DATA / "short.toml"), "--reflex", "uniform", "-o", str(live)],
-                          capture_output=True, text=True, timeout=120)
+    demo = subprocess.run([*cli, "demo", "--world", "scripted", "--script", str(DATA / "short.toml"), "--reflex",
+                           "uniform", "-o", str(live)], capture_output=True, text=True, timeout=120)
     assert demo.returncode == 0, demo.stdout + demo.stderr
 
     records, _ = read_recording(live)

@@ -44,8 +44,8 @@ def test_switch_during_a_live_session(tmp_path, pipeline: Pipeline):
     thread = threading.Thread(target=switcher, args=(pipeline, stop, sent), daemon=True)
     thread.start()
     try:
-        proc = pipeline.run("demo", "--script", str(SCRIPT), "--planners", ",".join(ORDER), "--output", str(output),
-                            timeout_s=150)
+        proc = pipeline.run("demo", "--world", "scripted", "--script", str(SCRIPT), "--planners", ",".join(ORDER),
+                            "--output", str(output), timeout_s=150)
     finally:
         stop.set()
         thread.join(5)

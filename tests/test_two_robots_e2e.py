@@ -44,7 +44,8 @@ def test_two_robots_through_one_router_run_apart(tmp_path: Path) -> None:
         arms = {"arm-a": a, "arm-b": b}
         for robot, p in arms.items():
             robot_profile(p, robot, router_port)
-            p.start("demo", "demo", "--script", str(SHORT_SCRIPT), "-o", str(p.tmp / f"{robot}.mcap"), ends=True)
+            p.start("demo", "demo", "--world", "scripted", "--script", str(SHORT_SCRIPT),
+                    "-o", str(p.tmp / f"{robot}.mcap"), ends=True)
         # While both run: each robot's status names the other on the mesh.
         status = a.wait_until(
             lambda: (lambda r: r.stdout if "other robots on this mesh: arm-b" in r.stdout else None)(

@@ -131,8 +131,8 @@ def run_client(port: int, until: Any, timeout_s: float, script: Any = None) -> C
 def test_live_view_and_recording_playback(tmp_path, pipeline: Pipeline):
     recording = tmp_path / "session.mcap"
     port = free_port()
-    demo = pipeline.start("demo", "demo", "--script", str(SHORT_SCRIPT), "--output", str(recording), "--view",
-                          str(port), ends=True)
+    demo = pipeline.start("demo", "demo", "--world", "scripted", "--script", str(SHORT_SCRIPT), "--output",
+                          str(recording), "--view", str(port), ends=True)
     live = run_client(port, until=lambda: demo.poll() is not None, timeout_s=60.0)
     code = pipeline.wait("demo", 30)
     log = pipeline.log("demo")

@@ -1,10 +1,12 @@
 """Does the physics world run the demo in real time beside the services? The scripted and the physics world, alternated.
 
     .venv/bin/python scripts/benchmarks/world_real_time.py [--runs 3] [--script demo] [--keep DIR]
+        [--worlds scripted,physics] [--profile FILE]
 
-Each run is one live ``nwr demo [--world physics]`` (every service its own
-process, the bridge at 500 Hz), the two worlds alternated run by run (ABBA
-order, so a drift in the machine's load falls on both). Per run:
+Each run is one live ``nwr demo --world W`` (every service its own
+process, the bridge at 500 Hz; ``default``: no ``--world``, the demo's
+default), the two worlds alternated run by run (ABBA order, so a drift in
+the machine's load falls on both). Per run:
 
 - CPU per service (user + system, s, over the session): read from
   ``/proc/<pid>/stat`` of the demo's children every 0.2 s (the last reading
@@ -95,10 +97,11 @@ def world_lost_s(path: Path) -> float | None:
     return ((last.stamp_ns - first.stamp_ns) - (last.world_ns - first.world_ns)) / 1e9
 
 
-def run(world: str, script: str, out: Path) -> Run:
+def run(world: str, script: str, out: Path, profile: str | None = None) -> Run:
     result = Run(world, load=(os.getloadavg()[0], 0.0))
     path = out / f"{world}-{time.monotonic_ns()}.mcap"
-    command = [NWR, "demo", "--script", script, "--world", world, "-o", str(path), "--stop-on-exit"]
+    command = [NWR, *(("--profile", profile) if profile else ()), "demo", "--script", script,
+               *(("--world", world) if world != "default" else ()), "-o", str(path), "--stop-on-exit"]
     seen: dict[int, float] = {}
     with tempfile.TemporaryFile("w+") as log:
         demo = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
@@ -131,7 +134,7 @@ def run(world: str, script: str, out: Path) -> Run:
     if "bridge" not in result.loops:
         result.failed = f"nwr demo exited {demo.returncode}:\n{text[-2000:]}"
     if path.exists():
-        result.lost_s = world_lost_s(path) if world == "physics" else None
+        result.lost_s = world_lost_s(path)
     return result
 
 
@@ -154,18 +157,25 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=3, help="runs per world (default 3)")
     parser.add_argument("--script", default="demo", help="touch script (default: demo)")
     parser.add_argument("--keep", type=Path, help="keep the recordings here (default: a temporary directory)")
+    parser.add_argument("--worlds", default="scripted,physics",
+                        help="the two worlds to alternate, each scripted, physics or default (no --world: the "
+                             "demo's default; default: scripted,physics)")
+    parser.add_argument("--profile", help="profile for the demo (another base port beside a running pipeline)")
     args = parser.parse_args()
+    worlds = tuple(args.worlds.split(","))
+    if len(worlds) != 2 or not set(worlds) <= {"scripted", "physics", "default"}:
+        parser.error(f"--worlds {args.worlds}: two of scripted, physics, default")
     runs: list[Run] = []
     with tempfile.TemporaryDirectory() as scratch:
         out = args.keep or Path(scratch)
         out.mkdir(parents=True, exist_ok=True)
         for i in range(args.runs):
-            order = ("scripted", "physics") if i % 2 == 0 else ("physics", "scripted")
+            order = worlds if i % 2 == 0 else worlds[::-1]
             for world in order:
-                runs.append(run(world, args.script, out))
+                runs.append(run(world, args.script, out, args.profile))
                 print(row(runs[-1]), flush=True)
     print("\nmedians per world:")
-    for world in ("scripted", "physics"):
+    for world in worlds:
         mine = [r for r in runs if r.world == world and not r.failed]
         if not mine:
             print(f"  {world}: no run went through")
@@ -181,8 +191,9 @@ def main() -> int:
                   f"{statistics.median(b[1] for b in bridge):.1f} ms, overruns "
                   f"{statistics.median(b[2] for b in bridge):.0f}; onset p50 "
                   f"{statistics.median(onset) if onset else float('nan'):.2f} ms; world time lost "
-                  f"{statistics.median(lost) if lost else 0.0:.3f} s; as expected {sum(r.as_expected for r in mine)}"
-                  f"/{len(mine)}; load {min(r.load[0] for r in mine):.1f}-{max(r.load[1] for r in mine):.1f}")
+                  f"{f'{statistics.median(lost):.3f} s' if lost else '- (no world)'}; as expected "
+                  f"{sum(r.as_expected for r in mine)}/{len(mine)}; load {min(r.load[0] for r in mine):.1f}-"
+                  f"{max(r.load[1] for r in mine):.1f}")
     return 0
 
 

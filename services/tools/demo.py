@@ -8,6 +8,7 @@ table and checks it against the touch script (:mod:`.summary`).
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,8 @@ from nwr.services.planner import strategies
 from nwr.services.profile import profile_for
 from nwr.services.recorder.main import session_name
 from nwr.services.tools.recordings.summary import add_table_arguments, print_summary
+
+log = logging.getLogger(__name__)
 
 
 def add_launch_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,7 +45,10 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                    help="what holds the arm, its skin and the people touching it: the scripted world (pressure "
                         "curves, the simulated arm) or the physics world (MuJoCo: fingers pressing the pads push "
                         "back; the bridge's physics backend and the gateway's physics source, docs/worlds.md); "
-                        "default: the profile's (bridge.backend and gateway.source both \"physics\", or neither)")
+                        "default: `nwr up` the profile's (bridge.backend and gateway.source both \"physics\", or "
+                        "neither); `nwr demo` the physics world for a robot with collision shapes (the UR10e), else "
+                        "the scripted world, which it also takes, saying why as it starts, for --closed-loop, a "
+                        "script the physics world refuses, or a profile that names an arm or a skin")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -59,7 +65,8 @@ WORLDS = ("scripted", "physics")
 
 
 def world_for(args: argparse.Namespace, profile: Profile) -> str:
-    """The world a launch runs in: ``--world``, else the profile's; the profile made to say it (the bridge's
+    """The world a launch runs in: ``--world``, else the profile's, else the command's default
+    (:func:`default_world`); the profile made to say it (the bridge's
     backend and the gateway's source), the touch script checked against a physics world before anything starts.
     ConfigError for a profile that names half a physics world, or a script or flag the world cannot take."""
     physics = (profile.bridge.backend == "physics", profile.gateway.source == "physics")
@@ -67,7 +74,15 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
         raise ConfigError(f"bridge.backend = {profile.bridge.backend!r} and gateway.source = "
                           f"{profile.gateway.source!r}: a physics world is both (\"physics\") or neither")
     backend = getattr(args, "backend", None)
-    world = getattr(args, "world", None) or ("physics" if physics[0] or backend == "physics" else "scripted")
+    world = getattr(args, "world", None) or ("physics" if physics[0] or backend == "physics" else None)
+    if world is None:
+        world, why = default_world(args, profile)
+        if why:
+            log.warning("the scripted world: %s", why)
+        if world == "physics":  # its script already checked
+            log.info("the physics world, `nwr demo`'s default (--world scripted: the scripted world)")
+            profile.bridge.backend, profile.gateway.source = "physics", "physics"
+            return world
     if world == "scripted":
         if backend == "physics":
             raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
@@ -79,7 +94,47 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
     if backend not in (None, "physics"):
         raise ConfigError(f"--backend {args.backend} with --world physics: the physics world is the bridge's "
                           "physics backend")
+    check_physics_script(args, profile)
     profile.bridge.backend, profile.gateway.source = "physics", "physics"
+    return world
+
+
+def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]:
+    """The world of a launch that names none (no ``--world``, a profile with neither half of a physics world) and
+    why it is not the physics world where that is `nwr demo`'s default ("": nothing to say).
+
+    ``nwr up`` keeps the profile's: the scripted world. ``nwr demo`` (``args.default_world == "physics"``) runs
+    the physics world wherever it can serve: not for a backend given on the command line (the scripted world's
+    arm, or a real arm: no world), a profile that names an arm or a skin other than the simulated ones, the
+    scripted skin's closed loop, a robot without collision shapes (its physics world would be a skeleton of
+    capsules: the FR3's), or a touch script the physics world refuses (the session runs in the scripted world;
+    ``--world physics`` insists, and is refused).
+    """
+    if getattr(args, "default_world", "scripted") != "physics" or getattr(args, "backend", None):
+        return "scripted", ""
+    if profile.bridge.backend != "sim" or profile.gateway.source != "sim":
+        return "scripted", ""  # the profile's arm or skin (a real one: no world)
+    if getattr(args, "closed_loop", False) or sim_settings(profile.gateway).closed_loop:
+        return "scripted", "closed loop is the scripted world's contact model (the physics world pushes back itself)"
+    from nwr.common.robot import load_description
+    from nwr.services.bridge.backends import KIND
+    from nwr.services.worlds.mjcf import PACKAGED_SHAPES
+    from nwr.services.worlds.settings import PhysicsSettings
+
+    desc = load_description(profile.robot.description or None)
+    if desc.name not in PACKAGED_SHAPES and not KIND.settings(profile.bridge, "physics", PhysicsSettings).shapes:
+        return "scripted", (f"the physics world has no collision shapes for the {desc.name} (--world physics: "
+                            "capsules between its joints)")
+    try:
+        check_physics_script(args, profile)
+    except ConfigError as exc:
+        return "scripted", f"the physics world refuses the touch script ({exc}; --world physics insists)"
+    return "physics", ""
+
+
+def check_physics_script(args: argparse.Namespace, profile: Profile) -> None:
+    """The touch script checked against the physics world at the arm's starting pose, before anything starts
+    (ConfigError: a push no finger makes, more fingers at once than the world holds, a finger inside the arm)."""
     from nwr.common.robot import load_description
     from nwr.services.bridge.backends import KIND
     from nwr.services.worlds.hosted import check_script
@@ -91,7 +146,6 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
         q0 = profile.bridge.initial_q or desc.home
         check_script(load_script(script, profile.robot.description),
                      KIND.settings(profile.bridge, "physics", PhysicsSettings), desc, np.asarray(q0, dtype=float))
-    return world
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
@@ -192,7 +246,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "recordings/<session>.mcap and print one row per touch.")
     add_launch_arguments(demo)
     demo.add_argument("--fast", action="store_true",
-                      help="no processes: the simulated skin, the cores and the simulated arm chained in this process "
-                           "on simulated time (lockstep), as fast as they go; deterministic")
+                      help="no processes: the world (skin and arm: physics or scripted), the cores and the bridge "
+                           "chained in this process on simulated time (lockstep), as fast as they go; deterministic")
     add_table_arguments(demo)
-    demo.set_defaults(script="demo", handler=run_demo)
+    demo.set_defaults(script="demo", handler=run_demo, default_world="physics")
