@@ -190,19 +190,6 @@ def test_a_sample_is_the_mean_of_its_period_so_a_contact_lost_for_one_step_dims_
     assert run(mean=True) == pytest.approx([4.0 * 39 / 40] * 5)
 
 
-def test_a_physics_journal_from_before_the_mean_is_verified_as_it_sampled() -> None:
-    from nwr.services.worlds.settings import journaled
-
-    old = {"bridge": {"backend": "physics", "plugins": {"physics": {"seed": 7}}}, "gateway": {"source": "physics"}}
-    assert journaled(old)["bridge"]["plugins"]["physics"] == {"seed": 7, "skin_sample": "instant"}
-    assert old["bridge"]["plugins"]["physics"] == {"seed": 7}  # the journal's own data untouched
-    assert journaled({"bridge": {"backend": "physics"}})["bridge"]["plugins"]["physics"]["skin_sample"] == "instant"
-    new = {"bridge": {"backend": "physics", "plugins": {"physics": {"skin_sample": "mean"}}}}
-    assert journaled(new) is new
-    scripted = {"bridge": {"backend": "sim", "plugins": {"physics": {}}}}
-    assert journaled(scripted) is scripted
-
-
 # ------------------------------------------------------------------------------ people
 
 

@@ -3,7 +3,7 @@ a profile is checked, and a bridge started, without importing MuJoCo (:mod:`.phy
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -55,12 +55,13 @@ class PhysicsSettings(Section):
     # From a sample's instant to its delivery, s (0: none modelled; a lab
     # that measured its skin's latency puts it here).
     skin_latency_s: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.0
-    # What a sample holds: "mean", the mean of each pad's pressure over the
-    # world steps since the last sample (the device averages between its
-    # readings); "instant", the pressure at the sample's own step (as
-    # recordings made before this field: a light touch on a moving pad that
-    # loses contact for that one step reads 0 and splits).
-    skin_sample: Literal["mean", "instant"] = "mean"
+    # What a sample holds: "instant", the pressure at the sample's own world
+    # step (a light touch on a moving pad that loses contact for that one
+    # step reads 0 there); "mean", the mean of each pad's pressure over the
+    # steps since the last sample (a device that averages between readings:
+    # such a step dims a sample, never blanks it, and a light touch that
+    # keeps losing contact averages below the contact threshold).
+    skin_sample: Literal["mean", "instant"] = "instant"
     # White noise on every pad's reading, standard deviation, hPa.
     skin_noise_hpa: Annotated[float, msgspec.Meta(ge=0, le=5)] = 0.08
     # The pads' absolute no-contact pressure, hPa.
@@ -87,17 +88,3 @@ class PhysicsSettings(Section):
     # Divergence: a contact deeper than this, m (a body passing through the arm).
     max_penetration_m: Annotated[float, msgspec.Meta(ge=0.001, le=0.2)] = 0.02
 
-
-def journaled(profile: Any) -> Any:
-    """A journal's profile (plain data) as its recording meant it: a physics world journaled before
-    ``skin_sample`` existed sampled the instant (``nwr verify`` re-makes it so)."""
-    bridge = profile.get("bridge") if isinstance(profile, dict) else None
-    if not isinstance(bridge, dict) or bridge.get("backend") != "physics":
-        return profile
-    plugins = bridge.get("plugins")
-    plugins = plugins if isinstance(plugins, dict) else {}
-    table = plugins.get("physics")
-    table = table if isinstance(table, dict) else {}
-    if "skin_sample" in table:
-        return profile
-    return {**profile, "bridge": {**bridge, "plugins": {**plugins, "physics": {**table, "skin_sample": "instant"}}}}

@@ -57,7 +57,6 @@ from nwr.common.recordings import Recorded, read_recording, recording_robot
 from nwr.common.robot import ROBOTS_DIR, resolve_description
 from nwr.services.pipeline.graph import wiring_for
 from nwr.services.wiring import no_diag
-from nwr.services.worlds.settings import journaled
 
 NO_JOURNAL = ("it has no journal (journal/<service> channels): it was recorded by an older nwr, by another tool, "
               "or without the services' journals, so its services cannot be re-run")
@@ -225,7 +224,7 @@ def verify_run(run: _Run, index: dict[tuple[str, int, int], Any], outputs: dict[
         return result
     try:
         config = json.loads(batches[0].config)
-        profile = decode_profile(journaled(config["profile"]), "the journal's profile")
+        profile = decode_profile(config["profile"], "the journal's profile")
         params = config.get("params", {})
         factory = wiring_for(run.service)
     except (ValueError, KeyError, TypeError, msgspec.ValidationError, ConfigError) as exc:
