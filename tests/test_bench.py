@@ -293,9 +293,10 @@ def test_the_strategies_bench_times_every_reflex_cycle_against_the_cartesian_one
     rows = bench_strategies.run(Profile(), names=("whole-arm", "uniform"))
     assert [r["strategy"] for r in rows] == ["cartesian", "whole-arm", "uniform"]  # the baseline first
     by = {r["strategy"]: r for r in rows}
-    # Every pad once: CR streams 0.5 s at 500 Hz, the whole-arm withdrawal 1 s; UR until its target is reached.
+    # Every pad once: CR streams 0.5 s at 500 Hz, the whole-arm withdrawal 1 s (up to 2 s where it is held below
+    # the speed its gain asks); UR until its target is reached.
     assert by["cartesian"]["cycles"] == pytest.approx(10 * 250, abs=20)
-    assert by["whole-arm"]["cycles"] == pytest.approx(10 * 500, abs=20)
+    assert 10 * 500 - 20 <= by["whole-arm"]["cycles"] <= 10 * 1000 + 20
     assert by["uniform"]["cycles"] > 10 * 100
     assert by["cartesian"]["p50 / cartesian"] == pytest.approx(1.0)
     for r in rows:

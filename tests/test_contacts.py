@@ -123,7 +123,7 @@ def withdraw(main: str, other: str, *, others: bool, gain: float = 0.6) -> tuple
                                              ("shoulder_back", "upper_arm_top")])
 def test_the_second_hand_is_kept_away_from_and_withdrawn_from_too(main: str, other: str) -> None:
     toward, _, closer = withdraw(main, other, others=False)
-    assert toward > 0.02 or closer > 0.02  # the strongest contact alone: the other pad is pushed into its hand
+    assert toward > 0.01 or closer > 0.01  # the strongest contact alone: the other pad is pushed into its hand
     toward, away, closer = withdraw(main, other, others=True)
     assert toward <= 0.001 and closer <= 0.005
     assert away >= 0.05  # and it withdraws in proportion to its own gain
@@ -193,6 +193,29 @@ def test_the_task_pauses_for_a_touch_felt_in_its_way_and_resumes_once_it_is_gone
         if planner.mode == "TASK":
             break
     assert planner.mode == "TASK"
+
+
+def test_the_task_pauses_for_a_felt_touch_it_would_push_only_a_few_millimetres_into() -> None:
+    """Not only a fast way into it: the person is there now, so a few millimetres (a slowly rising press at
+    PL 2 while the task drifts into it) stop the task too (planner.contact_margin_m is for recent touches)."""
+    planner, t = in_task(PlannerSection(strategy="cartesian"))
+    found = None
+    for step in range(3000):  # along the figure-eight, until the task drifts a pad 2-9 mm along its normal in 1 s
+        t += 2_000_000
+        planner.step(t)
+        if step % 25:
+            continue
+        ahead = [planner.task.position(planner.clock.s + s) for s in np.linspace(0.0, 1.0, 11)[1:]]
+        for i in range(N):
+            normal, x0 = MODEL.pad_normal(planner.q, i), MODEL.pad_point(planner.q, i)
+            if 0.002 < max(float(normal @ (MODEL.pad_point(q, i) - x0)) for q in ahead) < 0.009:
+                found = i
+                break
+        if found is not None:
+            break
+    assert found is not None, "the task drifts some pad a few millimetres into whatever touches it"
+    command = planner.on_pain(pain(t, 1, levels(**{NAMES[found]: 2}), gains()), t)
+    assert command is not None and planner.mode == "HOLDING" and planner.reflex is None
 
 
 def test_the_paper_mode_keeps_the_papers_task_through_a_felt_touch() -> None:

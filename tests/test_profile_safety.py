@@ -109,6 +109,7 @@ LOOSENED: dict[str, Any] = {
     "planner.whole-arm.duration_s": 0.8,
     "planner.whole-arm.distance_m": 0.15,
     "planner.whole-arm.point_speed_m_s": 0.6,
+    "planner.whole-arm.outward_speed_m_s": 0.1,
     "planner.sustained_contact": "paper",
     "planner.release_s": 0.1,
     "planner.max_hold_s": 10.0,

@@ -106,11 +106,37 @@ def test_a_pad_its_joints_can_move_withdraws_in_proportion_to_the_gain(pad: str,
         assert 0.85 * g * distance <= a <= g * distance + 1e-4  # keeping the rest of the arm still costs)
 
 
+@pytest.mark.parametrize("pose", POSES)
+@pytest.mark.parametrize("pad", ("upper_arm_top", "upper_arm_bottom", "forearm_top", "wrist_2"))
+def test_no_other_pad_moves_out_along_its_normal_faster_than_the_cap_and_the_distance_stays(pad: str,
+                                                                                            pose: str) -> None:
+    s = build()
+    touched = NAMES.index(pad)
+    q = POSES[pose].copy()
+    s.start(q.copy(), contact(touched, 1.0))
+    assert s.configured_s <= s.duration_s <= whole_arm.STRETCH_MAX * s.configured_s
+    fastest = 0.0
+    for k in range(int(round(s.duration_s / DT)) + 1):
+        dq = s.velocity(q, k * DT)
+        out = np.einsum("ij,ijk,k->i", MODEL.pad_normals(q), MODEL.speed_jacobians(q)[: len(NAMES)], dq)
+        out[touched] = 0.0
+        fastest = max(fastest, float(out.max()))
+        q = q + dq * DT
+    assert fastest <= s.outward_speed + 1e-6
+    # The touched pad withdraws (nearly) its full distance: the cap makes it take longer, up to STRETCH_MAX.
+    assert withdraw(touched, 1.0, POSES[pose])["away_m"].max() >= 0.8 * s.distance_m
+
+
+# How far each leaves the contact point at G = 1 at least, m: shoulder_back only by turning the base, which
+# swings the pads farther out along their normals, each no faster than outward_speed_m_s.
+LEAVES_M = {"shoulder_back": 0.005, "shoulder_outer": 0.02, "wrist_1": 0.02}
+
+
 @pytest.mark.parametrize("pad", SIDEWAYS)
 def test_a_pad_that_cannot_move_along_its_normal_withdraws_sideways_and_says_so(pad: str) -> None:
     run = withdraw(NAMES.index(pad), 1.0, POSES["home"])
     assert run["onset"].sideways and run["onset"].reason == "sideways"
-    assert run["leaves_m"] >= 0.02  # away from the contact point, across the normal
+    assert run["leaves_m"] >= LEAVES_M[pad]  # away from the contact point, across the normal
     assert -run["away_m"].min() <= TOWARD_BUDGET_M + 2e-4
 
 
@@ -201,13 +227,15 @@ def test_the_planner_streams_it_for_its_own_duration_and_the_status_says_sideway
     assert planner.mode == "REFLEX"
     status = planner.status(t)
     assert status.reflex is not None and status.reflex.reason == "sideways"
-    assert status.reflex.duration_s == WholeArmSettings().duration_s
+    # Its sideways withdrawal is held to the outward speed cap: it lasts longer than duration_s, at most twice.
+    duration = status.reflex.duration_s
+    assert WholeArmSettings().duration_s < duration <= whole_arm.STRETCH_MAX * WholeArmSettings().duration_s
     cycles = 0
     while planner.mode == "REFLEX":
         t += 2_000_000
         planner.step(t)
         cycles += 1
-    assert cycles == pytest.approx(WholeArmSettings().duration_s * cfg.rate_hz, abs=2)
+    assert cycles == pytest.approx(duration * cfg.rate_hz, abs=2)
 
 
 def _reflex_and_return(pad: str, gain: float) -> np.ndarray:

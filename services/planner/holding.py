@@ -41,6 +41,9 @@ FELT_LEVEL = 2
 HOLD_CHECK_NS = 20_000_000
 # How far ahead the task is checked for a touch felt in its way (PL 2, no reflex yet), s.
 TASK_AHEAD_S = 1.0
+# How far past where a touch felt now (PL 2, no reflex yet) met its pad the task may take that pad, m: the
+# person is there now, not a moment ago (planner.contact_margin_m is for recent touches).
+FELT_MARGIN_M = 0.001
 
 
 class Holding(Returning):
@@ -179,12 +182,13 @@ class Holding(Returning):
 
     def _task_presses(self) -> list[int]:
         """The pads feeling a touch without a gain (PL 2: no reflex) that the task, within TASK_AHEAD_S, would
-        take more than contact_margin_m past where the touch met them: a slow press the task would push into."""
+        take more than FELT_MARGIN_M past where the touch met them: a slow press the task would push into."""
         felt = [c for c in self.contacts.active() if c.gain <= 0.0]
         if not felt:  # every pain message in the task asks: nothing to compute without such a touch
             return []
         poses = [self.task.position(self.clock.s + s) for s in np.linspace(0.0, TASK_AHEAD_S, 11)[1:]]
-        return [c.pad for c in felt if passes_through(self.model, poses, c, self.cfg.contact_margin_m) > 0.0]
+        margin = min(FELT_MARGIN_M, self.cfg.contact_margin_m)
+        return [c.pad for c in felt if passes_through(self.model, poses, c, margin) > 0.0]
 
     def _felt_ahead(self, now_ns: int) -> list[int]:
         """The pads feeling a touch now that the rest of the return brings closer to it."""

@@ -7,6 +7,7 @@ q_dot (one variable per joint)::
     minimise    (a . q_dot - v(t))^2 + m mean_i |J_i q_dot|^2 + r |q_dot|^2          a = J_p^T w
     subject to  n0 . J_p q_dot <= 0                          the touched pad: never toward the contact
                 u_i . J_i q_dot >= 0  for every sampled point i of the arm (u_i: unit, from the contact to it)
+                n_k . J_k q_dot <= c  for every other pad k (n_k: its outward normal)
                 lo <= q_dot <= hi                            joint speed, joint range, acceleration
 
 - ``w`` is the direction the touched pad withdraws along: minus its outward
@@ -35,6 +36,18 @@ q_dot (one variable per joint)::
   ``r |q_dot|^2`` (``regularization``) makes the solution unique, the same
   for the same touch in the same pose (the solver, quadprog, is a
   deterministic active-set method).
+- ``c`` (``outward_speed_m_s``): no other pad moves out along its own
+  normal, into the space where a hand may be, faster than the arm can stop
+  it within 5 mm of where a new touch finds it: a hand the skin feels up to
+  one sample period (40 ms at 25 Hz) and a control cycle late, then the
+  joints' braking (about 2 m/s^2 at a pad), v T + v^2 / (2 a) <= 5 mm gives
+  v ~ 0.07 m/s. The touched pad's own withdrawal is not capped (it moves
+  inward along its normal); other pads moving sideways or inward are not
+  either. Where the cap (or another constraint) holds the touched pad's
+  plateau speed below what its gain asks, the reflex lasts longer (up to
+  :data:`STRETCH_MAX` times ``duration_s``) so that the pad still withdraws
+  G ``distance_m``: the distance stays in proportion to the gain, the speed
+  is what the arm can do safely.
 - Bounds: ``speed_fraction`` of each joint's speed limit; no faster toward a
   joint limit (less :data:`MARGIN_RAD`) than it can brake before it. The
   planner's core then limits the change of the commanded velocity per cycle
@@ -105,6 +118,8 @@ SIDEWAYS_DIRECTIONS = 8
 HOLD_SHARE = 0.05
 # A sideways withdrawal follows the direction away from the contact point once this far from it, m.
 AWAY_M = 0.002
+# A withdrawal the constraints slow down at the onset lasts at most this many times duration_s.
+STRETCH_MAX = 2.0
 # A constraint row this small (no joint moves that point) is left out.
 ZERO_ROW = 1e-9
 # This slack (per unit row) keeps a feasible set whose only point is q_dot = 0 (every budget spent) from
@@ -143,6 +158,11 @@ class WholeArmSettings(Section):
     # No sampled point of the arm (pads, joints, points along the links,
     # flange) faster than this, m/s: the whole motion is scaled down to it.
     point_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.5
+    # No other pad than the touched one moves out along its own normal
+    # (toward where a new hand may be) faster than this, m/s: a hand that
+    # appears in its path is met with at most skin period + a control cycle
+    # of motion plus the joints' braking, within 5 mm (docs/reflexes.md).
+    outward_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=1.0)] = 0.07
     # Weight of the arm's mean squared point speed beside the pad's squared
     # speed error: the rest of the arm as still as the withdrawal lets it.
     motion_weight: Annotated[float, msgspec.Meta(ge=0, le=1.0)] = 0.02
@@ -159,7 +179,7 @@ class WholeArm(ReflexStrategy):
     retraces = True
     Settings = WholeArmSettings
     GUARDS = {"duration_s": Guard("below", "s"), "distance_m": Guard("above", "m"),
-              "point_speed_m_s": Guard("above", "m/s")}
+              "point_speed_m_s": Guard("above", "m/s"), "outward_speed_m_s": Guard("above", "m/s")}
 
     @staticmethod
     def check_settings(p: WholeArmSettings, profile: Profile | None = None,
@@ -172,10 +192,12 @@ class WholeArm(ReflexStrategy):
         super().__init__(cfg, desc, model, v_limit)
         p = KIND.settings(cfg, self.name, WholeArmSettings)
         self.check_settings(p)
-        self.duration_s = p.duration_s
+        self.duration_s = p.duration_s  # this reflex's (start() may lengthen it)
+        self.configured_s = p.duration_s
         self.ramp_s = p.ramp_s
         self.distance_m = p.distance_m
         self.point_speed = p.point_speed_m_s
+        self.outward_speed = p.outward_speed_m_s
         self.regularization = p.regularization
         self.motion_weight = p.motion_weight
         self.v_limit = np.asarray(v_limit, dtype=float)
@@ -248,6 +270,7 @@ class WholeArm(ReflexStrategy):
         self.normal = model.pad_normal(q, contact.pad)
         self.away = -self.normal
         self.sideways = self.blocked = False
+        self.duration_s = self.configured_s
         self.speed_m_s = self.gain * self.distance_m / self.duration_s
         samples = self._samples(q)
         self._d0 = np.linalg.norm(samples[0] - self.contact, axis=1)
@@ -262,6 +285,12 @@ class WholeArm(ReflexStrategy):
                 side, rate = self._sideways(q, samples)
                 if rate > along:
                     self.away, self.sideways, along = side, True, rate
+            plateau = self.speed_m_s * self.duration_s / (self.duration_s - self.ramp_s)
+            if HOLD_SHARE * self.speed_m_s <= along < plateau:
+                # Slower than the gain asks: longer, so that the distance stays G distance_m.
+                self.duration_s = min(STRETCH_MAX * self.configured_s,
+                                      self.ramp_s + self.gain * self.distance_m / along)
+                self.speed_m_s = self.gain * self.distance_m / self.duration_s
         except Exception as exc:  # the stream then tries every cycle; each failure gives a zero command
             self._say("warning", "whole_arm_failed", f"reflex on pad {name}: the withdrawal's QP failed at the "
                       f"onset ({exc!r}): every cycle it fails the arm is commanded to stand still")
@@ -361,6 +390,12 @@ class WholeArm(ReflexStrategy):
         toward = float(self.normal @ (points[self.pad] - self.contact))
         h = np.concatenate([[max(0.0, TOWARD_BUDGET_M - toward)],
                             np.maximum(0.0, dist[keep] - self._d0[keep] + APPROACH_BUDGET_M)]) / TAU_S
+        # Every other pad (not the touched pad's own surface): out along its own normal no faster than
+        # outward_speed_m_s.
+        capped = ~self._free[: self.n_pads]
+        normals = self.model.pad_normals(q)[capped]
+        rows = np.vstack([rows, np.matmul(normals[:, None, :], jacs[: self.n_pads][capped])[:, 0, :]])
+        h = np.concatenate([h, np.full(len(normals), self.outward_speed)])
         # Every other active contact: the same two kinds of constraint, and its pad withdrawn in proportion to
         # its gain (at the reflex's own profile).
         hessian_others = np.zeros((len(a), len(a)))
