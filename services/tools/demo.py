@@ -43,6 +43,9 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "curves, the simulated arm) or the physics world (MuJoCo: fingers pressing the pads push "
                         "back; the bridge's physics backend and the gateway's physics source, docs/worlds.md); "
                         "default: the profile's (bridge.backend and gateway.source both \"physics\", or neither)")
+    p.add_argument("--skin", choices=SKINS,
+                   help="the skin the pipeline runs on: the AIRSKIN pads or the robot's taxel skin "
+                        "(skin-taxels.toml, scripted world only; docs/skins.md); default: the profile's robot.skin")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -56,18 +59,24 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
 
 
 WORLDS = ("scripted", "physics")
+SKINS = ("pads", "taxels")
 
 
 def world_for(args: argparse.Namespace, profile: Profile) -> str:
     """The world a launch runs in: ``--world``, else the profile's; the profile made to say it (the bridge's
     backend and the gateway's source), the touch script checked against a physics world before anything starts.
     ConfigError for a profile that names half a physics world, or a script or flag the world cannot take."""
+    if getattr(args, "skin", None):
+        profile.robot.skin = args.skin
     physics = (profile.bridge.backend == "physics", profile.gateway.source == "physics")
     if physics[0] != physics[1]:
         raise ConfigError(f"bridge.backend = {profile.bridge.backend!r} and gateway.source = "
                           f"{profile.gateway.source!r}: a physics world is both (\"physics\") or neither")
     backend = getattr(args, "backend", None)
     world = getattr(args, "world", None) or ("physics" if physics[0] or backend == "physics" else "scripted")
+    if world == "physics" and profile.robot.skin == "taxels":
+        raise ConfigError("robot.skin = \"taxels\" runs in the scripted world only (--world scripted): the "
+                          "physics world's taxel readings are not published yet (docs/skins.md)")
     if world == "scripted":
         if backend == "physics":
             raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
