@@ -32,9 +32,9 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.launch import TouchScript
-from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.skin import hpa_per_unit, load_skin
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, sim_settings, touch_message
@@ -152,8 +152,8 @@ class GatewayWiring(Wiring):
         if self.world:
             return t  # the world's own skin is sampled by the world (on_world_skin)
         if self.taxels is not None:
-            touch = self.taxels.sample(t) * self.taxel_hpa  # the touches are all there is: no drift, no noise
-            msg, events = self.gateway.process(t, now, touch, touch)
+            pressed = self.taxels.sample(t) * self.taxel_hpa  # the touches are all there is: no drift, no noise
+            msg, events = self.gateway.process(t, now, pressed, pressed)
         else:
             msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
         self.out(keys.SKIN_PRESSURE, msg)
