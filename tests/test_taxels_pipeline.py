@@ -33,7 +33,8 @@ PAD = {pad.name: pad.id for pad in DESC.pads}
 KPA_TO_HPA = 10.0
 
 
-def finger(pad: str, force_n: float, shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def finger(pad: str, force_n: float,
+           shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """A finger's readings (kPa) at the taxel nearest the pad's point, moved by ``shift`` (link frame); and its
     centre."""
     p = DESC.pad(pad)
