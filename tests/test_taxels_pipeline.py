@@ -215,3 +215,33 @@ def test_the_touch_table_segments_taxel_samples_by_pad() -> None:
     assert [(t.name, t.first_seq, t.last_seq) for t in touches] == [("forearm_top", 1, 2)]
     assert touches[0].peak_hpa == pytest.approx(kpa.max() * KPA_TO_HPA)
     assert _segment(samples, DESC) == []  # without the taxels' pads: nothing made up
+
+
+@pytest.mark.slow
+def test_a_lockstep_demo_on_the_taxels_withdraws_at_the_fingers_and_verifies(tmp_path, capsys) -> None:
+    """``nwr demo --fast --skin taxels`` on two fingers (upper arm 20 hPa, forearm 14 hPa at 3 s): a reflex
+    whose contact lies under the firmer finger, the per-touch table complete, ``nwr verify`` bit for bit."""
+    from nwr.common.recordings import read_recording
+    from nwr.services import cli
+    from nwr.services.gateway.taxels import covering_taxel
+
+    path = tmp_path / "taxels.mcap"
+    assert cli.main(["demo", "--fast", "--skin", "taxels", "--world", "scripted", "--script", "two-fingers",
+                     "--reflex", "cartesian", "-o", str(path)]) == 0
+    table = capsys.readouterr().out
+    assert "all 2 scripted touches as expected" in table
+    records, _ = read_recording(path)
+    pressure = [r.message for r in records if r.key == "skin/pressure"]
+    assert pressure and all(len(p.change_hpa) == 300 for p in pressure)
+    reflexes = {r.message.reflex.reflex_seq: r.message.reflex for r in records
+                if isinstance(r.message, m.PlannerStatus) and r.message.reflex is not None}
+    assert len(reflexes) == 1
+    reflex = next(iter(reflexes.values()))
+    contact = reflex.contact
+    pad = DESC.pad("upper_arm_top")  # 20 hPa: 10 N on the taxels, the firmer finger
+    assert contact.name == pad.name and contact.link == pad.link and contact.force_n == pytest.approx(10.0)
+    under = SKIN.points[covering_taxel(SKIN, pad)]
+    assert np.linalg.norm(np.asarray(contact.point) - under) < 0.003
+    assert 2.9e9 < reflex.trace.stamp_ns - pressure[0].stamp_ns < 3.2e9
+    assert cli.main(["verify", str(path)]) == 0
+    assert "4 of 4 service runs re-made their recorded outputs bit for bit" in capsys.readouterr().out
