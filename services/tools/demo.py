@@ -8,6 +8,7 @@ table and checks it against the touch script (:mod:`.summary`).
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 import numpy as np
@@ -129,6 +130,8 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
     if args.closed_loop:
         gateway.append("--closed-loop")
     layout.gateway = gateway
+    if args.skin:
+        os.environ["NWR_SKIN"] = args.skin  # every service the launcher starts reads it (common/launch.py)
     layout.bridge = bridge_arguments(args, profile)
     return layout
 
