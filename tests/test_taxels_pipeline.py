@@ -245,3 +245,36 @@ def test_a_lockstep_demo_on_the_taxels_withdraws_at_the_fingers_and_verifies(tmp
     assert 2.9e9 < reflex.trace.stamp_ns - pressure[0].stamp_ns < 3.2e9
     assert cli.main(["verify", str(path)]) == 0
     assert "4 of 4 service runs re-made their recorded outputs bit for bit" in capsys.readouterr().out
+
+
+def test_the_door_and_the_bridge_take_a_taxel_sample_and_a_located_contact() -> None:
+    from nwr.common.door import Door
+
+    kpa, _ = finger("forearm_top", 5.0)
+    door = Door(DESC, SKIN)
+    assert door.refuse(sample(kpa)) is None
+    assert Door(DESC).refuse(sample(kpa)).cause == "wrong pad count"  # type: ignore[union-attr]
+    pain = estimator().process(sample(kpa), 0)
+    assert door.refuse(pain) is None and pain.strongest is not None
+    off = msgspec.structs.replace(pain.strongest, link="base_link_inertia")
+    bent = msgspec.structs.replace(pain.strongest, normal=[0.0, 2.0, 0.0])
+    for contact in (off, bent):
+        refused = door.refuse(msgspec.structs.replace(pain, strongest=contact))
+        assert refused is not None and refused.cause == "contact off the skin"
+    # The bridge: a taxel sample is fresh skin data; a pad is blind when all its taxels are invalid.
+    from nwr.services.bridge.wiring import BridgeWiring
+
+    clock = ManualClock(10**9)
+    bridge = BridgeWiring(PROFILE, journal=Recording(clock), out=lambda *a: None, diag=lambda *a, **k: None).core
+    bridge.on_skin(sample(kpa), clock.now_ns())
+    assert bridge.last_skin_ns == clock.now_ns() and not bridge.events
+    taxels = entry_pads(SKIN, DESC.pads)
+    one_off = [i != int(np.flatnonzero(taxels == PAD["forearm_top"])[0]) for i in range(len(SKIN))]
+    patch_off = (taxels != PAD["forearm_top"]).tolist()
+    for valid, blind in ((one_off, frozenset()), (patch_off, frozenset({PAD["forearm_top"]}))):
+        clock.advance(1.0)
+        bridge.on_skin(sample(kpa, valid=valid), clock.now_ns())
+        assert bridge.last_skin_ns == clock.now_ns()
+        clock.advance(1.0)
+        bridge.on_skin(sample(kpa, valid=valid), clock.now_ns())
+        assert bridge.blind == blind
