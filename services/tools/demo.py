@@ -130,7 +130,7 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
     if args.closed_loop:
         gateway.append("--closed-loop")
     layout.gateway = gateway
-    if args.skin:
+    if getattr(args, "skin", None):
         os.environ["NWR_SKIN"] = args.skin  # every service the launcher starts reads it (common/launch.py)
     layout.bridge = bridge_arguments(args, profile)
     return layout
