@@ -78,6 +78,10 @@ class RobotSection(_Section):
     # folder of common/robots/: "ur10e", "fr3") or a robot.toml's path; empty =
     # the packaged UR10e.
     description: str = ""
+    # The skin the pipeline runs on: "pads" (the description's pad file, the
+    # paper's AIRSKIN) or "taxels" (skin-taxels.toml beside robot.toml:
+    # hundreds of small sensors, contacts located by them; docs/skins.md).
+    skin: Literal["pads", "taxels"] = "pads"
 
 
 class ZenohSection(_Section):

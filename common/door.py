@@ -27,6 +27,8 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.robot import RobotDescription, load_description
+from nwr.common.skin import load_skin
+from nwr.common.taxels import TaxelSkin
 
 SEQ_LIMIT = 2**32  # MCAP's message sequence is a uint32
 STAMP_LIMIT = 2**63  # int64 nanoseconds, as msgpack and the recording's log times carry them
@@ -38,6 +40,8 @@ SPEED_MARGIN = 1.5
 # Pressures an AIRSKIN pad can report, hPa (absolute, and change from its baseline).
 ABSOLUTE_HPA = (0.0, 5000.0)
 CHANGE_HPA = 2000.0
+# A taxel contact's point lies on its link's skin: within this of the link's origin (the UR10e's tubes are 0.6 m).
+MAX_REACH_M = 2.0
 LEVELS = (1, 4)
 # A robot state's pose may move from the last one of the stream by at most the
 # joint speed limits over the time between their stamps, plus this, rad.
@@ -58,10 +62,13 @@ class Refusal:
 class Door:
     """Semantic checks of every decoded message, against one robot description (see the module docstring)."""
 
-    def __init__(self, desc: RobotDescription) -> None:
+    def __init__(self, desc: RobotDescription, skin: TaxelSkin | None = None) -> None:
         self.desc = desc
         self.n = len(desc.joints)
         self.n_pads = len(desc.pads)
+        # A skin sample's entries: one per taxel on a taxel skin (robot.skin = "taxels"), else one per pad.
+        self.n_entries = len(skin) if skin is not None else self.n_pads
+        self.links = frozenset(skin.links) if skin is not None else frozenset()
         self.q_lo = np.asarray(desc.q_min) - JOINT_MARGIN_RAD
         self.q_hi = np.asarray(desc.q_max) + JOINT_MARGIN_RAD
         self.v_top = np.asarray(desc.v_max) * SPEED_MARGIN
@@ -86,8 +93,9 @@ class Door:
 
     @classmethod
     def of(cls, profile: Profile) -> Door:
-        """The door of a profile's robot."""
-        return cls(load_description(profile.robot.description or None))
+        """The door of a profile's robot and skin."""
+        desc = load_description(profile.robot.description or None)
+        return cls(desc, load_skin(profile, desc))
 
     def refuse(self, message: Any) -> Refusal | None:
         """Why ``message`` cannot be true here (None: it may be)."""
@@ -143,10 +151,31 @@ class Door:
             return None
         return Refusal("wrong pad count", f"{what} has {len(values)} values, the robot has {self.n_pads} pads")
 
+    def _entries(self, values: Sequence[Any], what: str, *, optional: bool = False) -> Refusal | None:
+        if len(values) == self.n_entries or (optional and not values):
+            return None
+        skin = f"{self.n_entries} taxels" if self.n_entries != self.n_pads else f"{self.n_pads} pads"
+        return Refusal("wrong pad count", f"{what} has {len(values)} values, the skin has {skin}")
+
     def _contact(self, contact: m.Contact) -> Refusal | None:
         return (self._pad(contact.pad, "contact pad")
                 or self._level(contact.level, "contact level")
-                or self._gain(contact.gain, "contact gain"))
+                or self._gain(contact.gain, "contact gain")
+                or self._located(contact))
+
+    def _located(self, contact: m.Contact) -> Refusal | None:
+        """A contact's own location: none (a pad's), or a link of the robot's with a point and a unit normal."""
+        if not (contact.link or contact.point or contact.normal):
+            return None
+        if contact.link not in self.links:
+            return Refusal("contact off the skin", f"contact link {contact.link!r}: not a link of a taxel skin here")
+        if len(contact.point) != 3 or len(contact.normal) != 3 or abs(float(np.linalg.norm(contact.normal)) - 1) > 1e-6:
+            return Refusal("contact off the skin", f"contact point {contact.point} and normal {contact.normal}: "
+                           "expected a point and a unit normal of three values each")
+        if float(np.linalg.norm(contact.point)) > MAX_REACH_M:
+            return Refusal("contact off the skin", f"contact point {contact.point} farther than {MAX_REACH_M} m "
+                           "from its link's origin")
+        return None
 
     @staticmethod
     def _level(level: int, what: str) -> Refusal | None:
@@ -161,11 +190,11 @@ class Door:
     def _pressure(self, msg: m.SkinPressure) -> Refusal | None:
         for values, what in ((msg.absolute_hpa, "absolute_hpa"), (msg.baseline_hpa, "baseline_hpa"),
                              (msg.change_hpa, "change_hpa"), (msg.contact, "contact")):
-            refused = self._pads(values, what)
+            refused = self._entries(values, what)
             if refused:
                 return refused
         for values, what in ((msg.valid, "valid"), (msg.touch_hpa, "touch_hpa")):
-            refused = self._pads(values, what, optional=True)
+            refused = self._entries(values, what, optional=True)
             if refused:
                 return refused
         lo, hi = ABSOLUTE_HPA

@@ -104,6 +104,7 @@ def parse_endpoints(text: str, what: str) -> list[str]:
 ENV_OVERRIDES = {
     "NWR_ROUTER": "[zenoh] router: comma-separated router endpoints, e.g. tcp/10.0.0.2:7447",
     "NWR_ROBOT": "[robot] name: the key prefix nwr/<name>/",
+    "NWR_SKIN": "[robot] skin: pads or taxels (nwr up/demo --skin passes it to their services)",
     "NWR_TLS_CA": "[zenoh] ca_certificate: the lab CA's ca.crt; any NWR_TLS_* turns secure mode on",
     "NWR_TLS_CERT": "[zenoh] certificate: this service's NAME.crt (nwr certs issue)",
     "NWR_TLS_KEY": "[zenoh] private_key: this service's NAME.key",
@@ -119,7 +120,8 @@ def env_overrides(environ: Mapping[str, str]) -> dict[str, str]:
 
 
 def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profile:
-    """``profile`` with NWR_ROUTER, NWR_ROBOT, NWR_TLS_* and NWR_INSECURE applied; ConfigError naming a bad value."""
+    """``profile`` with NWR_ROUTER, NWR_ROBOT, NWR_SKIN, NWR_TLS_* and NWR_INSECURE applied; ConfigError naming a
+    bad value."""
     if "NWR_ROUTER" in overrides:
         profile.zenoh.router = parse_endpoints(overrides["NWR_ROUTER"], "NWR_ROUTER")
     if "NWR_ROBOT" in overrides:
@@ -128,6 +130,11 @@ def apply_env_overrides(profile: Profile, overrides: Mapping[str, str]) -> Profi
             raise ConfigError(f"NWR_ROBOT={name!r} is not a robot name: lower-case letters, digits, '_' and '-', "
                               "starting with a letter, at most 32 characters (e.g. ur10e)")
         profile.robot.name = name
+    if "NWR_SKIN" in overrides:
+        skin = overrides["NWR_SKIN"]
+        if skin not in ("pads", "taxels"):
+            raise ConfigError(f"NWR_SKIN={skin!r}: expected pads or taxels")
+        profile.robot.skin = "taxels" if skin == "taxels" else "pads"
     for variable, field in (("NWR_TLS_CA", "ca_certificate"), ("NWR_TLS_CERT", "certificate"),
                             ("NWR_TLS_KEY", "private_key")):
         if variable in overrides:

@@ -178,8 +178,15 @@ class WorldContacts(msgspec.Struct, tag="world_contacts", tag_field="kind", forb
     people: list[WorldPerson] = []
 
 
-class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """The strongest contact of a skin sample."""
+class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True, omit_defaults=True):
+    """The strongest contact of a skin sample.
+
+    On a taxel skin (``robot.skin = "taxels"``) ``pad`` is the pad whose patch the contact is on, and the
+    contact carries its own location: ``point`` and outward unit ``normal`` in the frame of ``link`` (the
+    pressure-weighted centroid and normal of its taxels) and its ``force_n``; ``change_hpa`` is its peak
+    taxel's change. On the pads ``link`` is empty and the pad's own point and normal are the contact's; the
+    fields at their defaults are left off the wire, so the pads' messages encode as before these fields.
+    """
 
     pad: int
     name: str
@@ -187,6 +194,10 @@ class Contact(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     change_hpa: Finite
     level: int
     gain: Finite
+    link: str = ""
+    point: list[Finite] = []
+    normal: list[Finite] = []
+    force_n: Finite = 0.0
 
 
 class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown_fields=True):

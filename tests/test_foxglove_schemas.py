@@ -248,7 +248,9 @@ def relative(pattern: str) -> str:
 
 
 TRACE = m.Trace(seq=3, stamp_ns=1_000)
-CONTACT = m.Contact(pad=4, name="forearm_top", region="forearm", change_hpa=9.0, level=3, gain=0.185)
+# A taxel skin's contact: every optional field of a Contact filled (a pad's leaves them at their defaults).
+CONTACT = m.Contact(pad=4, name="forearm_top", region="forearm", change_hpa=9.0, level=3, gain=0.185,
+                    link="forearm_link", point=[-0.2, 0.05, 0.04], normal=[0.0, 1.0, 0.0], force_n=3.1)
 
 
 def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:

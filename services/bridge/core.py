@@ -88,13 +88,15 @@ class BridgeCore(Commands):
         pad_names: tuple[str, ...] = (),
         blind_pad_s: float = 0.2,
         blind_pads: BlindPolicy = "reduced",
+        entry_pads: tuple[int, ...] = (),
     ) -> None:
         """``physical``: the robot description's joint speed and acceleration limits (the reports are checked
         against them; default: the envelope's); ``state_bounds``: how far a report may stray
         (:class:`~nwr.services.bridge.checks.StateCheck`); ``lag_s``: the backend's following lag (its servo's
         time constant; 0 for the simulated arm); ``pad_names``: for the reports; ``blind_pad_s``: a pad invalid
         this long is blind; ``blind_pads``: what a blind pad does to the motion (``reduced``: the reduced
-        Cartesian limits while any pad is blind; ``stop``: the skin counts as stale, as with no skin data)."""
+        Cartesian limits while any pad is blind; ``stop``: the skin counts as stale, as with no skin data);
+        ``entry_pads``: on a taxel skin, each taxel's pad (a sample has one entry per taxel)."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (env.n,):
             raise ConfigError(f"initial pose has {q0.size} joints, the robot has {env.n}")
@@ -105,7 +107,7 @@ class BridgeCore(Commands):
             skin_timeout_s=skin_timeout_s, seq_restart_gap=seq_restart_gap, period_s=period_s, limiter=limiter,
             reduced=reduced, task_range=task_range, task_peak_m_s=task_peak_m_s, physical=physical,
             state_bounds=state_bounds, lag_s=lag_s, pad_names=pad_names, blind_pad_s=blind_pad_s,
-            blind_pads=blind_pads,
+            blind_pads=blind_pads, entry_pads=entry_pads,
         )
         self.last_step_ns = now_ns
 

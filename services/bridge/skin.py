@@ -34,8 +34,13 @@ BLIND_REPORT_S = 10.0
 class SkinValidity(SafetyModes):
     """Skin samples and pain messages: their freshness, the blind pads, the newest contact."""
 
-    def __init__(self, env: Envelope, q0: np.ndarray, now_ns: int, *, blind_pad_s: float, **below: Any) -> None:
+    def __init__(self, env: Envelope, q0: np.ndarray, now_ns: int, *, blind_pad_s: float,
+                 entry_pads: tuple[int, ...] = (), **below: Any) -> None:
         super().__init__(env, q0, now_ns, **below)
+        # A taxel skin (robot.skin = "taxels"): each taxel's pad (-1: none). A pad is valid while any of its
+        # taxels is (one failed taxel does not blind a patch); a pad without taxels has nothing to go blind.
+        self.entry_pads = entry_pads
+        self._taxels_of = [[i for i, p in enumerate(entry_pads) if p == pad] for pad in range(self.n_pads)]
         # Skin validity: a pad whose readings are invalid (not finite, out of range) since ``invalid_since``
         # for blind_pad_s is blind; a sample without any valid pad is no fresh skin data.
         self.blind_pad_ns = round(blind_pad_s * 1e9)
@@ -45,14 +50,18 @@ class SkinValidity(SafetyModes):
     def on_skin(self, pressure: m.SkinPressure, now_ns: int) -> None:
         """A skin sample: fresh skin data if it is this robot's skin and has a valid pad; it also tells which
         pads are blind (invalid for ``blind_pad_s``)."""
-        if len(pressure.change_hpa) != self.n_pads or len(pressure.contact) != self.n_pads:
+        n = len(self.entry_pads) or self.n_pads
+        if len(pressure.change_hpa) != n or len(pressure.contact) != n:
+            skin = f"{n} taxels" if self.entry_pads else f"{n} pads"
             self.events.append(Event(
                 "warning", "skin_invalid",
-                f"skin sample {pressure.seq} has {len(pressure.change_hpa)} pads, the robot has {self.n_pads}: "
+                f"skin sample {pressure.seq} has {len(pressure.change_hpa)} entries, the skin has {skin}: "
                 "it does not count as fresh skin data",
             ))
             return
-        valid = pad_validity(pressure, self.n_pads)
+        valid = pad_validity(pressure, n)
+        if self.entry_pads:
+            valid = [any(valid[i] for i in taxels) if taxels else True for taxels in self._taxels_of]
         for i, ok in enumerate(valid):
             if ok:
                 self.invalid_since[i] = None

@@ -32,6 +32,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotDescription, RobotModel, load_description
+from nwr.common.skin import entry_pads, load_skin
 from nwr.common.task import FigureEight, peak_point_speed
 from nwr.services.bridge import backends
 from nwr.services.bridge.backend import Backend, Observation, SimBackend
@@ -110,6 +111,7 @@ class BridgeWiring(Wiring):
                                    j_max=env.j_max)
         task = FigureEight(profile.planner.task, desc)
         journal.begin("start")
+        skin = load_skin(profile, desc)  # a taxel skin's samples have one entry per taxel
         self.core = BridgeCore(
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
             command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,
@@ -121,6 +123,7 @@ class BridgeWiring(Wiring):
             physical=(np.asarray(desc.v_max, dtype=float), np.asarray(desc.a_max, dtype=float)),
             state_bounds=state_bounds(profile), lag_s=backend.lag_s,
             pad_names=tuple(pad.name for pad in desc.pads), blind_pad_s=cfg.blind_pad_s, blind_pads=cfg.blind_pads,
+            entry_pads=tuple(entry_pads(skin, desc.pads).tolist()) if skin is not None else (),
         )
         # The last finite report: published (marked stale) while the backend gives none.
         self.last_q = np.asarray(q0, dtype=float).copy()

@@ -23,10 +23,13 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.robot import RobotModel, load_description
+from nwr.common.skin import load_skin
 from nwr.services.gain.core import EFFECTIVE_MASS, GainEstimator
 from nwr.services.gain.impact import MEASURED, ImpactModel
+from nwr.services.gain.taxels import TaxelGain
 from nwr.services.gain.torque import TorqueContact, TorqueDetector, blind_fallback
 from nwr.services.wiring import Diag, Input, Out, Wiring, receives
 
@@ -40,6 +43,13 @@ class GainWiring(Wiring):
     def __init__(self, profile: Profile, *, journal: Journal, out: Out, diag: Diag) -> None:
         desc = load_description(profile.robot.description or None)
         self.estimator = GainEstimator(profile.gain, desc.pads)
+        skin = load_skin(profile, desc)
+        # A taxel skin (robot.skin = "taxels"): contacts from the taxels, pain per pad (.taxels).
+        self.taxels = TaxelGain(profile.gain, desc.pads, skin, profile.gateway.contact_hpa) \
+            if skin is not None else None
+        if self.taxels is not None and profile.gain.torque.enabled:
+            raise ConfigError("gain.torque locates a contact on a pad the skin is blind at; on a taxel skin it is "
+                              "not available: set gain.torque.enabled = false")
         model = RobotModel(desc) if profile.gain.model == EFFECTIVE_MASS or profile.gain.torque.enabled else None
         self.impacts = ImpactModel(profile.gain.effective_mass, model) \
             if profile.gain.model == EFFECTIVE_MASS and model is not None else None
@@ -96,6 +106,12 @@ class GainWiring(Wiring):
     @receives("pressure", keys.SKIN_PRESSURE)
     def on_pressure(self, sample: m.SkinPressure) -> None:
         now = self.journal.now_ns()
+        if self.taxels is not None:
+            try:
+                self.out(keys.SKIN_PAIN, self.taxels.process(sample, now))
+            except ValueError as exc:
+                self.diag("warning", "bad_skin_sample", str(exc))
+            return
         impact = self.impacts.predict(now) if self.impacts is not None else None
         try:
             pain = self.estimator.process(sample, now, impact)

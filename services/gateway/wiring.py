@@ -32,10 +32,13 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
+from nwr.common.errors import ConfigError
 from nwr.common.journal import Journal
 from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel, load_description
+from nwr.common.skin import hpa_per_unit, load_skin
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, sim_settings, touch_message
+from nwr.services.gateway.taxels import ScriptedTaxels
 from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives
 
 SERVICE = "gateway"
@@ -55,7 +58,21 @@ class GatewayWiring(Wiring):
         self.follow_target_s = follow_target_s
         sim = sim_settings(cfg)
         self.sim = SimSkin(sim, self.pads, script)
-        self.gateway = Gateway(cfg, len(self.pads), source=cfg.source)
+        # A taxel skin (robot.skin = "taxels"): the touch script's touches pressed on the taxels by a finger
+        # each; one entry per taxel in every list of skin/pressure, in hPa.
+        skin = load_skin(profile, self.desc)
+        self.taxels: ScriptedTaxels | None = None
+        self.taxel_hpa = 0.0
+        n = len(self.pads)
+        if skin is not None:
+            if cfg.source != "sim" or sim.closed_loop or follow_target_s:
+                raise ConfigError("robot.skin = \"taxels\" runs on the scripted world's simulated skin "
+                                  "(gateway.source = \"sim\", open loop, a touch script)")
+            self.taxels = ScriptedTaxels(skin, self.pads, script if script is not None else TouchScript(duration_s=1.0),
+                                         profile.gain.thresholds_hpa)
+            self.taxel_hpa = hpa_per_unit(skin)
+            n = len(skin)
+        self.gateway = Gateway(cfg, n, source=cfg.source)
         # A physics world's skin (gateway.source = "physics"): the samples come from the world (world/skin, the
         # bridge hosts it); the ticks run the touch script's clock only (the touches' ground truth).
         self.world = cfg.source == "physics"
@@ -134,7 +151,11 @@ class GatewayWiring(Wiring):
             self.touch_seq += 1
         if self.world:
             return t  # the world's own skin is sampled by the world (on_world_skin)
-        msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
+        if self.taxels is not None:
+            pressed = self.taxels.sample(t) * self.taxel_hpa  # the touches are all there is: no drift, no noise
+            msg, events = self.gateway.process(t, now, pressed, pressed)
+        else:
+            msg, events = self.gateway.process(t, now, sim.sample(t, points), sim.touch_hpa)
         self.out(keys.SKIN_PRESSURE, msg)
         self._reacquired(events.reacquired)
         for pad in events.non_finite:

@@ -37,6 +37,7 @@ from ruckig import InputParameter, Ruckig, Trajectory
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.skin import contact_normal
 from nwr.services.planner import restarts, retreat
 from nwr.services.planner.holding import Holding
 from nwr.services.planner.motion import Reflex
@@ -159,7 +160,7 @@ class ReflexControl(Holding):
         normal, toward the finger)."""
         if self.limits is None:
             return self.v_limit
-        toward = self.model.pad_normal(self.q, contact.pad) if contact is not None else None
+        toward = contact_normal(self.model, self.q, contact) if contact is not None else None
         return self._joint_speeds_for(target, self.limits.withdrawal_speed_m_s, toward, self.limits.speed_m_s)
 
     def _preview_to(self, target: np.ndarray, contact: m.Contact, samples: int = 40) -> tuple[np.ndarray, float]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,9 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "neither); `nwr demo` the physics world for a robot with collision shapes (the UR10e), else "
                         "the scripted world, which it also takes, saying why as it starts, for --closed-loop, a "
                         "script the physics world refuses, or a profile that names an arm or a skin")
+    p.add_argument("--skin", choices=SKINS,
+                   help="the skin the pipeline runs on: the AIRSKIN pads or the robot's taxel skin "
+                        "(skin-taxels.toml, scripted world only; docs/skins.md); default: the profile's robot.skin")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -62,6 +66,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
 
 
 WORLDS = ("scripted", "physics")
+SKINS = ("pads", "taxels")
 
 
 def world_for(args: argparse.Namespace, profile: Profile) -> str:
@@ -69,6 +74,8 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
     (:func:`default_world`); the profile made to say it (the bridge's
     backend and the gateway's source), the touch script checked against a physics world before anything starts.
     ConfigError for a profile that names half a physics world, or a script or flag the world cannot take."""
+    if getattr(args, "skin", None):
+        profile.robot.skin = args.skin
     physics = (profile.bridge.backend == "physics", profile.gateway.source == "physics")
     if physics[0] != physics[1]:
         raise ConfigError(f"bridge.backend = {profile.bridge.backend!r} and gateway.source = "
@@ -83,6 +90,9 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
             log.info("the physics world, `nwr demo`'s default (--world scripted: the scripted world)")
             profile.bridge.backend, profile.gateway.source = "physics", "physics"
             return world
+    if world == "physics" and profile.robot.skin == "taxels":
+        raise ConfigError("robot.skin = \"taxels\" runs in the scripted world only (--world scripted): the "
+                          "physics world's taxel readings are not published yet (docs/skins.md)")
     if world == "scripted":
         if backend == "physics":
             raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
@@ -116,6 +126,8 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
         return "scripted", ""  # the profile's arm or skin (a real one: no world)
     if getattr(args, "closed_loop", False) or sim_settings(profile.gateway).closed_loop:
         return "scripted", "closed loop is the scripted world's contact model (the physics world pushes back itself)"
+    if profile.robot.skin == "taxels":
+        return "scripted", "the taxel skin runs in the scripted world only (docs/skins.md)"
     from nwr.common.robot import load_description
     from nwr.services.bridge.backends import KIND
     from nwr.services.worlds.mjcf import PACKAGED_SHAPES
@@ -174,6 +186,8 @@ def layout_for(args: argparse.Namespace, profile: Profile, recording: tuple[str,
     if args.closed_loop:
         gateway.append("--closed-loop")
     layout.gateway = gateway
+    if getattr(args, "skin", None):
+        os.environ["NWR_SKIN"] = args.skin  # every service the launcher starts reads it (common/launch.py)
     layout.bridge = bridge_arguments(args, profile)
     return layout
 

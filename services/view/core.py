@@ -75,6 +75,7 @@ from foxglove.messages import (
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.skin import contact_point
 
 RGBA = tuple[float, float, float, float]
 
@@ -413,7 +414,7 @@ def reflex_ghost(model: RobotModel, status: m.PlannerStatus, q: np.ndarray | Non
         start_q = status.saved_pose if status.saved_pose and len(status.saved_pose) == model.nq else q
         if speed <= 0 or start_q is None or not 0 <= reflex.contact.pad < len(model.desc.pads):
             return None
-        tail = model.pad_point(np.asarray(start_q, dtype=float), reflex.contact.pad)
+        tail = contact_point(model, np.asarray(start_q, dtype=float), reflex.contact)
         arrow = Arrow(base, tail, velocity / speed, speed * float(reflex.duration_s), GHOST)
         return Ghost(base, reflex.strategy, reflex.reflex_seq, arrow=arrow)
     return None

@@ -37,6 +37,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.skin import contact_normal
 from nwr.services.planner.reflexes import damped_pinv, scale_to_limits
 from nwr.services.planner.retreat import guard_velocity
 from nwr.services.planner.strategies import Onset, ReflexStrategy
@@ -62,10 +63,10 @@ class Cartesian(ReflexStrategy):
         self.pad = -1
 
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
-        """Begin (or update) a reflex; its direction is the pad's Cartesian velocity v_c."""
+        """Begin (or update) a reflex; its direction is the contact's normal (the pad's, or the taxels')."""
         self.pad = contact.pad
         self.corrections = 0
-        normal = self._normal = self.model.pad_normal(q, contact.pad)
+        normal = self._normal = contact_normal(self.model, q, contact)
         self._twist[:3] = -self.v_max * contact.gain * normal
         self._twist[3:] = 0.0
         return Onset(direction=self._twist[:3].tolist())

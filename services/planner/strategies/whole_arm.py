@@ -86,6 +86,7 @@ from nwr.common.errors import ConfigError
 from nwr.common.guards import Guard
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.section import Section
+from nwr.common.skin import contact_normal, contact_point
 from nwr.services.planner.reflexes import smooth_profile
 from nwr.services.planner.strategies import KIND, Onset, ReflexStrategy
 
@@ -266,8 +267,8 @@ class WholeArm(ReflexStrategy):
         self.gain = max(0.0, float(contact.gain)) if np.isfinite(contact.gain) else 0.0
         self.corrections = self.failures = self.stalled = 0
         self._said = set()
-        self.contact = model.pad_point(q, contact.pad)
-        self.normal = model.pad_normal(q, contact.pad)
+        self.contact = contact_point(model, q, contact)
+        self.normal = contact_normal(model, q, contact)
         self.away = -self.normal
         self.sideways = self.blocked = False
         self.duration_s = self.configured_s

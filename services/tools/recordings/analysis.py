@@ -117,9 +117,11 @@ def summarized(key: str) -> bool:
 
 
 def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel | None = None, *,
-              touches: list[TouchSummary] | None = None) -> list[TouchSummary]:
+              touches: list[TouchSummary] | None = None, entry_pads: np.ndarray | None = None) -> list[TouchSummary]:
     """The per-touch figures; ``touches``: the touches to describe, when known otherwise than from the skin's
-    contact flags (a scripted press, which a withdrawing pad stops feeling before the finger leaves)."""
+    contact flags (a scripted press, which a withdrawing pad stops feeling before the finger leaves);
+    ``entry_pads``: on a taxel skin, each taxel's pad (:func:`nwr.common.skin.entry_pads`), a pad in contact
+    while a taxel of its patch is."""
     model = model or RobotModel(desc)
     pressure = [r.message for r in records if r.key == "skin/pressure"]
     pain = [r.message for r in records if r.key == "skin/pain"]
@@ -129,7 +131,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
     statuses = [r.message for r in records if r.key.startswith("reflex/") and r.key.endswith("/status")
                 and r.message.active and (r.message.reflex is None or not r.message.reflex.shadow)]
 
-    touches = _segment(pressure, desc) if touches is None else touches
+    touches = _segment(pressure, desc, entry_pads) if touches is None else touches
     by_seq = {p.trace.seq: p for p in pain}
     for touch in touches:
         for seq in range(touch.first_seq, touch.last_seq + 1):
@@ -273,11 +275,18 @@ def _predicted(touch: TouchSummary, pain: m.SkinPain | None) -> None:
         touch.effective_mass_kg = pain.effective_mass_kg[touch.pad]
 
 
-def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[TouchSummary]:
+def _segment(pressure: list[m.SkinPressure], desc: RobotDescription,
+             entry_pads: np.ndarray | None = None) -> list[TouchSummary]:
     open_: dict[int, TouchSummary] = {}
     done: list[TouchSummary] = []
+    n = len(desc.pads)
     for sample in pressure:
-        for pad, on in enumerate(sample.contact):
+        contact, change = sample.contact, sample.change_hpa
+        if entry_pads is not None and len(contact) == len(entry_pads):
+            contact, change = _per_pad(contact, change, entry_pads, n)
+        elif len(contact) != n:
+            continue  # a taxel skin's sample, its taxels' pads unknown here
+        for pad, on in enumerate(contact):
             if on:
                 t = open_.get(pad)
                 if t is None:
@@ -285,12 +294,24 @@ def _segment(pressure: list[m.SkinPressure], desc: RobotDescription) -> list[Tou
                     t = open_[pad] = TouchSummary(pad, info.name, info.region, sample.stamp_ns, sample.stamp_ns,
                                                   sample.seq, sample.seq, 0.0)
                 t.end_ns, t.last_seq = sample.stamp_ns, sample.seq
-                t.peak_hpa = max(t.peak_hpa, sample.change_hpa[pad])
+                t.peak_hpa = max(t.peak_hpa, change[pad])
             elif pad in open_:
                 done.append(open_.pop(pad))
     done.extend(open_.values())
     done.sort(key=lambda t: t.start_ns)
     return done
+
+
+def _per_pad(contact: list[bool], change: list[float], entry_pads: np.ndarray,
+             n: int) -> tuple[list[bool], list[float]]:
+    """A taxel sample per pad: in contact where a taxel of its patch is, its change the largest of theirs."""
+    on = np.asarray(contact, dtype=bool)
+    pads = entry_pads >= 0
+    flags = np.zeros(n, dtype=bool)
+    flags[entry_pads[pads & on]] = True
+    peak = np.zeros(n)
+    np.maximum.at(peak, entry_pads[pads], np.asarray(change, dtype=float)[pads])
+    return flags.tolist(), peak.tolist()
 
 
 def peak_jerk(t_ns: np.ndarray, v: np.ndarray) -> float | None:

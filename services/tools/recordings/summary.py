@@ -18,6 +18,7 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     ``columns``: names, comma-separated) and write every column to ``<recording>.touches.csv``."""
     from nwr.common.recordings import read_recording
     from nwr.common.robot import load_description
+    from nwr.common.skin import entry_pads, load_skin
     from nwr.services.tools.recordings import analysis, table
 
     chosen = table.columns(wide, columns)  # an unknown column is refused before the recording is read
@@ -26,7 +27,8 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
     records, metadata = read_recording(path)
     profile = profile or load_profile(None)
     desc = load_description(profile.robot.description or None)
-    touches = analysis.summarize(records, desc)
+    skin = load_skin(profile, desc)
+    touches = analysis.summarize(records, desc, entry_pads=entry_pads(skin, desc.pads) if skin is not None else None)
     first = next((r.message.stamp_ns for r in records if r.key == "skin/pressure"), 0)
     latencies = [t.onset_latency_ms for t in touches if t.onset_latency_ms is not None]
     lockstep = is_lockstep(metadata)
