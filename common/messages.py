@@ -376,9 +376,10 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     withdraws: bool = True
     # Why the motion is not the strategy's plain withdrawal, when it is not ("" when it is): "sideways" (the
     # pad's joints cannot move it along its normal without another part of the arm coming toward the contact:
-    # it withdraws across the normal, away from the contact point, along ``direction``), "blocked" (nothing
-    # withdraws it without that: the arm holds still), "failed" (the strategy's computation failed: stand-still
-    # commands). Set by the whole-arm withdrawal.
+    # it withdraws across the normal, away from the contact point, along ``direction``), "short" (its joints
+    # move it along its normal only a few millimetres without that: it withdraws the gain's share of that
+    # reach, along ``direction``), "blocked" (nothing withdraws it without that: the arm holds still),
+    # "failed" (the strategy's computation failed: stand-still commands). Set by the whole-arm withdrawal.
     reason: str = ""
 
 

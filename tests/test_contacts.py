@@ -119,7 +119,7 @@ def withdraw(main: str, other: str, *, others: bool, gain: float = 0.6) -> tuple
     return toward, away, closer
 
 
-@pytest.mark.parametrize(("main", "other"), [("shoulder_outer", "wrist_3"), ("wrist_1", "forearm_top"),
+@pytest.mark.parametrize(("main", "other"), [("shoulder_outer", "wrist_3"), ("wrist_2", "forearm_bottom"),
                                              ("shoulder_back", "upper_arm_top")])
 def test_the_second_hand_is_kept_away_from_and_withdrawn_from_too(main: str, other: str) -> None:
     toward, _, closer = withdraw(main, other, others=False)

@@ -40,10 +40,12 @@ POSES = {"home": DESC.home.copy(), "lap 1/4": TASK.position(3.0), "lap 5/8": TAS
 GAINS = (0.175, 0.58, 1.0)  # the survey script's 9, 15 and 25 hPa
 # Pads whose joints move them along their normals with nothing coming toward the contact: they withdraw
 # straight back, in proportion to the gain. The shoulder pads' normals are tangent to everything their two
-# joints do; the elbow's and wrist_1's (sideways, toward the base) need the base to turn, which swings the
-# shoulder toward the contact point.
+# joints do: they withdraw sideways. The elbow's and wrist_1's (sideways, toward the base) need the base to
+# turn, which swings the shoulder toward the contact point: they withdraw along their normals only a few
+# millimetres, the gain's share of that reach ("short").
 STRAIGHT = ("upper_arm_top", "upper_arm_bottom", "forearm_top", "forearm_bottom", "wrist_2", "wrist_3")
-SIDEWAYS = ("shoulder_back", "shoulder_outer", "wrist_1")
+SIDEWAYS = ("shoulder_back", "shoulder_outer")
+SHORT = ("elbow_outer", "wrist_1")
 DT = 0.004  # s: every second control cycle of the planner's 500 Hz (the figures agree within 0.1 mm)
 
 
@@ -129,7 +131,25 @@ def test_no_other_pad_moves_out_along_its_normal_faster_than_the_cap_and_the_dis
 
 # How far each leaves the contact point at G = 1 at least, m: shoulder_back only by turning the base, which
 # swings the pads farther out along their normals, each no faster than outward_speed_m_s.
-LEAVES_M = {"shoulder_back": 0.005, "shoulder_outer": 0.02, "wrist_1": 0.02}
+LEAVES_M = {"shoulder_back": 0.005, "shoulder_outer": 0.02}
+
+
+@pytest.mark.parametrize("pose", POSES)
+@pytest.mark.parametrize("pad", SHORT)
+def test_a_pad_its_joints_move_only_a_little_along_its_normal_withdraws_the_gains_share_of_that(
+        pad: str, pose: str) -> None:
+    runs = [withdraw(NAMES.index(pad), g, POSES[pose]) for g in (0.03, *GAINS)]
+    reach = build()
+    reach.start(POSES[pose].copy(), contact(NAMES.index(pad), 1.0))
+    assert whole_arm.REACH_MIN_M <= reach.reach_m < whole_arm.SHORT_SHARE * reach.distance_m
+    assert all(r["onset"].reason == "short" and not r["onset"].sideways for r in runs)
+    away = [r["away_m"].max() for r in runs]
+    assert away == sorted(away) and away[0] < away[-1]  # in proportion: a rank correlation of 1
+    assert away[-1] >= 0.7 * reach.reach_m  # most of its reach at G = 1; never toward, nothing else closer
+    assert away[-1] <= reach.reach_m + 1e-3
+    for r in runs:
+        assert -r["away_m"].min() <= TOWARD_BUDGET_M + 2e-4
+        assert r["pad_approach_m"] <= APPROACH_BUDGET_M + 2e-4
 
 
 @pytest.mark.parametrize("pad", SIDEWAYS)

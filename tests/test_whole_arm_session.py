@@ -30,6 +30,7 @@ DESC = load_description()
 MODEL = RobotModel(DESC)
 STRAIGHT = ("upper_arm_top", "upper_arm_bottom", "forearm_top", "forearm_bottom", "wrist_2", "wrist_3")
 SIDEWAYS = ("shoulder_back", "shoulder_outer")
+SHORT = ("elbow_outer", "wrist_1")
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +69,7 @@ def test_the_same_touch_repeated_gives_the_same_withdrawal(session: tuple[list, 
     assert quality.repeat_diff_mm is not None and quality.repeat_diff_mm <= 2.0
 
 
-def test_the_shoulder_pads_withdraw_sideways_and_the_status_says_so(session: tuple[list, list]) -> None:
+def test_the_shoulder_pads_withdraw_sideways_the_elbow_short_and_the_status_says_so(session: tuple[list, list]) -> None:
     records, touches = session
     reasons = {r.message.reflex.reflex_seq: r.message.reflex.reason for r in records
                if r.key == "reflex/whole-arm/status" and r.message.reflex is not None}
@@ -77,6 +78,8 @@ def test_the_shoulder_pads_withdraw_sideways_and_the_status_says_so(session: tup
             assert reasons[touch.reflex_seq] == "sideways", touch.name
         if touch.name in STRAIGHT:
             assert reasons[touch.reflex_seq] == "", touch.name
+        if touch.name in SHORT:
+            assert reasons[touch.reflex_seq] == "short", touch.name
     assert np.isfinite([t.peak_jerk_m_s3 for t in touches if t.peak_jerk_m_s3 is not None]).all()
 
 

@@ -115,6 +115,10 @@ TAU_S = 0.5
 NORMAL_SHARE = 0.25
 # Directions across the normal tried at the onset (evenly around it).
 SIDEWAYS_DIRECTIONS = 8
+# A pad whose joints can move it along its normal at least this far (m) within the constraints, but less than
+# SHORT_SHARE of distance_m, withdraws along it the gain's share of that reach ("short"), not sideways.
+REACH_MIN_M = 0.005
+SHORT_SHARE = 0.5
 # Below this share of its speed in every direction the pad cannot withdraw at all: the arm holds still.
 HOLD_SHARE = 0.05
 # A sideways withdrawal follows the direction away from the contact point once this far from it, m.
@@ -221,13 +225,21 @@ class WholeArm(ReflexStrategy):
         self.normal = np.zeros(3)
         self.away = np.zeros(3)  # the withdrawal direction w
         self.sideways = False  # the pad cannot move along its normal: it withdraws along w, then from the contact
+        self.short = False  # the pad moves along its normal only reach_m: it withdraws G reach_m
+        self.reach_m = 0.0  # how far the pad can withdraw along its normal within the constraints (estimate), m
         self.blocked = False  # nothing can withdraw it: the stream is zero
         self.speed_m_s = 0.0  # the pad's mean speed, G distance_m / T; the profile's plateau is T / (T - ramp) of it
         # Counts of the current reflex's live cycles (never of a retreat check's integration).
         self.failures = 0  # solver failures, exceptions, non-finite results: a zero command instead
         self.stalled = 0  # cycles in which the constraints let the pad withdraw at under HOLD_SHARE of its speed
         self._said: set[str] = set()  # what this reflex has reported (once each)
-        self._d0 = np.zeros(0)  # each sampled point's distance from the contact point at the onset, m
+        # Where the reflex's touch began (its first onset: a restart of the same touch keeps it) and each sampled
+        # point's distance from it then, m: an escalating press restarts the reflex at each sample, and a budget
+        # renewed at each restart would add up.
+        self._origin = np.zeros(3)
+        self._origin_of: tuple[int, int] | None = None  # (pad, onset_ns) of the touch it is the origin of
+        self._touch: ContactPoint | None = None  # the reflex's own touch (set_contacts), if the planner keeps them
+        self._d0 = np.zeros(0)
         self._free = np.zeros(0, dtype=bool)  # sampled points not constrained (the touched pad's own surface)
         self.others: list[Other] = []  # the other active contacts (set_contacts), replaced, never changed in place
 
@@ -239,8 +251,10 @@ class WholeArm(ReflexStrategy):
         known = {o.pad: o for o in self.others}
         others: list[Other] = []
         points: np.ndarray | None = None
+        self._touch = None
         for contact in contacts:
             if contact.pad == main:
+                self._touch = contact
                 continue
             other = known.get(contact.pad)
             if other is not None and np.array_equal(other.point, contact.point):
@@ -270,28 +284,38 @@ class WholeArm(ReflexStrategy):
         self.contact = contact_point(model, q, contact)
         self.normal = contact_normal(model, q, contact)
         self.away = -self.normal
-        self.sideways = self.blocked = False
+        self.sideways = self.blocked = self.short = False
+        self.reach_m = self.distance_m
         self.duration_s = self.configured_s
         self.speed_m_s = self.gain * self.distance_m / self.duration_s
         samples = self._samples(q)
-        self._d0 = np.linalg.norm(samples[0] - self.contact, axis=1)
-        self._free = self._d0 <= NEAR_M  # the touched pad's own surface: not constrained
-        self._free[self.pad] = True
+        touch = self._touch if self._touch is not None and self._touch.pad == self.pad else None
+        key = None if touch is None else (touch.pad, touch.onset_ns)
+        if key is None or key != self._origin_of or len(self._d0) != len(samples[0]):
+            self._origin, self._origin_of = self.contact, key
+            self._d0 = np.linalg.norm(samples[0] - self.contact, axis=1)
+            self._free = self._d0 <= NEAR_M  # the touched pad's own surface: not constrained
+            self._free[self.pad] = True
         if self.speed_m_s <= 0.0:
             return Onset(direction=[0.0, 0.0, 0.0])
         name = self.pad_names[contact.pad]
         try:
+            self.reach_m = self._reach(q, samples)
+            distance = self.distance_m
+            if REACH_MIN_M <= self.reach_m < SHORT_SHARE * distance:
+                # Only so far along the normal: the gain's share of that reach, in proportion still.
+                self.short, distance = True, self.reach_m
+                self.speed_m_s = self.gain * distance / self.duration_s
             along = self._probe(q, self.away, samples)
-            if along < NORMAL_SHARE * self.speed_m_s:
+            if not self.short and along < NORMAL_SHARE * self.speed_m_s:
                 side, rate = self._sideways(q, samples)
                 if rate > along:
                     self.away, self.sideways, along = side, True, rate
             plateau = self.speed_m_s * self.duration_s / (self.duration_s - self.ramp_s)
             if HOLD_SHARE * self.speed_m_s <= along < plateau:
-                # Slower than the gain asks: longer, so that the distance stays G distance_m.
-                self.duration_s = min(STRETCH_MAX * self.configured_s,
-                                      self.ramp_s + self.gain * self.distance_m / along)
-                self.speed_m_s = self.gain * self.distance_m / self.duration_s
+                # Slower than the gain asks: longer, so that the distance stays G times the distance.
+                self.duration_s = min(STRETCH_MAX * self.configured_s, self.ramp_s + self.gain * distance / along)
+                self.speed_m_s = self.gain * distance / self.duration_s
         except Exception as exc:  # the stream then tries every cycle; each failure gives a zero command
             self._say("warning", "whole_arm_failed", f"reflex on pad {name}: the withdrawal's QP failed at the "
                       f"onset ({exc!r}): every cycle it fails the arm is commanded to stand still")
@@ -302,6 +326,12 @@ class WholeArm(ReflexStrategy):
                       f"reflex on pad {name}: no joint motion moves it away from the contact without bringing "
                       "another part of the arm closer to it: holding still")
             return Onset(direction=[0.0, 0.0, 0.0], reason="blocked")
+        if self.short:
+            self._say("info", "whole_arm_short",
+                      f"reflex on pad {name}: its joints move it along its normal only "
+                      f"{1e3 * self.reach_m:.1f} mm without bringing another part of the arm closer to the contact; "
+                      f"it withdraws {1e3 * self.gain * self.reach_m:.1f} mm, the gain's share of that")
+            return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="short")
         if self.sideways:
             self._say("info", "whole_arm_sideways",
                       f"reflex on pad {name}: its joints cannot move it along its normal without bringing another "
@@ -315,6 +345,21 @@ class WholeArm(ReflexStrategy):
         plateau = self.speed_m_s * self.duration_s / (self.duration_s - self.ramp_s)
         dq, _, _ = self._solve(q, plateau, away, samples=samples)
         return float(away @ (samples[1][self.pad] @ dq))
+
+    def _reach(self, q: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> float:
+        """How far the pad can withdraw along its normal within the constraints, at most, m (an estimate).
+
+        At full gain's plateau speed, the pad's speed along the normal the constraints allow (``fast``), and
+        the share of it that spends no approach budget (``rigid``: every point of the arm holding its distance
+        from the contact). The rigid share may go on for the longest reflex; the rest spends the budgets,
+        which the velocity dampers let go in about ``TAU_S``.
+        """
+        full = self.distance_m / (self.configured_s - self.ramp_s)
+        jac = samples[1][self.pad]
+        fast = float(self.away @ (jac @ self._solve(q, full, self.away, samples=samples)[0]))
+        rigid = float(self.away @ (jac @ self._solve(q, full, self.away, samples=samples, budgets=0.0)[0]))
+        rigid = min(max(rigid, 0.0), max(fast, 0.0))
+        return rigid * (STRETCH_MAX * self.configured_s - self.ramp_s) + (max(fast, 0.0) - rigid) * TAU_S
 
     def _sideways(self, q: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
         """The best direction across the pad's normal that its joints allow, and its speed along it (m/s).
@@ -374,7 +419,8 @@ class WholeArm(ReflexStrategy):
         return dq
 
     def _solve(self, q: np.ndarray, speed: float, away: np.ndarray, *,
-               samples: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, bool, float]:
+               samples: tuple[np.ndarray, np.ndarray] | None = None, budgets: float = 1.0
+               ) -> tuple[np.ndarray, bool, float]:
         """The QP at ``q`` for the pad's speed ``speed`` along ``away``: q_dot, whether the constraints held the
         pad back, and the pad's speed along ``away`` it gives (m/s). ``samples``: :meth:`_samples` at ``q``, if
         known. Raises on a failure."""
@@ -383,14 +429,14 @@ class WholeArm(ReflexStrategy):
         a = jp.T @ away
         # Constraints G q_dot <= h: the touched pad not toward the contact along n0; no other sampled point
         # closer to the contact point (each beyond its budget).
-        offset = points - self.contact
+        offset = points - self._origin
         dist = np.linalg.norm(offset, axis=1)
         keep = ~self._free
         units = offset[keep] / dist[keep, None]
         rows = np.vstack([self.normal @ jp, -np.matmul(units[:, None, :], jacs[keep])[:, 0, :]])
         toward = float(self.normal @ (points[self.pad] - self.contact))
-        h = np.concatenate([[max(0.0, TOWARD_BUDGET_M - toward)],
-                            np.maximum(0.0, dist[keep] - self._d0[keep] + APPROACH_BUDGET_M)]) / TAU_S
+        h = budgets * np.concatenate([[max(0.0, TOWARD_BUDGET_M - toward)],
+                                      np.maximum(0.0, dist[keep] - self._d0[keep] + APPROACH_BUDGET_M)]) / TAU_S
         # Every other pad (not the touched pad's own surface): out along its own normal no faster than
         # outward_speed_m_s.
         capped = ~self._free[: self.n_pads]
@@ -410,8 +456,9 @@ class WholeArm(ReflexStrategy):
             o_toward = float(other.normal @ (points[other.pad] - other.point))
             rows = np.vstack([rows, other.normal @ jacs[other.pad],
                               -np.matmul(o_units[:, None, :], jacs[o_keep])[:, 0, :]])
-            h = np.concatenate([h, [max(0.0, TOWARD_BUDGET_M - o_toward) / TAU_S],
-                                np.maximum(0.0, o_dist[o_keep] - other.d0[o_keep] + APPROACH_BUDGET_M) / TAU_S])
+            h = np.concatenate([h, budgets * np.concatenate([
+                [max(0.0, TOWARD_BUDGET_M - o_toward)],
+                np.maximum(0.0, o_dist[o_keep] - other.d0[o_keep] + APPROACH_BUDGET_M)]) / TAU_S])
             if other.gain > 0.0:  # still felt: its pad withdraws too
                 o_a = jacs[other.pad].T @ -other.normal
                 hessian_others += np.outer(o_a, o_a)
