@@ -52,7 +52,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "script the physics world refuses, or a profile that names an arm or a skin")
     p.add_argument("--skin", choices=SKINS,
                    help="the skin the pipeline runs on: the AIRSKIN pads or the robot's taxel skin "
-                        "(skin-taxels.toml, scripted world only; docs/skins.md); default: the profile's robot.skin")
+                        "(skin-taxels.toml, docs/skins.md); default: the profile's robot.skin")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -90,9 +90,6 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
             log.info("the physics world, `nwr demo`'s default (--world scripted: the scripted world)")
             profile.bridge.backend, profile.gateway.source = "physics", "physics"
             return world
-    if world == "physics" and profile.robot.skin == "taxels":
-        raise ConfigError("robot.skin = \"taxels\" runs in the scripted world only (--world scripted): the "
-                          "physics world's taxel readings are not published yet (docs/skins.md)")
     if world == "scripted":
         if backend == "physics":
             raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
@@ -146,18 +143,27 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
 
 def check_physics_script(args: argparse.Namespace, profile: Profile) -> None:
     """The touch script checked against the physics world at the arm's starting pose, before anything starts
-    (ConfigError: a push no finger makes, more fingers at once than the world holds, a finger inside the arm)."""
+    (ConfigError: a push no finger makes, more fingers at once than the world holds, a finger inside the arm;
+    on a taxel skin, a pad the taxels do not cover)."""
     from nwr.common.robot import load_description
+    from nwr.common.skin import load_skin
     from nwr.services.bridge.backends import KIND
+    from nwr.services.gateway.taxels import check_covered
     from nwr.services.worlds.hosted import check_script
-    from nwr.services.worlds.settings import PhysicsSettings
+    from nwr.services.worlds.settings import PhysicsSettings, check_taxel_rate
 
     script = getattr(args, "script", None) or sim_settings(profile.gateway).script
+    desc = load_description(profile.robot.description or None)
+    settings = KIND.settings(profile.bridge, "physics", PhysicsSettings)
+    skin = load_skin(profile, desc)
+    if skin is not None:
+        check_taxel_rate(settings)
     if script:
-        desc = load_description(profile.robot.description or None)
+        touches = load_script(script, profile.robot.description)
         q0 = profile.bridge.initial_q or desc.home
-        check_script(load_script(script, profile.robot.description),
-                     KIND.settings(profile.bridge, "physics", PhysicsSettings), desc, np.asarray(q0, dtype=float))
+        check_script(touches, settings, desc, np.asarray(q0, dtype=float))
+        if skin is not None:
+            check_covered(skin, desc.pads, touches)
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:
