@@ -173,3 +173,52 @@ def test_a_pad_sample_encodes_as_before_and_the_gateway_reads_taxels_in_hpa() ->
     assert door.refuse(msgspec.structs.replace(sample, taxels=[0.0] * 299)).cause == "wrong pad count"  # type: ignore[union-attr]
     assert door.refuse(msgspec.structs.replace(sample, force_n=[0.0] * 10)).cause == "wrong pad count"  # type: ignore[union-attr]
     assert door.refuse(msgspec.structs.replace(sample, taxels=[300.0] * 300)).cause == "pressure out of range"  # type: ignore[union-attr]
+
+
+SHORT_SCRIPT = """duration_s = 2.5
+
+[[touch]]
+pad = "upper_arm_top"
+start_s = 0.5
+duration_s = 0.5
+peak_hpa = 16.0
+
+[[touch]]
+pad = "forearm_bottom"
+start_s = 1.4
+duration_s = 0.5
+peak_hpa = 14.0
+"""
+
+
+@pytest.mark.slow
+def test_a_lockstep_physics_demo_on_the_taxels_withdraws_from_each_finger_and_verifies(tmp_path, capsys) -> None:
+    """``nwr demo --fast --world physics --skin taxels`` on two fingers one after the other: the world's 1 kHz
+    taxel samples become 300-entry skin/pressure samples, a reflex per finger whose contact lies under it on its
+    patch, the per-touch table complete, ``nwr verify`` bit for bit (~5 + 8 s)."""
+    from nwr.common.recordings import read_recording
+    from nwr.services import cli
+    from nwr.services.gateway.taxels import covering_taxel
+
+    script, path = tmp_path / "short.toml", tmp_path / "taxels.mcap"
+    script.write_text(SHORT_SCRIPT)
+    assert cli.main(["demo", "--fast", "--world", "physics", "--skin", "taxels", "--script", str(script),
+                     "--reflex", "cartesian", "-o", str(path)]) == 0
+    assert "all 2 scripted touches as expected (2 reflexes" in capsys.readouterr().out
+    records, _ = read_recording(path)
+    world = [r.message for r in records if r.key == keys.WORLD_SKIN]
+    pressure = [r.message for r in records if r.key == keys.SKIN_PRESSURE]
+    assert len(pressure) == len(world) and all(len(w.taxels) == 300 for w in world)
+    span_s = (world[-1].world_ns - world[0].world_ns) / 1e9
+    assert len(world) == round(span_s * 1000) + 1  # every 1 ms step
+    assert all(len(p.change_hpa) == 300 and p.source == "physics" for p in pressure)
+    reflexes = {r.message.reflex.reflex_seq: r.message.reflex for r in records
+                if isinstance(r.message, m.PlannerStatus) and r.message.reflex is not None}
+    assert [reflex.contact.name for _, reflex in sorted(reflexes.items())] == ["upper_arm_top", "forearm_bottom"]
+    for reflex in reflexes.values():
+        pad = DESC.pad(reflex.contact.name)
+        assert reflex.contact.link == pad.link and reflex.contact.force_n > 2.0  # PL 3 and up on the taxels
+        under = SKIN.points[covering_taxel(SKIN, pad)]
+        assert np.linalg.norm(np.asarray(reflex.contact.point) - under) < 0.02
+    assert cli.main(["verify", str(path)]) == 0
+    assert "4 of 4 service runs re-made their recorded outputs bit for bit" in capsys.readouterr().out
