@@ -46,10 +46,12 @@ same world, bit for bit.
   default) with the pads' conventions where they apply: ``skin_sample``
   ("instant" or "mean"), ``skin_latency_s``, and ``skin_noise_hpa`` of white
   noise (in the skin's unit; a taxel reports over its own baseline: no base,
-  no spread). Each sample goes out on ``world/skin`` as ``taxels`` (the pad
-  lists empty); the pads' samples are no longer published, but each one's
-  step still publishes the contact figures, so ``world/contacts`` keeps the
-  pads' rate whatever the skin.
+  no spread, and never below 0: noise under the baseline reads 0, as the
+  absolute pressures of ``skin/pressure`` are never negative). Each sample
+  goes out on ``world/skin`` as ``taxels`` (the pad lists empty); the
+  pads' samples are no longer published, but each one's step still
+  publishes the contact figures, so ``world/contacts`` keeps the pads' rate
+  whatever the skin.
 """
 
 from __future__ import annotations
@@ -277,7 +279,7 @@ class HostedWorld:
         for sample in sampler.delivered(now):
             out.append((keys.WORLD_SKIN, m.WorldSkin(
                 seq=self.skin_seq, stamp_ns=at_ns - (now - sample.delivered_ns), world_ns=sample.taken_ns,
-                absolute_hpa=[], change_hpa=[], force_n=[], taxels=sample.absolute_hpa.tolist())))
+                absolute_hpa=[], change_hpa=[], force_n=[], taxels=np.maximum(sample.absolute_hpa, 0.0).tolist())))
             self.skin_seq += 1
         for sample in world.skin():
             if self.fingers:
