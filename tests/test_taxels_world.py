@@ -16,6 +16,7 @@ from nwr.common.config import Profile
 from nwr.common.door import Door
 from nwr.common.errors import ConfigError
 from nwr.common.journal import Recording
+from nwr.common.recordings import read_recording
 from nwr.common.robot import ROBOTS_DIR, RobotModel, load_description
 from nwr.common.taxels import contacts, finger_pressure, load_taxel_skin, nearest_taxel
 from nwr.services.gateway.wiring import GatewayWiring
@@ -208,7 +209,6 @@ def test_a_lockstep_physics_demo_on_the_taxels_withdraws_from_each_finger_and_ve
     """``nwr demo --fast --world physics --skin taxels`` on two fingers one after the other: the world's 1 kHz
     taxel samples become 300-entry skin/pressure samples, a reflex per finger whose contact lies under it on its
     patch, the per-touch table complete, ``nwr verify`` bit for bit (~5 + 8 s)."""
-    from nwr.common.recordings import read_recording
     from nwr.services import cli
     from nwr.services.gateway.taxels import covering_taxel
 
@@ -234,3 +234,39 @@ def test_a_lockstep_physics_demo_on_the_taxels_withdraws_from_each_finger_and_ve
         assert np.linalg.norm(np.asarray(reflex.contact.point) - under) < 0.02
     assert cli.main(["verify", str(path)]) == 0
     assert "4 of 4 service runs re-made their recorded outputs bit for bit" in capsys.readouterr().out
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_live_physics_demo_on_the_taxels_withdraws_and_verifies(tmp_path, pipeline) -> None:
+    """``nwr demo --world physics --skin taxels`` through real processes (tests/data/physics.toml: a finger on
+    forearm_top, 9 hPa held 1 s): every 1 ms world step's 300 readings reach the gateway and pass every door
+    (lockstep has none), a reflex, ``nwr verify`` bit for bit."""
+    from pipeline import DATA
+
+    from nwr.services.tools.recordings.verify import verify
+
+    pipeline.configure("")
+    output = tmp_path / "taxels.mcap"
+    proc = pipeline.run("demo", "--world", "physics", "--skin", "taxels", "--script", str(DATA / "physics.toml"),
+                        "--output", str(output), timeout_s=120)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log
+    records, _ = read_recording(output)
+    world = [r.message for r in records if r.key == keys.WORLD_SKIN]
+    pressure = [r.message for r in records if r.key == keys.SKIN_PRESSURE]
+    assert world and all(len(w.taxels) == 300 and not w.absolute_hpa for w in world)
+    assert len(world) == (world[-1].world_ns - world[0].world_ns) // 1_000_000 + 1  # every world step, in order
+    since = [w for w in world if w.stamp_ns >= pressure[0].stamp_ns - 40_000_000]
+    assert len(pressure) >= len(since) - 2 and all(len(p.absolute_hpa) == 300 for p in pressure)
+    refused = [r.message.message for r in records if r.key.startswith("diag/") and r.message.code.startswith("refused")]
+    assert not refused, refused[:3]
+    states = [r.message for r in records if r.key == keys.ROBOT_STATE]
+    assert any(s.reflex_seq > 0 and s.accepted is not None for s in states), log
+    reflex = next(r.message.reflex for r in records if isinstance(r.message, m.PlannerStatus)
+                  and r.message.reflex is not None)
+    assert reflex.contact.name == "forearm_top" and reflex.contact.link == "forearm_link"
+    results = verify(output)
+    lines = [r.format() for r in results]
+    assert {r.service for r in results} == {"gateway", "gain", "bridge", "planner-cartesian"}, lines
+    assert all(r.verdict == "identical" for r in results), lines

@@ -49,7 +49,7 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "default: `nwr up` the profile's (bridge.backend and gateway.source both \"physics\", or "
                         "neither); `nwr demo` the physics world for a robot with collision shapes (the UR10e), else "
                         "the scripted world, which it also takes, saying why as it starts, for --closed-loop, a "
-                        "script the physics world refuses, or a profile that names an arm or a skin")
+                        "script the physics world refuses, the taxel skin, or a profile that names an arm or a skin")
     p.add_argument("--skin", choices=SKINS,
                    help="the skin the pipeline runs on: the AIRSKIN pads or the robot's taxel skin "
                         "(skin-taxels.toml, docs/skins.md); default: the profile's robot.skin")
@@ -114,8 +114,10 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
     the physics world wherever it can serve: not for a backend given on the command line (the scripted world's
     arm, or a real arm: no world), a profile that names an arm or a skin other than the simulated ones, the
     scripted skin's closed loop, a robot without collision shapes (its physics world would be a skeleton of
-    capsules: the FR3's), or a touch script the physics world refuses (the session runs in the scripted world;
-    ``--world physics`` insists, and is refused).
+    capsules: the FR3's), a touch script the physics world refuses (the session runs in the scripted world;
+    ``--world physics`` insists, and is refused), or the taxel skin (measured live at 1 kHz, docs/skins.md: the
+    physics world's taxels cost more CPU than the scripted ones, react later and split a touch whose finger
+    chatters on the arm; ``--world physics`` runs them).
     """
     if getattr(args, "default_world", "scripted") != "physics" or getattr(args, "backend", None):
         return "scripted", ""
@@ -124,7 +126,9 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
     if getattr(args, "closed_loop", False) or sim_settings(profile.gateway).closed_loop:
         return "scripted", "closed loop is the scripted world's contact model (the physics world pushes back itself)"
     if profile.robot.skin == "taxels":
-        return "scripted", "the taxel skin runs in the scripted world only (docs/skins.md)"
+        return "scripted", ("the taxel skin's default world: at 1 kHz the physics world's taxels cost more CPU, a "
+                            "later onset and split touches where a finger chatters (docs/skins.md; --world physics "
+                            "runs them)")
     from nwr.common.robot import load_description
     from nwr.services.bridge.backends import KIND
     from nwr.services.worlds.mjcf import PACKAGED_SHAPES
