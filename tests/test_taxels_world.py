@@ -272,3 +272,32 @@ def test_a_live_physics_demo_on_the_taxels_withdraws_and_verifies(tmp_path, pipe
     lines = [r.format() for r in results]
     assert {r.service for r in results} == {"gateway", "gain", "bridge", "planner-cartesian"}, lines
     assert all(r.verdict == "identical" for r in results), lines
+
+
+def test_nwr_demo_runs_the_taxels_in_the_physics_world_when_asked_and_refuses_what_they_cannot_feel(caplog) -> None:
+    """``--skin taxels``: the scripted world by default, saying why; ``--world physics`` runs the physics world's
+    taxels; a script touching pads the taxels do not cover, or a taxel rate above the world's steps, is refused
+    before anything starts."""
+    import logging
+
+    from nwr.services.cli import build_parser
+    from nwr.services.tools.demo import world_for
+
+    parser = build_parser()
+    profile = Profile()
+    with caplog.at_level(logging.INFO, logger="nwr.services.tools.demo"):
+        assert world_for(parser.parse_args(["demo", "--skin", "taxels", "--script", "two-fingers"]), profile) == \
+            "scripted"
+    assert "the taxel skin's default world" in caplog.text and profile.bridge.backend == "sim"
+    profile = Profile()
+    assert world_for(parser.parse_args(["demo", "--skin", "taxels", "--world", "physics", "--script",
+                                        "two-fingers"]), profile) == "physics"
+    assert (profile.robot.skin, profile.bridge.backend, profile.gateway.source) == ("taxels", "physics", "physics")
+    with pytest.raises(ConfigError, match=r"touches pads \[.*'elbow_outer'.*\], which the taxel skin"):
+        world_for(parser.parse_args(["demo", "--skin", "taxels", "--world", "physics", "--script", "demo"]),
+                  Profile())
+    slow = Profile()
+    slow.bridge.plugins["physics"] = {"timestep_s": 0.002}
+    with pytest.raises(ConfigError, match="taxel_rate_hz = 1000 Hz is faster than the world's steps"):
+        world_for(parser.parse_args(["demo", "--skin", "taxels", "--world", "physics", "--script", "two-fingers"]),
+                  slow)
