@@ -27,7 +27,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import Profile
 from nwr.common.robot import RobotDescription, load_description
-from nwr.common.skin import load_skin
+from nwr.common.skin import hpa_per_unit, load_skin
 from nwr.common.taxels import TaxelSkin
 
 SEQ_LIMIT = 2**32  # MCAP's message sequence is a uint32
@@ -69,6 +69,7 @@ class Door:
         # A skin sample's entries: one per taxel on a taxel skin (robot.skin = "taxels"), else one per pad.
         self.n_entries = len(skin) if skin is not None else self.n_pads
         self.links = frozenset(skin.links) if skin is not None else frozenset()
+        self.hpa_per_unit = hpa_per_unit(skin) if skin is not None else 1.0
         self.q_lo = np.asarray(desc.q_min) - JOINT_MARGIN_RAD
         self.q_hi = np.asarray(desc.q_max) + JOINT_MARGIN_RAD
         self.v_top = np.asarray(desc.v_max) * SPEED_MARGIN
@@ -208,6 +209,19 @@ class Door:
         return None
 
     def _world_skin(self, msg: m.WorldSkin) -> Refusal | None:
+        if msg.taxels:  # a taxel skin's sample: one reading per taxel (the skin's unit), no pad lists
+            if not self.links:
+                return Refusal("wrong pad count", f"taxels has {len(msg.taxels)} values, the skin has pads only")
+            refused = self._entries(msg.taxels, "taxels")
+            if refused:
+                return refused
+            if msg.absolute_hpa or msg.change_hpa or msg.force_n:
+                return Refusal("wrong pad count", "a taxel sample with pad values: expected one or the other")
+            bad = [x for x in msg.taxels if abs(x) * self.hpa_per_unit > CHANGE_HPA]
+            if bad:
+                return Refusal("pressure out of range", f"a taxel reading of {bad[0]} ({bad[0] * self.hpa_per_unit:g} "
+                               f"hPa; at most {CHANGE_HPA:g})")
+            return None
         for values, what in ((msg.absolute_hpa, "absolute_hpa"), (msg.change_hpa, "change_hpa"),
                              (msg.force_n, "force_n")):
             refused = self._pads(values, what)

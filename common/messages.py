@@ -126,7 +126,8 @@ class SkinTouch(msgspec.Struct, tag="skin_touch", tag_field="kind", forbid_unkno
     body_area: str = ""
 
 
-class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unknown_fields=True):
+class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unknown_fields=True,
+                omit_defaults=True):
     """A physics world's skin: one sample of every pad as the device would report it, in pad id order.
 
     The bridge's ``physics`` backend hosts the world and publishes its samples
@@ -135,6 +136,13 @@ class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unkno
     sample (its steps since it started); ``force_n`` the normal force on each
     pad and ``change_hpa`` the pressure change it makes (noise-free: the
     ground truth beside the noisy absolute reading).
+
+    On a taxel skin (``robot.skin = "taxels"``) a sample is one reading per
+    taxel instead, in taxel id order: ``taxels``, each taxel's pressure over
+    its no-touch baseline in the skin file's unit, with noise (the taxel
+    skin's rate, 1 kHz by default); the pad lists are then empty. Left off
+    the wire when empty, so that a pad sample encodes byte for byte as
+    before.
     """
 
     seq: int
@@ -143,6 +151,7 @@ class WorldSkin(msgspec.Struct, tag="world_skin", tag_field="kind", forbid_unkno
     absolute_hpa: list[Finite]
     change_hpa: list[Finite]
     force_n: list[Finite]
+    taxels: list[Finite] = []
 
 
 class WorldPerson(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

@@ -288,6 +288,8 @@ def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:
         (keys.CONTROL_ACTIVE, m.SwitchRequest(seq=0, stamp_ns=stamp_ns, name=PLANNER, requested_by="operator")),
         (keys.WORLD_SKIN, m.WorldSkin(seq=0, stamp_ns=stamp_ns, world_ns=40_000_000, absolute_hpa=[1013.0] * 10,
                                       change_hpa=[0.0] * 9 + [9.0], force_n=[0.0] * 9 + [11.3])),
+        (keys.WORLD_SKIN, m.WorldSkin(seq=1, stamp_ns=stamp_ns, world_ns=41_000_000, absolute_hpa=[], change_hpa=[],
+                                      force_n=[], taxels=[0.01] * 299 + [5.2])),  # a taxel skin's
         (keys.WORLD_CONTACTS, m.WorldContacts(seq=0, stamp_ns=stamp_ns, world_ns=40_000_000, people=[m.WorldPerson(
             name="touch-0", kind="finger", touch=0, pads=[9], force_n=11.3, peak_force_n=12.0, pressure_n_cm2=20.0,
             peak_pressure_n_cm2=25.0, energy_j=0.01, pushed_m=0.002, peak_pushed_m=0.004)])),

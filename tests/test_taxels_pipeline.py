@@ -200,8 +200,8 @@ def test_the_gateway_and_gain_wirings_carry_a_scripted_touch_on_the_taxels() -> 
     strongest = pains[touched[0]].strongest
     assert strongest is not None and strongest.name == "forearm_top" and strongest.level == 4
     assert np.linalg.norm(np.asarray(strongest.point) - centre) < 0.003
-    with pytest.raises(ConfigError, match="scripted world"):
-        GatewayWiring(msgspec.convert({"robot": {"skin": "taxels"}, "gateway": {"source": "physics"}}, Profile),
+    with pytest.raises(ConfigError, match="simulated skin"):
+        GatewayWiring(msgspec.convert({"robot": {"skin": "taxels"}, "gateway": {"source": "ros1"}}, Profile),
                       journal=Recording(clock), out=lambda *a: None, diag=lambda *a, **k: None, script=script)
 
 

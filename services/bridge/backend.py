@@ -27,6 +27,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.errors import SafetyError
 from nwr.common.pacing import Rate
+from nwr.common.taxels import TaxelSkin
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.envelope import Envelope
 
@@ -138,6 +139,11 @@ class Backend(ABC):
     def on_touch(self, touch: m.SkinTouch, now_ns: int) -> str | None:
         """A touch of the touch script reaches a hosted world at ``now_ns``; why it was refused, or None."""
         return f"the {self.name} backend hosts no world: touch {touch.seq} ignored"
+
+    def use_skin(self, skin: TaxelSkin) -> None:
+        """The profile's skin is this taxel skin (before the first :meth:`advance`): a hosted world publishes its
+        samples; an arm whose skin is not the bridge's (every other backend) has nothing to do."""
+        return None
 
     def wind_down(self, timeout_s: float) -> bool:
         """The control loop has ended (the arm stopped, :meth:`disconnect` to come): wait (at most ``timeout_s``)

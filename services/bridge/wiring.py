@@ -112,6 +112,8 @@ class BridgeWiring(Wiring):
         task = FigureEight(profile.planner.task, desc)
         journal.begin("start")
         skin = load_skin(profile, desc)  # a taxel skin's samples have one entry per taxel
+        if skin is not None:
+            backend.use_skin(skin)  # a hosted world samples it
         self.core = BridgeCore(
             env, q0, journal.now_ns(), active=cfg.active_planner, n_pads=n_pads,
             command_timeout_s=cfg.command_timeout_s, skin_timeout_s=cfg.skin_timeout_s,

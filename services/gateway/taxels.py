@@ -48,19 +48,26 @@ def covering_taxel(skin: TaxelSkin, pad: Pad) -> int | None:
     return taxel if float(np.linalg.norm(skin.points[taxel] - pad.point)) <= COVER_M else None
 
 
+def check_covered(skin: TaxelSkin, pads: tuple[Pad, ...], script: TouchScript) -> None:
+    """ConfigError naming the pads a touch script touches that the taxel skin does not cover (their touches
+    would press no taxel, in the scripted world or the physics world)."""
+    by_name = {pad.name: pad for pad in pads}
+    uncovered = sorted({t.pad for t in script.touch if t.pad not in by_name
+                        or covering_taxel(skin, by_name[t.pad]) is None})
+    if uncovered:
+        raise ConfigError(
+            f"the touch script touches pads {uncovered}, which the taxel skin {skin.path.name} does not cover "
+            f"(no taxel of their link within {COVER_M} m of their point); covered: "
+            f"{sorted(p.name for p in pads if covering_taxel(skin, p) is not None)}")
+
+
 class ScriptedTaxels:
     """Each taxel's reading at a script time: the sum of the touches under way, one finger each."""
 
     def __init__(self, skin: TaxelSkin, pads: tuple[Pad, ...], script: TouchScript,
                  pad_thresholds_hpa: Sequence[float], finger_radius_m: float = FINGER_RADIUS_M) -> None:
+        check_covered(skin, pads, script)
         by_name = {pad.name: pad for pad in pads}
-        uncovered = sorted({t.pad for t in script.touch if t.pad not in by_name
-                            or covering_taxel(skin, by_name[t.pad]) is None})
-        if uncovered:
-            raise ConfigError(
-                f"the touch script touches pads {uncovered}, which the taxel skin {skin.path.name} does not cover "
-                f"(no taxel of their link within {COVER_M} m of their point); covered: "
-                f"{sorted(p.name for p in pads if covering_taxel(skin, p) is not None)}")
         self.touches = list(script.touch)
         self.forces = [force_of(t.peak_hpa, pad_thresholds_hpa, skin.force_thresholds_n) for t in self.touches]
         self.taxels = [covering_taxel(skin, by_name[t.pad]) for t in self.touches]

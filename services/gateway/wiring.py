@@ -38,7 +38,7 @@ from nwr.common.launch import TouchScript
 from nwr.common.robot import RobotModel, load_description
 from nwr.common.skin import hpa_per_unit, load_skin
 from nwr.services.gateway.core import Gateway, SimSkin, TargetFollower, sim_settings, touch_message
-from nwr.services.gateway.taxels import ScriptedTaxels
+from nwr.services.gateway.taxels import ScriptedTaxels, check_covered
 from nwr.services.wiring import Diag, Input, Out, Wiring, event, receives
 
 SERVICE = "gateway"
@@ -65,13 +65,18 @@ class GatewayWiring(Wiring):
         self.taxel_hpa = 0.0
         n = len(self.pads)
         if skin is not None:
-            if cfg.source != "sim" or sim.closed_loop or follow_target_s:
-                raise ConfigError("robot.skin = \"taxels\" runs on the scripted world's simulated skin "
-                                  "(gateway.source = \"sim\", open loop, a touch script)")
-            self.taxels = ScriptedTaxels(skin, self.pads, script if script is not None else TouchScript(duration_s=1.0),
-                                         profile.gain.thresholds_hpa)
+            if cfg.source not in ("sim", "physics") or sim.closed_loop or follow_target_s:
+                raise ConfigError("robot.skin = \"taxels\" runs on a simulated skin: the scripted world's "
+                                  "(gateway.source = \"sim\", open loop) or the physics world's (\"physics\"), on "
+                                  "a touch script")
+            if cfg.source == "sim":
+                self.taxels = ScriptedTaxels(skin, self.pads, script if script is not None
+                                             else TouchScript(duration_s=1.0), profile.gain.thresholds_hpa)
+            elif script is not None:
+                check_covered(skin, self.pads, script)
             self.taxel_hpa = hpa_per_unit(skin)
             n = len(skin)
+        self.n_taxels = n if skin is not None else 0
         self.gateway = Gateway(cfg, n, source=cfg.source)
         # A physics world's skin (gateway.source = "physics"): the samples come from the world (world/skin, the
         # bridge hosts it); the ticks run the touch script's clock only (the touches' ground truth).
@@ -175,11 +180,17 @@ class GatewayWiring(Wiring):
     @receives("world_skin", keys.WORLD_SKIN)
     def on_world_skin(self, sample: m.WorldSkin) -> None:
         """A physics world's skin sample (``gateway.source = "physics"``): its pads' absolute pressures, as a
-        device's sample (stamped when it arrives)."""
-        absolute = np.asarray(sample.absolute_hpa, dtype=float)
-        if absolute.shape != (len(self.pads),):
-            self.diag("error", "world_skin_pads", f"world skin sample {sample.seq} has {absolute.size} pads, the "
-                      f"skin has {len(self.pads)}: dropped")
+        device's sample (stamped when it arrives); on a taxel skin its taxels' readings, in hPa as the
+        scripted taxel skin's (the skin file's unit converted)."""
+        if self.n_taxels:
+            absolute = np.asarray(sample.taxels, dtype=float) * self.taxel_hpa
+            count, what = self.n_taxels, "taxels"
+        else:
+            absolute = np.asarray(sample.absolute_hpa, dtype=float)
+            count, what = len(self.pads), "pads"
+        if absolute.shape != (count,):
+            self.diag("error", "world_skin_pads", f"world skin sample {sample.seq} has {absolute.size} {what}, "
+                      f"the skin has {count}: dropped")
             return
         now = self.journal.now_ns()
         msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)

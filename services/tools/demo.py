@@ -49,10 +49,10 @@ def add_launch_arguments(p: argparse.ArgumentParser) -> None:
                         "default: `nwr up` the profile's (bridge.backend and gateway.source both \"physics\", or "
                         "neither); `nwr demo` the physics world for a robot with collision shapes (the UR10e), else "
                         "the scripted world, which it also takes, saying why as it starts, for --closed-loop, a "
-                        "script the physics world refuses, or a profile that names an arm or a skin")
+                        "script the physics world refuses, the taxel skin, or a profile that names an arm or a skin")
     p.add_argument("--skin", choices=SKINS,
                    help="the skin the pipeline runs on: the AIRSKIN pads or the robot's taxel skin "
-                        "(skin-taxels.toml, scripted world only; docs/skins.md); default: the profile's robot.skin")
+                        "(skin-taxels.toml, docs/skins.md); default: the profile's robot.skin")
     p.add_argument("--closed-loop", action="store_true",
                    help="simulated skin: a touch's pressure falls as its pad withdraws from the finger "
                         "(gateway.sim.closed_loop; default: as scripted, open loop)")
@@ -90,9 +90,6 @@ def world_for(args: argparse.Namespace, profile: Profile) -> str:
             log.info("the physics world, `nwr demo`'s default (--world scripted: the scripted world)")
             profile.bridge.backend, profile.gateway.source = "physics", "physics"
             return world
-    if world == "physics" and profile.robot.skin == "taxels":
-        raise ConfigError("robot.skin = \"taxels\" runs in the scripted world only (--world scripted): the "
-                          "physics world's taxel readings are not published yet (docs/skins.md)")
     if world == "scripted":
         if backend == "physics":
             raise ConfigError("--backend physics is the physics world's: give --world physics (or leave --world)")
@@ -117,8 +114,10 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
     the physics world wherever it can serve: not for a backend given on the command line (the scripted world's
     arm, or a real arm: no world), a profile that names an arm or a skin other than the simulated ones, the
     scripted skin's closed loop, a robot without collision shapes (its physics world would be a skeleton of
-    capsules: the FR3's), or a touch script the physics world refuses (the session runs in the scripted world;
-    ``--world physics`` insists, and is refused).
+    capsules: the FR3's), a touch script the physics world refuses (the session runs in the scripted world;
+    ``--world physics`` insists, and is refused), or the taxel skin (measured live at 1 kHz, docs/skins.md: the
+    physics world's taxels cost more CPU than the scripted ones, react later and split a touch whose finger
+    chatters on the arm; ``--world physics`` runs them).
     """
     if getattr(args, "default_world", "scripted") != "physics" or getattr(args, "backend", None):
         return "scripted", ""
@@ -127,7 +126,9 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
     if getattr(args, "closed_loop", False) or sim_settings(profile.gateway).closed_loop:
         return "scripted", "closed loop is the scripted world's contact model (the physics world pushes back itself)"
     if profile.robot.skin == "taxels":
-        return "scripted", "the taxel skin runs in the scripted world only (docs/skins.md)"
+        return "scripted", ("the taxel skin's default world: at 1 kHz the physics world's taxels cost more CPU, a "
+                            "later onset and split touches where a finger chatters (docs/skins.md; --world physics "
+                            "runs them)")
     from nwr.common.robot import load_description
     from nwr.services.bridge.backends import KIND
     from nwr.services.worlds.mjcf import PACKAGED_SHAPES
@@ -146,18 +147,27 @@ def default_world(args: argparse.Namespace, profile: Profile) -> tuple[str, str]
 
 def check_physics_script(args: argparse.Namespace, profile: Profile) -> None:
     """The touch script checked against the physics world at the arm's starting pose, before anything starts
-    (ConfigError: a push no finger makes, more fingers at once than the world holds, a finger inside the arm)."""
+    (ConfigError: a push no finger makes, more fingers at once than the world holds, a finger inside the arm;
+    on a taxel skin, a pad the taxels do not cover)."""
     from nwr.common.robot import load_description
+    from nwr.common.skin import load_skin
     from nwr.services.bridge.backends import KIND
+    from nwr.services.gateway.taxels import check_covered
     from nwr.services.worlds.hosted import check_script
-    from nwr.services.worlds.settings import PhysicsSettings
+    from nwr.services.worlds.settings import PhysicsSettings, check_taxel_rate
 
     script = getattr(args, "script", None) or sim_settings(profile.gateway).script
+    desc = load_description(profile.robot.description or None)
+    settings = KIND.settings(profile.bridge, "physics", PhysicsSettings)
+    skin = load_skin(profile, desc)
+    if skin is not None:
+        check_taxel_rate(settings)
     if script:
-        desc = load_description(profile.robot.description or None)
+        touches = load_script(script, profile.robot.description)
         q0 = profile.bridge.initial_q or desc.home
-        check_script(load_script(script, profile.robot.description),
-                     KIND.settings(profile.bridge, "physics", PhysicsSettings), desc, np.asarray(q0, dtype=float))
+        check_script(touches, settings, desc, np.asarray(q0, dtype=float))
+        if skin is not None:
+            check_covered(skin, desc.pads, touches)
 
 
 def output_path(args: argparse.Namespace, profile: Profile) -> tuple[str, Path]:

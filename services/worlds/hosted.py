@@ -40,6 +40,18 @@ same world, bit for bit.
   device's absolute pressures) and, while any body part is in the world,
   their contact figures (``world/contacts``), stamped with the bridge time
   of the world step that made them.
+- **A taxel skin** (:meth:`use_taxels`, ``robot.skin = "taxels"``): the
+  world's contacts read by the taxels (:class:`~nwr.services.worlds.taxels.WorldTaxels`,
+  a finger's width each) and sampled at ``taxel_rate_hz`` (1 kHz by
+  default) with the pads' conventions where they apply: ``skin_sample``
+  ("instant" or "mean"), ``skin_latency_s``, and ``skin_noise_hpa`` of white
+  noise (in the skin's unit; a taxel reports over its own baseline: no base,
+  no spread, and never below 0: noise under the baseline reads 0, as the
+  absolute pressures of ``skin/pressure`` are never negative). Each sample
+  goes out on ``world/skin`` as ``taxels`` (the pad lists empty); the
+  pads' samples are no longer published, but each one's step still
+  publishes the contact figures, so ``world/contacts`` keeps the pads' rate
+  whatever the skin.
 """
 
 from __future__ import annotations
@@ -54,11 +66,16 @@ from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.errors import ConfigError
 from nwr.common.launch import MAX_FOLLOW_M_S, Touch, TouchScript
-from nwr.common.robot import RobotDescription
+from nwr.common.robot import RobotDescription, RobotModel
+from nwr.common.skin import hpa_per_unit
+from nwr.common.taxels import TaxelSkin
 from nwr.services.gateway.core import touch_profile
+from nwr.services.gateway.taxels import FINGER_RADIUS_M
 from nwr.services.worlds.people import ISO_TS_15066, KINDS
 from nwr.services.worlds.physics import BodyPart, PhysicsSettings, PhysicsWorld
-from nwr.services.worlds.skin import force_for_pressure
+from nwr.services.worlds.settings import check_taxel_rate
+from nwr.services.worlds.skin import SkinSampler, force_for_pressure
+from nwr.services.worlds.taxels import WorldTaxels
 
 # At a touch's end its finger's target moves this far off the pad, m; it leaves the world LINGER_S later.
 LIFT_M = 0.03
@@ -170,6 +187,20 @@ class HostedWorld:
         self.fingers: dict[str, _Finger] = {}
         self.skin_seq = 0
         self.contacts_seq = 0
+        self.taxels: WorldTaxels | None = None
+        self.taxel_sampler: SkinSampler | None = None
+
+    def use_taxels(self, skin: TaxelSkin) -> None:
+        """Publish a taxel skin's samples instead of the pads' (before the first :meth:`advance`); ConfigError
+        for a rate above the world's step rate."""
+        s = self.settings
+        if self.origin_ns is not None:
+            raise ConfigError("the physics world's skin is chosen before it starts")
+        check_taxel_rate(s)
+        self.taxels = WorldTaxels(self.world, skin, RobotModel(self.desc), FINGER_RADIUS_M)
+        self.taxel_sampler = SkinSampler(len(skin), rate_hz=s.taxel_rate_hz, latency_s=s.skin_latency_s,
+                                         noise_hpa=s.skin_noise_hpa / hpa_per_unit(skin), base_hpa=0.0,
+                                         spread_hpa=0.0, seed=s.seed, mean=s.skin_sample == "mean")
 
     def touch(self, msg: m.SkinTouch, now_ns: int) -> BodyPart:
         """A touch reached the bridge at ``now_ns``: its finger enters on its pad. ConfigError (nothing enters)
@@ -221,6 +252,9 @@ class HostedWorld:
             for finger in list(self.fingers.values()):
                 self._aim(finger, at_ns)
             world.step(q_command, dq_command)
+            if self.taxel_sampler is not None:
+                self._taxel_step(at_ns, out)
+                continue
             for sample in world.skin():
                 stamp = at_ns - (world.time_ns - sample.delivered_ns)
                 out.append((keys.WORLD_SKIN, m.WorldSkin(
@@ -231,6 +265,25 @@ class HostedWorld:
                 if self.fingers:
                     out.append((keys.WORLD_CONTACTS, self.contacts(stamp)))
         return out
+
+    def _taxel_step(self, at_ns: int, out: list[tuple[str, Any]]) -> None:
+        """A step of a taxel skin: its sample when due, the samples delivered; the contact figures at each pad
+        sample's step (the pads' rate)."""
+        world, sampler, taxels = self.world, self.taxel_sampler, self.taxels
+        assert sampler is not None and taxels is not None
+        now = world.time_ns
+        if sampler.mean:
+            sampler.observe(now, taxels.readings())
+        elif sampler.due(now):
+            sampler.take(now, taxels.readings())
+        for sample in sampler.delivered(now):
+            out.append((keys.WORLD_SKIN, m.WorldSkin(
+                seq=self.skin_seq, stamp_ns=at_ns - (now - sample.delivered_ns), world_ns=sample.taken_ns,
+                absolute_hpa=[], change_hpa=[], force_n=[], taxels=np.maximum(sample.absolute_hpa, 0.0).tolist())))
+            self.skin_seq += 1
+        for sample in world.skin():
+            if self.fingers:
+                out.append((keys.WORLD_CONTACTS, self.contacts(at_ns - (now - sample.delivered_ns))))
 
     def contacts(self, stamp_ns: int) -> m.WorldContacts:
         """The body parts in the world now, with their figures."""

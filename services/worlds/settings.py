@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from nwr.common.errors import NwrError
+from nwr.common.errors import ConfigError, NwrError
 from nwr.common.section import Section
 from nwr.services.worlds import mjcf
 
@@ -52,6 +52,9 @@ class PhysicsSettings(Section):
     saturation_hpa: Annotated[float, msgspec.Meta(ge=25, le=1000)] = 80.0
     # The skin's sample rate, Hz (AIRSKIN: about 25 Hz).
     skin_rate_hz: Annotated[float, msgspec.Meta(ge=1, le=1000)] = 25.0
+    # A taxel skin's sample rate (robot.skin = "taxels"), Hz: at most the
+    # world's step rate (1 / timestep_s).
+    taxel_rate_hz: Annotated[float, msgspec.Meta(ge=1, le=5000)] = 1000.0
     # From a sample's instant to its delivery, s (0: none modelled; a lab
     # that measured its skin's latency puts it here).
     skin_latency_s: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.0
@@ -88,3 +91,11 @@ class PhysicsSettings(Section):
     # Divergence: a contact deeper than this, m (a body passing through the arm).
     max_penetration_m: Annotated[float, msgspec.Meta(ge=0.001, le=0.2)] = 0.02
 
+
+
+def check_taxel_rate(settings: PhysicsSettings) -> None:
+    """A taxel skin's rate is at most the world's step rate (a sample is taken at a step); ConfigError."""
+    if settings.taxel_rate_hz * settings.timestep_s > 1.0 + 1e-9:
+        raise ConfigError(f"bridge.physics.taxel_rate_hz = {settings.taxel_rate_hz:g} Hz is faster than the world's "
+                          f"steps (timestep_s = {settings.timestep_s} s: {1.0 / settings.timestep_s:g} Hz); lower "
+                          "one or the other")

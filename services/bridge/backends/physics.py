@@ -32,10 +32,11 @@ from nwr.common import messages as m
 from nwr.common.config import BridgeSection, Profile
 from nwr.common.errors import ConfigError
 from nwr.common.robot import RobotDescription
+from nwr.common.taxels import TaxelSkin
 from nwr.services.bridge.backend import Backend, Observation
 from nwr.services.bridge.core import Setpoint
 from nwr.services.bridge.envelope import Envelope
-from nwr.services.worlds.settings import PhysicsSettings, WorldUnstable
+from nwr.services.worlds.settings import PhysicsSettings, WorldUnstable, check_taxel_rate
 
 log = logging.getLogger(__name__)
 
@@ -47,13 +48,16 @@ WARN_EVERY_NS = 5_000_000_000
 
 
 def check_settings(settings: PhysicsSettings, profile: Profile, desc: RobotDescription) -> None:
-    """The world's step divides the bridge's cycle (a whole number of steps per cycle: an even command rate)."""
+    """The world's step divides the bridge's cycle (a whole number of steps per cycle: an even command rate); a
+    taxel skin's rate is at most the step rate."""
     period_ns = round(1e9 / profile.bridge.rate_hz)
     step_ns = round(settings.timestep_s * 1e9)
     if period_ns % step_ns:
         raise ConfigError(f"bridge.physics.timestep_s = {settings.timestep_s} s does not divide the bridge's cycle "
                           f"of {period_ns / 1e6:g} ms (bridge.rate_hz = {profile.bridge.rate_hz:g}): choose a "
                           "divisor, e.g. 0.001")
+    if profile.robot.skin == "taxels":
+        check_taxel_rate(settings)
 
 
 def make(cfg: BridgeSection, env: Envelope, q0: np.ndarray, args: argparse.Namespace,
@@ -116,6 +120,9 @@ class PhysicsBackend(Backend):
                         "%.0f ms of world time each (the machine is too slow or too busy for it in real time)",
                         self.hosted.lost_ns / 1e9, self.hosted.max_steps * self.hosted.step_ns / 1e6)
         return out
+
+    def use_skin(self, skin: TaxelSkin) -> None:
+        self.hosted.use_taxels(skin)
 
     def on_touch(self, touch: m.SkinTouch, now_ns: int) -> str | None:
         try:
