@@ -119,6 +119,10 @@ SIDEWAYS_DIRECTIONS = 8
 # SHORT_SHARE of distance_m, withdraws along it the gain's share of that reach ("short"), not sideways.
 REACH_MIN_M = 0.005
 SHORT_SHARE = 0.5
+# A short withdrawal is at least this share of the reach, at any gain: a light touch's still moves the pad
+# visibly away (more than the retreat check's smallest withdrawal, a tenth of 2 mm), rather than hold the arm
+# braking along the task's way.
+SHORT_MIN_SHARE = 0.15
 # Below this share of its speed in every direction the pad cannot withdraw at all: the arm holds still.
 HOLD_SHARE = 0.05
 # A sideways withdrawal follows the direction away from the contact point once this far from it, m.
@@ -304,7 +308,7 @@ class WholeArm(ReflexStrategy):
             distance = self.distance_m
             if REACH_MIN_M <= self.reach_m < SHORT_SHARE * distance:
                 # Only so far along the normal: the gain's share of that reach, in proportion still.
-                self.short, distance = True, self.reach_m
+                self.short, distance = True, self.reach_m * max(1.0, SHORT_MIN_SHARE / self.gain)
                 self.speed_m_s = self.gain * distance / self.duration_s
             along = self._probe(q, self.away, samples)
             if not self.short and along < NORMAL_SHARE * self.speed_m_s:
@@ -330,7 +334,7 @@ class WholeArm(ReflexStrategy):
             self._say("info", "whole_arm_short",
                       f"reflex on pad {name}: its joints move it along its normal only "
                       f"{1e3 * self.reach_m:.1f} mm without bringing another part of the arm closer to the contact; "
-                      f"it withdraws {1e3 * self.gain * self.reach_m:.1f} mm, the gain's share of that")
+                      f"it withdraws {1e3 * self.speed_m_s * self.duration_s:.1f} mm, the gain's share of that")
             return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="short")
         if self.sideways:
             self._say("info", "whole_arm_sideways",
