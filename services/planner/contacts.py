@@ -26,6 +26,8 @@ import numpy as np
 
 from nwr.common.robot import RobotModel
 
+# A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
+FELT_LEVEL = 2
 # Where a person was: within this distance of a contact point across its pad's normal (a hand's half-width), m.
 CONTACT_RADIUS_M = 0.1
 

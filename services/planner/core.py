@@ -51,7 +51,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner.holding import FELT_LEVEL
+from nwr.services.planner.contacts import FELT_LEVEL
 from nwr.services.planner.standby import Standby
 
 log = logging.getLogger(__name__)

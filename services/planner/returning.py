@@ -4,7 +4,11 @@ A jerk-limited trajectory (ruckig) from wherever the reflex left the arm,
 velocity included, back to the saved pose, no point of the arm faster than
 ``return_speed_m_s``; its last ``approach_distance_m`` (of the touched pad's
 way back to where it was touched, or of the point that travels farthest) at
-``approach_speed_m_s``. A retracing strategy's (``ReflexStrategy.retraces``:
+``approach_speed_m_s``. Wherever a pad or the flange comes within
+``approach_distance_m`` of a recent contact (any touch felt in the last
+``recent_contact_s``, :mod:`.contacts`), it moves toward that contact at
+``approach_speed_m_s`` at most: the leg is split where the arm enters and
+leaves those places, and the stretch between is capped. A retracing strategy's (``ReflexStrategy.retraces``:
 the whole-arm withdrawal) goes back through poses on its own withdrawal's
 path instead of on the straight line in joint space, without a stop between
 the legs. A new or stronger contact here starts a new reflex but keeps the
@@ -25,7 +29,8 @@ import numpy as np
 
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner.motion import Motion
+from nwr.services.planner.contacts import FELT_LEVEL, Contacts
+from nwr.services.planner.motion import CARTESIAN_MARGIN, MIN_JOINT_SPEED, Motion
 
 # A retracing strategy's return passes through this many poses of its withdrawal, evenly along its way in joint
 # space, when the arm is within RETRACE_OFF_RAD (every joint) of where the withdrawal ended and it moved more
@@ -35,6 +40,12 @@ RETRACE_OFF_RAD = 0.05
 RETRACE_MIN_RAD = 0.01
 # The share of the next leg's cruise speed (and this leg's limit) a leg of the return ends at.
 HANDOFF = 0.999
+# A leg is searched for the places near recent contacts at poses at most this far apart (any point's travel), m.
+PLACE_STEP_M = 0.005
+# A stretch near a recent contact is capped at this many poses along it (and its ends).
+TOWARD_SAMPLES = 9
+# A point counts as near a contact at these times approach_distance_m at those poses (the poses between them).
+NEAR_SLACK = 1.2
 
 
 class Returning(Motion):
@@ -49,6 +60,8 @@ class Returning(Motion):
         self._legs: list[tuple[np.ndarray, np.ndarray]] = []
         # Returns and approaches: every point of the arm within this, m/s.
         self.return_speed = cfg.return_speed_m_s if limits is None else min(cfg.return_speed_m_s, limits.speed_m_s)
+        # Every touch felt now and in the last recent_contact_s, where it met its pad (:mod:`.contacts`).
+        self.contacts = Contacts(model, cfg.recent_contact_s, cfg.restarts.gap_s, FELT_LEVEL)
 
     def _begin_return(self, target: np.ndarray | None = None) -> None:
         """Back to the saved pose (or ``target``, a partial return), the last stretch at the approach speed; a
@@ -130,7 +143,79 @@ class Returning(Motion):
             slow = self._joint_speeds_for(q1, self.return_speed, start=start, point=row, point_m_s=approach)
             fast = self._joint_speeds_for(start, self.return_speed, start=q0)
             legs += [(start, np.maximum(fast, slow)), (q1, slow)]
-        return legs
+        return self._near_contacts(legs, approach)
+
+    def _points(self, q: np.ndarray) -> np.ndarray:
+        """The points kept slow near a recent contact at ``q``: every pad and the flange (base frame, m)."""
+        return np.vstack([self.model.pad_points(q), self.model.tool_position(q)])
+
+    def _near_contacts(self, legs: list[tuple[np.ndarray, np.ndarray]], approach: float
+                       ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``legs`` split where a pad or the flange comes within ``approach_distance_m`` of a recent contact, the
+        stretches near one capped so that no such point moves toward it faster than ``approach``."""
+        places = np.array([c.point for c in self.contacts.touches.values()]).reshape(-1, 3)
+        if not len(places):
+            return legs
+        reach = self.cfg.approach_distance_m
+
+        def near(q: np.ndarray) -> bool:
+            return bool(np.min(np.linalg.norm(self._points(q)[:, None, :] - places[None], axis=2)) <= reach)
+
+        out: list[tuple[np.ndarray, np.ndarray]] = []
+        q0 = self.q.copy()
+        for q1, speeds in legs:
+            d = q1 - q0
+            travel = float(np.max(np.linalg.norm(self._points(q1) - self._points(q0), axis=1)))
+            s = np.linspace(0.0, 1.0, max(2, int(np.ceil(travel / PLACE_STEP_M)) + 1))
+            flags = [near(q0 + x * d) for x in s]
+            if not any(flags):
+                out.append((q1, speeds))
+                q0 = q1
+                continue
+            cuts = [0.0]
+            for k in range(1, len(s)):
+                if flags[k] != flags[k - 1]:  # a way into or out of a place: where, by bisection
+                    lo, hi = float(s[k - 1]), float(s[k])
+                    for _ in range(14):
+                        mid = 0.5 * (lo + hi)
+                        if near(q0 + mid * d) == flags[k - 1]:
+                            lo = mid
+                        else:
+                            hi = mid
+                    cuts.append(lo if flags[k] else hi)  # the near stretch takes in both its ends
+            cuts.append(1.0)
+            slow = flags[0]
+            for a, b in zip(cuts, cuts[1:]):
+                if b > a:
+                    end = q0 + b * d if b < 1.0 else q1
+                    caps = speeds
+                    if slow:
+                        caps = np.minimum(speeds, self._toward_speeds(q0 + a * d, end, places, approach))
+                    out.append((end, caps))
+                slow = not slow
+            q0 = q1
+        return out
+
+    def _toward_speeds(self, q0: np.ndarray, q1: np.ndarray, places: np.ndarray, approach: float) -> np.ndarray:
+        """Joint speed limits under which, on the straight way from ``q0`` to ``q1``, no pad nor the flange within
+        ``approach_distance_m`` of a place in ``places`` moves toward it faster than ``approach`` (as
+        :meth:`.motion.Motion._joint_speeds_for`: at TOWARD_SAMPLES poses along the way, within its margin)."""
+        d = q1 - q0
+        rows = [*range(len(self.desc.pads)), len(self.model.speed_points) - 1]  # the pads, the flange
+        rate = 0.0
+        for x in np.linspace(0.0, 1.0, TOWARD_SAMPLES):
+            q = q0 + x * d
+            to = places[None] - self._points(q)[:, None, :]  # (points, places, 3)
+            dist = np.linalg.norm(to, axis=2)
+            close = (dist <= NEAR_SLACK * self.cfg.approach_distance_m) & (dist > 1e-9)
+            if not close.any():
+                continue
+            v = self.model.speed_jacobians(q)[rows] @ d  # (points, 3) per unit of the way
+            toward = np.einsum("pk,pck->pc", v, to) / np.where(close, dist, 1.0)
+            rate = max(rate, float(np.max(np.where(close, toward, 0.0))) / approach)
+        if rate <= 0.0:
+            return self.v_limit
+        return np.minimum(self.v_limit, np.maximum(CARTESIAN_MARGIN * np.abs(d) / rate, MIN_JOINT_SPEED))
 
     def _approaching_point(self, q0: np.ndarray, target: np.ndarray) -> tuple[int, Any]:
         """The point whose approach is slowed (its row in the speed Jacobians, and its position function):
