@@ -301,3 +301,20 @@ def test_a_return_through_a_recent_touch_is_back_past_it() -> None:
     assert _past_after_mm([-20.0, -50.0], [-50.0, -20.0, 15.0, 10.0])[1] == pytest.approx(15.0)
     # Left 5 mm in, then pushed 12 mm further in: the 12 mm count.
     assert _past_after_mm([5.0], [5.0, 17.0])[1] == pytest.approx(12.0)
+
+
+def test_a_pad_touched_again_elsewhere_keeps_both_places_while_recent() -> None:
+    contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
+    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    i = pad("elbow_outer")
+    assert contacts.observe(q0, levels(elbow_outer=4), gains(elbow_outer=0.6), 0) == [i]  # a tap, where it began
+    assert contacts.observe(q0, levels(), gains(), 100_000_000) == []
+    assert contacts.observe(q1, levels(elbow_outer=4), gains(elbow_outer=0.6), 300_000_000) == [i]  # another
+    contacts.observe(q1, levels(), gains(), 400_000_000)
+    places = contacts.places()
+    assert len(places) == 2 and len(contacts.recent(400_000_000)) == 1  # one touch per pad, both its places
+    assert np.allclose(places[0], MODEL.pad_point(q0, i)) and np.allclose(places[1], MODEL.pad_point(q1, i))
+    contacts.observe(q1, levels(), gains(), 3_100_000_000)  # the first tap's place is 3 s old: forgotten
+    assert len(contacts.places()) == 1 and np.allclose(contacts.places()[0], MODEL.pad_point(q1, i))
+    contacts.observe(q1, levels(), gains(), 3_400_000_000)
+    assert len(contacts.places()) == 0

@@ -90,3 +90,41 @@ def test_no_point_approaches_a_recent_contact_faster_than_the_approach_speed(con
         if min(np.linalg.norm(points(a) - p.point, axis=1).min() for p in places) > 2 * CFG.approach_distance_m:
             fastest_away = max(fastest_away, float(speeds.max()))
     assert fastest_away >= 0.8 * CFG.return_speed_m_s
+
+
+def test_a_touch_that_begins_during_a_return_slows_the_rest_of_it_near_every_recent_contact() -> None:
+    """A touch felt during a return (PL 2, no reflex) has the rest of the return planned again: near it, and near
+    every other recent contact, no point moves toward the place faster than the approach speed."""
+    from nwr.common import messages as m
+
+    def run(felt: bool) -> float:
+        planner = Planner(CFG, DESC, MODEL)
+        q0 = DESC.home + AWAY
+        target = planner.task.position(0.0)
+        planner.on_state(q0.copy(), following=True)
+        poses, t = [q0.copy()], 0
+        for _ in range(300):  # under way
+            t += DT_NS
+            planner.step(t)
+            poses.append(planner.q.copy())
+        assert planner.mode == "RETURNING"
+        i = NAMES.index("wrist_2")  # a place ahead on its way, known since now
+        ahead = q0 + 0.6 * (target - q0)
+        place = ContactPoint(i, MODEL.pad_point(ahead, i), MODEL.pad_normal(ahead, i), 0.0, t, t)
+        planner.contacts.touches[i] = place
+        if felt:  # a touch on the shoulder, felt now: the return is planned again
+            level = [1] * len(NAMES)
+            level[NAMES.index("shoulder_back")] = 2
+            pain = m.SkinPain(seq=1, stamp_ns=t, trace=m.Trace(1, t), model="continuous", level=level,
+                              gain=[0.0] * len(NAMES), strongest=None)
+            assert planner.on_pain(pain, t) is None and planner.mode == "RETURNING"
+            assert planner.contacts.touches[i] is place  # still recent
+        while planner.mode != "TASK":
+            t += DT_NS
+            planner.step(t)
+            poses.append(planner.q.copy())
+        assert np.allclose(poses[-1], target, atol=1e-6)
+        return fastest_toward(poses[301:], place.point, CFG.approach_distance_m)
+
+    assert run(felt=False) > 2.5 * CFG.approach_speed_m_s  # planned before the place was known: through it fast
+    assert run(felt=True) <= CFG.approach_speed_m_s * 1.001

@@ -74,6 +74,14 @@ class Returning(Motion):
         self.mode = "RETURNING"
         self.changed = True
 
+    def _replan_return(self) -> None:
+        """A touch began during the return: the rest of its way again, on the same lines, slowed near every recent
+        contact (:meth:`_near_contacts`), from the commanded state (velocity included)."""
+        goal = np.asarray(self._otg_in.target_position)
+        ends = [goal, *(end for end, _ in self._legs)]
+        self._legs = self._return_legs(ends[-1], ends[:-1])
+        self._next_leg()
+
     def _next_leg(self) -> None:
         """Start the return's next leg, arriving at the following leg's start at that leg's cruise velocity:
         no stop between the legs."""
@@ -153,7 +161,7 @@ class Returning(Motion):
                        ) -> list[tuple[np.ndarray, np.ndarray]]:
         """``legs`` split where a pad or the flange comes within ``approach_distance_m`` of a recent contact, the
         stretches near one capped so that no such point moves toward it faster than ``approach``."""
-        places = np.array([c.point for c in self.contacts.touches.values()]).reshape(-1, 3)
+        places = self.contacts.places()
         if not len(places):
             return legs
         reach = self.cfg.approach_distance_m
