@@ -40,8 +40,15 @@ RETRACE_OFF_RAD = 0.05
 RETRACE_MIN_RAD = 0.01
 # The share of the next leg's cruise speed (and this leg's limit) a leg of the return ends at.
 HANDOFF = 0.999
-# A leg is searched for the places near recent contacts at poses at most this far apart (any point's travel), m.
-PLACE_STEP_M = 0.005
+# A leg is searched for the places near recent contacts at poses this far apart in any point's travel, as a
+# share of 2 * approach_distance_m * approach_speed_m_s / return_speed_m_s: a way between two poses into a place
+# and out again is then so shallow that it approaches the place at under this share of the approach speed (a
+# chord h of a sphere of radius R goes h^2 / 8R deep, and meets it at h / 2R of its speed); further from every
+# place, as far apart as the nearest point is from its nearest place.
+PLACE_STEP = 0.9
+# A point's travel along a leg, per unit of its way in joint space, is taken as this many times its straight
+# distance between the leg's ends (a joint turning a point 1.5 rad travels 1.13 times that distance).
+TRAVEL_SLACK = 1.5
 # A stretch near a recent contact is capped at this many poses along it (and its ends).
 TOWARD_SAMPLES = 9
 # A point counts as near a contact at these times approach_distance_m at those poses (the poses between them).
@@ -162,20 +169,33 @@ class Returning(Motion):
         """``legs`` split where a pad or the flange comes within ``approach_distance_m`` of a recent contact, the
         stretches near one capped so that no such point moves toward it faster than ``approach``."""
         places = self.contacts.places()
-        if not len(places):
-            return legs
         reach = self.cfg.approach_distance_m
+        if not len(places) or reach <= 0.0:
+            return legs
+        step = PLACE_STEP * 2.0 * reach * approach / self.return_speed
+
+        def gaps(q: np.ndarray) -> np.ndarray:
+            """How far each point is outside each place's reach, m (points x places; <= 0: within it)."""
+            return np.linalg.norm(self._points(q)[:, None, :] - places[None], axis=2) - reach
 
         def near(q: np.ndarray) -> bool:
-            return bool(np.min(np.linalg.norm(self._points(q)[:, None, :] - places[None], axis=2)) <= reach)
+            return bool(np.min(gaps(q)) <= 0.0)
 
         out: list[tuple[np.ndarray, np.ndarray]] = []
         q0 = self.q.copy()
         for q1, speeds in legs:
             d = q1 - q0
-            travel = float(np.max(np.linalg.norm(self._points(q1) - self._points(q0), axis=1)))
-            s = np.linspace(0.0, 1.0, max(2, int(np.ceil(travel / PLACE_STEP_M)) + 1))
-            flags = [near(q0 + x * d) for x in s]
+            # Each point's travel per unit of the way, at most (about): from a pose, no point comes within a
+            # place's reach before it has travelled its distance outside it, nor is a way in and out missed
+            # within `step` of travel.
+            rate = TRAVEL_SLACK * np.linalg.norm(self._points(q1) - self._points(q0), axis=1)[:, None] + 1e-12
+            x, g = 0.0, gaps(q0)
+            s, flags = [0.0], [bool(g.min() <= 0.0)]
+            while x < 1.0:
+                x = min(1.0, x + float(np.min(np.maximum(step, g) / rate)))
+                g = gaps(q0 + x * d)
+                s.append(x)
+                flags.append(bool(g.min() <= 0.0))
             if not any(flags):
                 out.append((q1, speeds))
                 q0 = q1
@@ -183,8 +203,8 @@ class Returning(Motion):
             cuts = [0.0]
             for k in range(1, len(s)):
                 if flags[k] != flags[k - 1]:  # a way into or out of a place: where, by bisection
-                    lo, hi = float(s[k - 1]), float(s[k])
-                    for _ in range(14):
+                    lo, hi = s[k - 1], s[k]
+                    for _ in range(6):
                         mid = 0.5 * (lo + hi)
                         if near(q0 + mid * d) == flags[k - 1]:
                             lo = mid
