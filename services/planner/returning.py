@@ -82,11 +82,13 @@ class Returning(Motion):
         self.changed = True
 
     def _replan_return(self) -> None:
-        """A touch began during the return: the rest of its way again, on the same lines, slowed near every recent
-        contact (:meth:`_near_contacts`), from the commanded state (velocity included)."""
-        goal = np.asarray(self._otg_in.target_position)
-        ends = [goal, *(end for end, _ in self._legs)]
-        self._legs = self._return_legs(ends[-1], ends[:-1])
+        """A touch began during the return: the rest of its legs split and slowed near every recent contact
+        (:meth:`_near_contacts`), from the commanded state (velocity included); unchanged if none is near."""
+        rest = [(np.asarray(self._otg_in.target_position), np.asarray(self._otg_in.max_velocity)), *self._legs]
+        legs = self._near_contacts(rest, min(self.cfg.approach_speed_m_s, self.return_speed))
+        if len(legs) == len(rest) and all(np.array_equal(a[1], b[1]) for a, b in zip(legs, rest)):
+            return
+        self._legs = legs
         self._next_leg()
 
     def _next_leg(self) -> None:
