@@ -14,7 +14,9 @@ withdraws each active one's pad in proportion to its gain) and, in hold
 mode, keeps a return, and the task after it, from taking a pad through a
 recent contact (:func:`passes_through`): the arm waits where it holds until
 the contact is no longer recent, rather than sweep a pad through the place a
-person was a moment ago.
+person was a moment ago. Every return, in both modes, approaches each recent
+contact's place slowly (:meth:`Contacts.places`, :mod:`.returning`), an
+earlier touch of a pad touched again elsewhere too.
 """
 
 from __future__ import annotations
