@@ -160,25 +160,36 @@ class Returning(Motion):
             slow = self._joint_speeds_for(q1, self.return_speed, start=start, point=row, point_m_s=approach)
             fast = self._joint_speeds_for(start, self.return_speed, start=q0)
             legs += [(start, np.maximum(fast, slow)), (q1, slow)]
-        return self._near_contacts(legs, approach)
+        return self._near_contacts(legs, approach, own=(row, goal))
 
     def _points(self, q: np.ndarray) -> np.ndarray:
         """The points kept slow near a recent contact at ``q``: every pad and the flange (base frame, m)."""
         return np.vstack([self.model.pad_points(q), self.model.tool_position(q)])
 
-    def _near_contacts(self, legs: list[tuple[np.ndarray, np.ndarray]], approach: float
-                       ) -> list[tuple[np.ndarray, np.ndarray]]:
+    def _near_contacts(self, legs: list[tuple[np.ndarray, np.ndarray]], approach: float,
+                       own: tuple[int, np.ndarray] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """``legs`` split where a pad or the flange comes within ``approach_distance_m`` of a recent contact, the
-        stretches near one capped so that no such point moves toward it faster than ``approach``."""
+        stretches near one capped so that no such point moves toward it faster than ``approach``; a stretch
+        whose caps that leaves as they were stays part of its leg.
+
+        ``own``: the approaching point (its speed-Jacobian row) and where the
+        return takes it, whose last ``approach_distance_m`` :meth:`_return_legs`
+        already slows (speed, not only toward): a place there is left to that.
+        """
         places = self.contacts.places()
         reach = self.cfg.approach_distance_m
         if not len(places) or reach <= 0.0:
             return legs
         step = PLACE_STEP * 2.0 * reach * approach / self.return_speed
+        npads = len(self.desc.pads)
+        exempt = np.zeros((npads + 1, len(places)), dtype=bool)  # (point, place) pairs the approach already slows
+        if own is not None:
+            row = own[0] if own[0] < npads else npads  # the flange: the last of the points
+            exempt[row] = np.linalg.norm(places - own[1], axis=1) <= 1e-9
 
         def gaps(q: np.ndarray) -> np.ndarray:
             """How far each point is outside each place's reach, m (points x places; <= 0: within it)."""
-            return np.linalg.norm(self._points(q)[:, None, :] - places[None], axis=2) - reach
+            return np.where(exempt, np.inf, np.linalg.norm(self._points(q)[:, None, :] - places[None], axis=2) - reach)
 
         def near(q: np.ndarray) -> bool:
             return bool(np.min(gaps(q)) <= 0.0)
@@ -215,21 +226,28 @@ class Returning(Motion):
                     cuts.append(lo if flags[k] else hi)  # the near stretch takes in both its ends
             cuts.append(1.0)
             slow = flags[0]
+            pieces: list[tuple[np.ndarray, np.ndarray]] = []
             for a, b in zip(cuts, cuts[1:]):
                 if b > a:
                     end = q0 + b * d if b < 1.0 else q1
                     caps = speeds
                     if slow:
-                        caps = np.minimum(speeds, self._toward_speeds(q0 + a * d, end, places, approach))
-                    out.append((end, caps))
+                        caps = np.minimum(speeds, self._toward_speeds(q0 + a * d, end, places, approach, exempt))
+                    if pieces and np.array_equal(pieces[-1][1], caps):
+                        pieces[-1] = (end, caps)  # no slower than the stretch before: one leg
+                    else:
+                        pieces.append((end, caps))
                 slow = not slow
+            out += pieces
             q0 = q1
         return out
 
-    def _toward_speeds(self, q0: np.ndarray, q1: np.ndarray, places: np.ndarray, approach: float) -> np.ndarray:
+    def _toward_speeds(self, q0: np.ndarray, q1: np.ndarray, places: np.ndarray, approach: float,
+                       exempt: np.ndarray) -> np.ndarray:
         """Joint speed limits under which, on the straight way from ``q0`` to ``q1``, no pad nor the flange within
         ``approach_distance_m`` of a place in ``places`` moves toward it faster than ``approach`` (as
-        :meth:`.motion.Motion._joint_speeds_for`: at TOWARD_SAMPLES poses along the way, within its margin)."""
+        :meth:`.motion.Motion._joint_speeds_for`: at TOWARD_SAMPLES poses along the way, within its margin), but
+        for the (point, place) pairs ``exempt`` says."""
         d = q1 - q0
         rows = [*range(len(self.desc.pads)), len(self.model.speed_points) - 1]  # the pads, the flange
         rate = 0.0
@@ -237,7 +255,7 @@ class Returning(Motion):
             q = q0 + x * d
             to = places[None] - self._points(q)[:, None, :]  # (points, places, 3)
             dist = np.linalg.norm(to, axis=2)
-            close = (dist <= NEAR_SLACK * self.cfg.approach_distance_m) & (dist > 1e-9)
+            close = (dist <= NEAR_SLACK * self.cfg.approach_distance_m) & (dist > 1e-9) & ~exempt
             if not close.any():
                 continue
             v = self.model.speed_jacobians(q)[rows] @ d  # (points, 3) per unit of the way
