@@ -306,8 +306,10 @@ class PlannerSection(Plugged):
     contact_margin_m: Annotated[float, msgspec.Meta(ge=0, le=0.1)] = 0.01
     # Returns and approaches (to the saved pose, to the task's start): no point
     # of the arm faster than return_speed_m_s (at most bridge.limits.speed_m_s),
-    # and the touched pad no faster than approach_speed_m_s within
-    # approach_distance_m of where it was touched.
+    # the touched pad no faster than approach_speed_m_s within
+    # approach_distance_m of where it was touched, and no pad nor the flange
+    # toward any recent touch's place (recent_contact_s, both modes) faster
+    # than approach_speed_m_s while within approach_distance_m of it.
     return_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.2
     approach_speed_m_s: Annotated[float, msgspec.Meta(gt=0, le=0.25)] = 0.05
     approach_distance_m: Annotated[float, msgspec.Meta(ge=0, le=0.5)] = 0.05

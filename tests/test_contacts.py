@@ -301,3 +301,59 @@ def test_a_return_through_a_recent_touch_is_back_past_it() -> None:
     assert _past_after_mm([-20.0, -50.0], [-50.0, -20.0, 15.0, 10.0])[1] == pytest.approx(15.0)
     # Left 5 mm in, then pushed 12 mm further in: the 12 mm count.
     assert _past_after_mm([5.0], [5.0, 17.0])[1] == pytest.approx(12.0)
+
+
+def test_a_pad_touched_again_elsewhere_keeps_both_places_while_recent() -> None:
+    contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
+    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    i = pad("elbow_outer")
+    assert contacts.observe(q0, levels(elbow_outer=4), gains(elbow_outer=0.6), 0) == [i]  # a tap, where it began
+    assert contacts.observe(q0, levels(), gains(), 100_000_000) == []
+    assert contacts.observe(q1, levels(elbow_outer=4), gains(elbow_outer=0.6), 300_000_000) == [i]  # another
+    contacts.observe(q1, levels(), gains(), 400_000_000)
+    places = contacts.places()
+    assert len(places) == 2 and len(contacts.recent(400_000_000)) == 1  # one touch per pad, both its places
+    assert np.allclose(places[0], MODEL.pad_point(q0, i)) and np.allclose(places[1], MODEL.pad_point(q1, i))
+    contacts.observe(q1, levels(), gains(), 3_100_000_000)  # the first tap's place is 3 s old: forgotten
+    assert len(contacts.places()) == 1 and np.allclose(contacts.places()[0], MODEL.pad_point(q1, i))
+    contacts.observe(q1, levels(), gains(), 3_400_000_000)
+    assert len(contacts.places()) == 0
+
+
+class _LineSpeeds(_Line):
+    """The one-joint arm with its pad's position and speed Jacobian (the pad comes first among the speed points)."""
+
+    @staticmethod
+    def pad_points(q: np.ndarray) -> np.ndarray:
+        return np.array([[q[0], 0.0, 0.0]])
+
+    @staticmethod
+    def speed_jacobians(q: np.ndarray) -> np.ndarray:
+        return np.array([[[1.0], [0.0], [0.0]], [[1.0], [0.0], [0.0]]])  # the pad, the flange
+
+
+def _return_toward(xs_mm: list[float], dxs: list[float], phases: list[str], touch_end: int = 1) -> float | None:
+    """``return_toward_m_s`` of a touch at the first state, on the one-joint arm at these pad positions (mm),
+    velocities (m/s) and phases (states every 10 ms)."""
+    t = np.array([10_000_000 * i for i in range(len(xs_mm))], dtype=np.int64)
+    touch = analysis.TouchSummary(0, "pad", "region", 0, int(t[touch_end]), 0, 0, 10.0)
+    returning = np.array([p == "RETURNING" for p in phases])
+    analysis._return_toward(touch, _LineSpeeds(), t, np.array([[x / 1e3] for x in xs_mm]),  # type: ignore[arg-type]
+                            np.array([[v] for v in dxs]), returning, 0)
+    return touch.return_toward_m_s
+
+
+def test_the_fastest_way_back_toward_a_recent_touch_counts_returns_near_its_place_only() -> None:
+    # Withdrawn 80 mm, back at 0.2 m/s until 60 mm out, then at 0.05 m/s within 50 mm of the place.
+    xs = [0.0, -80.0, -80.0, -70.0, -60.0, -45.0, -40.0, -30.0]
+    dxs = [0.0, 0.0, 0.0, 0.2, 0.2, 0.05, 0.05, 0.04]
+    phases = ["REFLEX", "HOLDING", "RETURNING", "RETURNING", "RETURNING", "RETURNING", "RETURNING", "RETURNING"]
+    assert _return_toward(xs, dxs, phases) == pytest.approx(0.05)
+    # A pad moving fast near the place in another phase (a reflex, the task) is not a return.
+    assert _return_toward(xs, dxs, [*phases[:5], "TASK", "TASK", "TASK"]) is None
+    # Away from the place, fast: 0 m/s toward it.
+    assert _return_toward([0.0, -10.0, -30.0], [0.0, -0.2, -0.2], ["REFLEX", "RETURNING", "RETURNING"]) == 0.0
+    # Long after the touch ended (beyond CONTACT_RECENT_S): no longer recent, not counted.
+    late = round(analysis.CONTACT_RECENT_S * 100) + 2
+    far = _return_toward([0.0] * late + [-40.0], [0.0] * late + [0.2], ["REFLEX"] * late + ["RETURNING"])
+    assert far is None

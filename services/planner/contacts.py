@@ -14,7 +14,9 @@ withdraws each active one's pad in proportion to its gain) and, in hold
 mode, keeps a return, and the task after it, from taking a pad through a
 recent contact (:func:`passes_through`): the arm waits where it holds until
 the contact is no longer recent, rather than sweep a pad through the place a
-person was a moment ago.
+person was a moment ago. Every return, in both modes, approaches each recent
+contact's place slowly (:meth:`Contacts.places`, :mod:`.returning`), an
+earlier touch of a pad touched again elsewhere too.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ import numpy as np
 
 from nwr.common.robot import RobotModel
 
+# A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
+FELT_LEVEL = 2
 # Where a person was: within this distance of a contact point across its pad's normal (a hand's half-width), m.
 CONTACT_RADIUS_M = 0.1
 
@@ -51,18 +55,23 @@ class Contacts:
         self.gap_ns = round(gap_s * 1e9)
         self.felt_level = felt_level
         self.touches: dict[int, ContactPoint] = {}  # by pad: its latest touch (active or recent)
+        self.earlier: list[ContactPoint] = []  # recent touches a later touch of the same pad took the place of
         self.touched: set[int] = set()  # the pads touched in the last sample
 
-    def observe(self, q: np.ndarray, levels: list[int], gains: np.ndarray, now_ns: int) -> None:
-        """One pain message's levels and gains, at the commanded pose ``q``."""
+    def observe(self, q: np.ndarray, levels: list[int], gains: np.ndarray, now_ns: int) -> list[int]:
+        """One pain message's levels and gains, at the commanded pose ``q``; the pads whose touch began in it."""
         touched = {pad for pad, (level, gain) in enumerate(zip(levels, gains)) if level >= self.felt_level
                    or gain > 0.0}
+        begun = []
         for pad in sorted(touched):
             touch = self.touches.get(pad)
             gain = float(gains[pad])
             if touch is None or (pad not in self.touched and now_ns - touch.felt_ns >= self.gap_ns):
+                if touch is not None:
+                    self.earlier.append(replace(touch, gain=0.0))
                 self.touches[pad] = ContactPoint(pad, self.model.pad_point(q, pad), self.model.pad_normal(q, pad),
                                                  gain, now_ns, now_ns)
+                begun.append(pad)
             else:
                 self.touches[pad] = replace(touch, gain=gain, felt_ns=now_ns)
         for pad in [p for p in self.touches if p not in touched]:
@@ -70,7 +79,9 @@ class Contacts:
                 del self.touches[pad]
             elif self.touches[pad].gain != 0.0:
                 self.touches[pad] = replace(self.touches[pad], gain=0.0)
+        self.earlier = [touch for touch in self.earlier if now_ns - touch.felt_ns < self.recent_ns]
         self.touched = touched
+        return begun
 
     def active(self) -> list[ContactPoint]:
         """The touches felt in the last sample, by pad."""
@@ -79,6 +90,11 @@ class Contacts:
     def recent(self, now_ns: int) -> list[ContactPoint]:
         """The touches felt within ``recent_contact_s`` of ``now_ns``, by pad (the active ones among them)."""
         return [touch for pad, touch in sorted(self.touches.items()) if now_ns - touch.felt_ns < self.recent_ns]
+
+    def places(self) -> np.ndarray:
+        """Where every touch of the last pain message's ``recent_contact_s`` met its pad, an earlier touch of a pad
+        touched again too (points, base frame, m; shape (n, 3))."""
+        return np.array([t.point for t in [*self.earlier, *self.touches.values()]]).reshape(-1, 3)
 
 
 def past(model: RobotModel, q: np.ndarray, contact: ContactPoint) -> float:

@@ -51,7 +51,7 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner.holding import FELT_LEVEL
+from nwr.services.planner.contacts import FELT_LEVEL
 from nwr.services.planner.standby import Standby
 
 log = logging.getLogger(__name__)
@@ -129,8 +129,8 @@ class Planner(Standby):
             self.target_index += 1  # the study's target was touched: the next pad lights up
             self.changed = True
         self.last_level = list(pain.level)
-        if len(pain.level) == len(self.last_gain):
-            self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns)
+        begun = self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns) \
+            if len(pain.level) == len(self.last_gain) else []
         if len(pain.level) == len(self.felt_ns):
             self.felt_ns[np.asarray(pain.level) >= FELT_LEVEL] = now_ns
         contact = pain.strongest
@@ -160,6 +160,8 @@ class Planner(Standby):
                     names = ", ".join(self.desc.pads[i].name for i in ahead)
                     log.info("the return would press on a touch felt on %s: stopping it there", names)
                     self._begin_hold(now_ns)
+            if self.mode == "RETURNING" and begun and self.initialized:
+                self._replan_return()  # slowed near the new touch's place too
             return None
         if self.mode == "TASK":
             self.saved = self.q.copy()

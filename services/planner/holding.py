@@ -30,13 +30,11 @@ from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner import retreat
-from nwr.services.planner.contacts import Contacts, passes_through, straight
+from nwr.services.planner.contacts import FELT_LEVEL, passes_through, straight
 from nwr.services.planner.returning import Returning
 
 log = logging.getLogger(__name__)
 
-# A pad feels a touch from this pain level on (PL 2: above the first threshold, below a reflex's).
-FELT_LEVEL = 2
 # How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
 HOLD_CHECK_NS = 20_000_000
 # How far ahead the task is checked for a touch felt in its way (PL 2, no reflex yet), s.
@@ -61,8 +59,6 @@ class Holding(Returning):
         self.partial = False  # the return under way is a partial one after max_hold_s: hold again on arrival
         self.braking = False  # HOLDING: still braking to rest
         self._hold_check_ns = 0
-        # Every touch felt now and in the last recent_contact_s, where it met its pad (:mod:`.contacts`).
-        self.contacts = Contacts(model, cfg.recent_contact_s, cfg.restarts.gap_s, FELT_LEVEL)
         self._waiting: set[int] = set()  # the recent touches this hold's return waits for (said once each)
         # The hold's brake: from the commanded state to rest, jerk-limited.
         self._brake = Ruckig(n, self.dt)

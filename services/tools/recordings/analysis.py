@@ -31,6 +31,11 @@ RETURN_WINDOW_NS = 300_000_000
 # A touch stays recent this long after it ends (planner.recent_contact_s's default), s; the place a person was:
 # within CONTACT_RADIUS_M of the contact point across the pad's normal (the planner's own measure).
 CONTACT_RECENT_S = PlannerSection().recent_contact_s
+# A pad this near a recent touch's place approaches it (planner.approach_distance_m's default), m.
+RETURN_NEAR_M = PlannerSection().approach_distance_m
+# Nearer than this to the place, the direction toward it is the states' lag behind the commands (a state every 20 ms
+# at up to 0.1 m/s), not an approach, m.
+RETURN_AT_M = 0.002
 
 
 @dataclass
@@ -76,6 +81,10 @@ class TouchSummary:
     # stays there, counts in pressed_toward_mm only).
     pressed_toward_mm: float | None = None
     past_after_mm: float | None = None
+    # From its first pain sample at PL 2 or with a gain (what the planner knows) until CONTACT_RECENT_S after it,
+    # during returns (phase RETURNING): the fastest any pad within RETURN_NEAR_M of where the touched pad was then
+    # moved toward that place, m/s (None: no such state; the planner's rule: planner.approach_speed_m_s at most).
+    return_toward_m_s: float | None = None
     # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
     return_speed_m_s: float | None = None
     # The touched pad's peak jerk during the withdrawal, m/s^3 (from the robot states: at their rate).
@@ -161,6 +170,10 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
 
     for touch in touches:
         _contact_figures(touch, model, state_t, state_q)
+        felt = next((p.stamp_ns for p in pain if touch.start_ns <= p.stamp_ns <= touch.end_ns
+                     and len(p.level) > touch.pad and (p.level[touch.pad] >= 2 or p.gain[touch.pad] > 0.0)),
+                    touch.start_ns)
+        _return_toward(touch, model, state_t, state_q, state_dq, returning, felt)
     world_figures(touches, records)
 
     for touch in touches:
@@ -402,6 +415,28 @@ def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray
     touch.past_after_mm = 1e3 * past
 
 
+def _return_toward(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray,
+                   state_dq: np.ndarray, returning: np.ndarray, felt_ns: int) -> None:
+    """A touch's ``return_toward_m_s`` from the robot states (TouchSummary), from ``felt_ns``: the touch's first
+    pain sample at PL 2 or with a gain, from which the planner knows it (where the pad was then)."""
+    first = int(np.searchsorted(state_t, felt_ns))
+    if first >= len(state_t):
+        return
+    p0 = model.pad_point(state_q[first], touch.pad)
+    recent = (state_t >= felt_ns) & (state_t <= touch.end_ns + round(CONTACT_RECENT_S * 1e9)) & returning
+    npads = len(model.pad_points(state_q[first]))
+    worst = None
+    for q, dq in zip(state_q[recent], state_dq[recent]):
+        to = p0 - model.pad_points(q)
+        dist = np.linalg.norm(to, axis=1)
+        near = (dist <= RETURN_NEAR_M) & (dist > RETURN_AT_M)
+        if near.any():
+            v = model.speed_jacobians(q)[:npads] @ dq  # the pads' rows come first
+            toward = np.einsum("pk,pk->p", v, to)[near] / dist[near]
+            worst = max(0.0 if worst is None else worst, float(toward.max()))
+    touch.return_toward_m_s = worst
+
+
 # The bridge's statuses that stop the arm's motion (RobotStatus): a block during which the bridge went from
 # following commands ("ok") to one of these was degraded, whatever its reflexes looked like.
 ARM_STOPS = frozenset({"stale_command", "stale_skin", "planner_lost", "protective_stop", "emergency_stop",
@@ -464,6 +499,8 @@ class Quality:
     # touch met it while it lasted, and those the arm took back more than PAST_MM past that place while recent.
     any_toward: int = 0
     back_past: int = 0
+    # Over those touches: the fastest any pad near one's place moved toward it during a return, m/s.
+    return_toward_m_s: float | None = None
     # A physics world's (None without one), over every touch it measured: the largest peak force on the person,
     # N, and pressure, N/cm^2, the largest fraction of its body area's quasi-static ISO/TS 15066 limits, and the
     # touches beyond them.
@@ -487,6 +524,8 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
     felt = [t for t in touches if t.gain > 0.0]
     q.any_toward = sum((t.pressed_toward_mm or 0.0) > APPROACH_MM for t in felt)
     q.back_past = sum((t.past_after_mm or 0.0) > PAST_MM for t in felt)
+    near = [t.return_toward_m_s for t in felt if t.return_toward_m_s is not None]
+    q.return_toward_m_s = max(near) if near else None
     measured = [t for t in touches if t.peak_force_n is not None]
     if measured:
         q.worst_force_n = max(t.peak_force_n or 0.0 for t in measured)
@@ -525,7 +564,10 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
 QUALITY_HEADER = ["strategy", "reflexes", f"pad toward >{APPROACH_MM:g} mm", "worst toward (mm)",
                   "worst other pad (mm)", "withdrawal p50 (mm)", "withdrawal min (mm)", "repeats",
                   "repeat diff (mm)", "rho(gain, withdrawal)", "peak jerk (m/s^3)",
-                  f"any touched pad toward >{APPROACH_MM:g} mm", f"back past a recent touch >{PAST_MM:g} mm"]
+                  f"any touched pad toward >{APPROACH_MM:g} mm", f"back past a recent touch >{PAST_MM:g} mm",
+                  "way back toward a recent touch (mm/s)"]
+# Where the columns of every contact begin (nwr summary prints them as a table of their own, within its width).
+CONTACT_QUALITY_FROM = QUALITY_HEADER.index(f"any touched pad toward >{APPROACH_MM:g} mm")
 # pad toward: touches whose touched pad moved more than 5 mm toward the contact; worst other pad: any other
 # pad's largest approach to the contact point; withdrawal min: of the pads that can withdraw; repeats: pairs of
 # touches of one pad within 1 hPa of each other, repeat diff: their median withdrawal difference; rho: Spearman's
@@ -533,7 +575,9 @@ QUALITY_HEADER = ["strategy", "reflexes", f"pad toward >{APPROACH_MM:g} mm", "wo
 # peak jerk: the touched pad's, median over the touches (at the state rate); any touched pad toward: every touch
 # with a gain (a second hand's too, not only the reflex's), its pad moving toward where it was touched while the
 # touch lasted; back past a recent touch: the arm taking a touched pad back through where the touch had been, within
-# 3 s of its end, beyond the furthest out it had been since that end.
+# 3 s of its end, beyond the furthest out it had been since that end; way back toward a recent touch: the fastest
+# any pad within 50 mm of where a touch met its pad moved toward that place while the arm returned (phase
+# RETURNING), while the touch was active or within 3 s of its end ("-": no return came that near).
 
 
 def quality_rows(rows: list[Quality]) -> list[list[str]]:
@@ -541,7 +585,8 @@ def quality_rows(rows: list[Quality]) -> list[list[str]]:
     return [[q.strategy, str(q.reflexes), str(q.approached), f(q.worst_toward_mm, ".1f"), f(q.worst_other_mm, ".1f"),
              f(q.withdrawal_median_mm, ".1f"), f(q.withdrawal_min_mm, ".1f"), str(q.repeat_pairs),
              f(q.repeat_diff_mm, ".1f"), f(q.gain_rank_corr, ".2f"), f(q.peak_jerk_m_s3, ".1f"), str(q.any_toward),
-             str(q.back_past)] for q in rows]
+             str(q.back_past), f(None if q.return_toward_m_s is None else 1e3 * q.return_toward_m_s, ".0f")]
+            for q in rows]
 
 
 WORLD_QUALITY_HEADER = ["strategy", "worst force on the person (N)", "worst pressure (N/cm^2)",

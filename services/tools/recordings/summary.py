@@ -45,7 +45,10 @@ def print_summary(path: Path, script_name: str | None, profile: Profile | None =
         for note in iso_notes(touches):
             print(textwrap.fill(note, table.DEFAULT_WIDTH, subsequent_indent="  "))
     if any(t.reflex_seq for t in touches):
-        print("\n" + table.render(analysis.QUALITY_HEADER, analysis.quality_rows([analysis.quality(touches)]), width))
+        rows, k = analysis.quality_rows([analysis.quality(touches)]), analysis.CONTACT_QUALITY_FROM
+        print("\n" + table.render(analysis.QUALITY_HEADER[:k], [r[:k] for r in rows], width))
+        header = analysis.QUALITY_HEADER
+        print("\n" + table.render(header[:1] + header[k:], [r[:1] + r[k:] for r in rows], width))
     if physics:
         print("\n" + table.render(analysis.WORLD_QUALITY_HEADER,
                                    analysis.world_quality_rows([analysis.quality(touches)]), width))
