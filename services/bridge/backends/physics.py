@@ -84,6 +84,7 @@ class PhysicsBackend(Backend):
         self.lag_s = settings.servo_damping_s
         self.q_command = np.asarray(q0, dtype=float).copy()
         self.dq_command = np.zeros_like(self.q_command)
+        self.streaming = False  # the last setpoint was a velocity one: q_command integrates the stream
         self.connected = False
         self.fault: m.RobotStatus | None = None
         self.detail = ""
@@ -102,7 +103,16 @@ class PhysicsBackend(Backend):
         return Observation(arm.q.copy(), arm.dq.copy())
 
     def _send(self, setpoint: Setpoint) -> None:
-        self.q_command = setpoint.q.copy()
+        # A velocity stream is integrated into the servos' own position reference, as a real arm's controller
+        # does (UR's speedj): the bridge's velocity setpoint follows the measured pose, which alone would leave
+        # the arm held by its velocity servo only, so that a push (a finger, the arm's own dynamics) drifts it
+        # away from what the planner commanded for as long as the stream lasts.
+        if setpoint.mode == "velocity" and self.streaming:
+            self.q_command = np.clip(self.q_command + setpoint.dq * (setpoint.h or self.dt), self.env.q_min,
+                                     self.env.q_max)
+        else:
+            self.q_command = setpoint.q.copy()
+        self.streaming = setpoint.mode == "velocity"
         self.dq_command = setpoint.dq.copy() if setpoint.mode != "hold" else np.zeros_like(self.q_command)
 
     def advance(self, now_ns: int) -> list[tuple[str, Any]]:
