@@ -92,8 +92,10 @@ def profile_for(world: str, pose: str) -> Profile:
     return profile
 
 
-def run(script: str, pose: str, world: str, strategy: str, out: Path, read: bool = False) -> Session:
-    """One session (``read``: its recording in ``out``, made before)."""
+def run(script: str, pose: str, world: str, strategy: str, out: Path, read: bool = False,
+        resume: bool = False) -> Session:
+    """One session (``read``: its recording in ``out``, made before; ``resume``: that recording if it is
+    there)."""
     logging.disable(logging.WARNING)  # the services' own warnings, hundreds per session: the table says what counts
     s = Session(script, pose, world, strategy)
     began = time.monotonic()
@@ -103,7 +105,7 @@ def run(script: str, pose: str, world: str, strategy: str, out: Path, read: bool
         s.refused = f"{path} is not there"
         return s
     try:
-        if not read:
+        if not (read or (resume and path.exists())):
             simulate(profile, script, strategy, path)
     except ConfigError as e:
         s.refused = str(e)
@@ -165,6 +167,8 @@ def main() -> int:
     parser.add_argument("--strategies", default=",".join(STRATEGIES), help="reflex strategies, comma-separated")
     parser.add_argument("--jobs", type=int, default=2, help="sessions run at once (processes)")
     parser.add_argument("--keep", type=Path, help="write the recordings here (default: a temporary directory)")
+    parser.add_argument("--resume", action="store_true",
+                        help="with --keep DIR: read the sessions whose recordings DIR has, run the others")
     parser.add_argument("--read", type=Path, metavar="DIR",
                         help="run nothing: read the recordings a run with --keep DIR wrote")
     parser.add_argument("--by", choices=("strategy", "world", "pose", "script"), action="append", default=[],
@@ -190,7 +194,8 @@ def main() -> int:
         out.mkdir(parents=True, exist_ok=True)
         plan = [(sc, p, w, st) for sc in scripts for p in poses for w in worlds for st in chosen]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            sessions = list(pool.map(run, *zip(*plan), [out] * len(plan), [args.read is not None] * len(plan)))
+            sessions = list(pool.map(run, *zip(*plan), [out] * len(plan), [args.read is not None] * len(plan),
+                                     [args.resume] * len(plan)))
     for s in sessions:
         if s.refused:
             print(f"refused: {s.script} at {s.pose} in the {s.world} world with {s.strategy}: {s.refused}")
