@@ -287,3 +287,35 @@ def test_the_return_retraces_the_withdrawal_so_that_nothing_comes_closer_on_the_
         assert approach.max() <= APPROACH_BUDGET_M + 1e-3
     else:  # the straight line in joint space swings wrist_2 closer than the withdrawal ever brought it
         assert approach.max() > 2 * APPROACH_BUDGET_M
+
+
+@pytest.mark.parametrize(("pad", "gain"), [("wrist_3", 0.6), ("wrist_3", 1.0), ("forearm_top", 0.6),
+                                           ("upper_arm_bottom", 1.0)])
+def test_the_retraced_return_approaches_the_touched_place_no_faster_than_the_approach_speed(pad: str,
+                                                                                              gain: float) -> None:
+    # The return's legs through the withdrawal's poses: a leg that ends short of the slow stretch near the place
+    # must not hand over at a speed it cannot brake from in time (it would run into the stretch fast and back).
+    cfg = PlannerSection(strategy="whole-arm", name="whole-arm")
+    planner, t, _ = touched(cfg, pad, gain)
+    index = NAMES.index(pad)
+    place = MODEL.pad_point(planner.q, index)
+    lifted = m.SkinPain(seq=2, stamp_ns=t + 40_000_000, trace=m.Trace(2, t), model="continuous",
+                        level=[1] * len(NAMES), gain=[0.0] * len(NAMES), strongest=None)
+    previous, fastest, returned = place, 0.0, False
+    for k in range(6000):
+        t += 2_000_000
+        if k == 20:
+            planner.on_pain(lifted, t)
+        planner.step(t)
+        at = MODEL.pad_point(planner.q, index)
+        if planner.mode == "RETURNING":
+            returned = True
+            to = place - at
+            dist = float(np.linalg.norm(to))
+            if 0.002 < dist <= cfg.approach_distance_m:
+                fastest = max(fastest, float((at - previous) @ to) / dist / 0.002)
+        previous = at
+        if returned and planner.mode == "TASK":
+            break
+    assert returned and planner.mode == "TASK"
+    assert fastest <= cfg.approach_speed_m_s * 1.05

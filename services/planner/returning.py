@@ -40,6 +40,9 @@ RETRACE_OFF_RAD = 0.05
 RETRACE_MIN_RAD = 0.01
 # The share of the next leg's cruise speed (and this leg's limit) a leg of the return ends at.
 HANDOFF = 0.999
+# A leg of the return begins no faster than it can brake from to its end within this share of its length at the
+# joints' acceleration limits (the rest for the jerk limit's ramps).
+BRAKE_SHARE = 0.5
 # A leg is searched for the places near recent contacts at poses this far apart in any point's travel, as a
 # share of 2 * approach_distance_m * approach_speed_m_s / return_speed_m_s: a way between two poses into a place
 # and out again is then so shallow that it approaches the place at under this share of the approach speed (a
@@ -95,14 +98,30 @@ class Returning(Motion):
         """Start the return's next leg, arriving at the following leg's start at that leg's cruise velocity:
         no stop between the legs."""
         goal, speeds = self._legs.pop(0)
-        velocity = None
-        if self._legs:
-            after, slow = self._legs[0]
-            d = after - goal
-            moving = np.abs(d) > 1e-9
-            if moving.any():  # within this leg's speed limits too (ruckig refuses a target on the limit)
-                velocity = d * float(np.min(np.minimum(slow, speeds)[moving] / np.abs(d[moving]))) * HANDOFF
-        self._ruckig_to(goal, speeds=speeds, velocity=velocity)
+        self._ruckig_to(goal, speeds=speeds, velocity=self._handover(goal, speeds, self._legs))
+
+    def _handover(self, goal: np.ndarray, speeds: np.ndarray, legs: list[tuple[np.ndarray, np.ndarray]]
+                  ) -> np.ndarray | None:
+        """The velocity to reach ``goal`` at, ``legs`` following (None: at rest, the last): the next leg's
+        cruise velocity, within this leg's limits too (ruckig refuses a target on the limit), and no faster
+        than that next leg can brake from to its own handover within its length (BRAKE_SHARE of the distance
+        each joint needs at its acceleration limit): a short leg into a slow stretch would otherwise overshoot
+        into it and back."""
+        if not legs:
+            return None
+        after, slow = legs[0]
+        d = after - goal
+        moving = np.abs(d) > 1e-9
+        if not moving.any():
+            return None
+        velocity = d * float(np.min(np.minimum(slow, speeds)[moving] / np.abs(d[moving]))) * HANDOFF
+        end = self._handover(after, slow, legs[1:])
+        end = np.zeros_like(d) if end is None else np.where(np.sign(end) == np.sign(d), end, 0.0)
+        room = np.sqrt(end ** 2 + 2.0 * BRAKE_SHARE * np.asarray(self.a_limit, dtype=float) * np.abs(d))
+        fast = np.abs(velocity) > room
+        if fast.any():
+            velocity = velocity * float(np.min(room[fast] / np.abs(velocity[fast])))
+        return velocity
 
     def _retrace(self) -> list[np.ndarray]:
         """Poses on the current reflex's withdrawal, last to first, that a retracing strategy's return passes
