@@ -92,7 +92,6 @@ class PhysicsSettings(Section):
     max_penetration_m: Annotated[float, msgspec.Meta(ge=0.001, le=0.2)] = 0.02
 
 
-
 def check_taxel_rate(settings: PhysicsSettings) -> None:
     """A taxel skin's rate is at most the world's step rate (a sample is taken at a step); ConfigError."""
     if settings.taxel_rate_hz * settings.timestep_s > 1.0 + 1e-9:
