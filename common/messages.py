@@ -230,6 +230,10 @@ class SkinPain(msgspec.Struct, tag="skin_pain", tag_field="kind", forbid_unknown
     impact_basis: str = ""
     # The pads whose gain came from the arm's external torques, the skin blind there (gain.torque).
     torque_pads: list[int] = []
+    # The pads in contact below PL 2: the skin gateway's contact (a change above gateway.contact_hpa, with its
+    # hysteresis; a taxel skin: a contact on the pad's taxels) at pain level 1, a touch too light for a pain
+    # level. The planner keeps it as a touch: where a person is, a hand resting on the arm.
+    light_touch: list[int] = []
 
 
 class PositionCommand(msgspec.Struct, tag="position", tag_field="kind", forbid_unknown_fields=True):

@@ -78,6 +78,26 @@ def test_a_touch_is_kept_where_it_met_its_pad_active_then_recent_then_forgotten(
     assert contacts.recent(400_000_000 + 3_000_000_000) == [] and contacts.touches == {}
 
 
+def test_a_light_touch_below_pl_2_is_a_touch_too_and_keeps_it_recent() -> None:
+    """A hand resting on the arm below PL 2 (the skin's contact, SkinPain.light_touch) begins a touch where it
+    met the pad, and keeps it active and then recent as long as the skin feels it."""
+    contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
+    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    i = pad("forearm_top")
+    assert contacts.observe(q0, levels(), gains(), 0, light=[i]) == [i]  # PL 1, in contact: a touch begins
+    assert [t.pad for t in contacts.active()] == [i] and contacts.active()[0].gain == 0.0
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(q0, i))
+    assert contacts.observe(q1, levels(forearm_top=3), gains(forearm_top=0.2), 40_000_000) == []  # the same touch
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(q0, i))  # where it met the pad, lightly
+    contacts.observe(q1, levels(), gains(), 2_000_000_000, light=[i])  # resting lightly, 2 s later: still active
+    contacts.observe(q1, levels(), gains(), 2_040_000_000)  # lifted
+    assert contacts.active() == []
+    assert [t.pad for t in contacts.recent(2_040_000_000 + 2_900_000_000)] == [i]  # recent from the light sample
+    contacts.observe(q1, levels(), gains(), 5_000_000_000)
+    assert contacts.touches == {}
+    assert contacts.observe(q1, levels(), gains(), 5_040_000_000, light=[N, -1]) == []  # no such pads: ignored
+
+
 def test_a_way_through_where_a_touch_was_is_measured_there_only() -> None:
     q0 = DESC.home.copy()
     i = pad("forearm_top")
@@ -141,12 +161,12 @@ def in_task(cfg: PlannerSection) -> tuple[Planner, int]:
     return running(cfg, DESC, MODEL)
 
 
-def pain(t: int, seq: int, lv: list[int], g: np.ndarray) -> m.SkinPain:
+def pain(t: int, seq: int, lv: list[int], g: np.ndarray, light: tuple[str, ...] = ()) -> m.SkinPain:
     strongest = int(np.argmax(g))
     contact = m.Contact(pad=strongest, name=NAMES[strongest], region=DESC.pads[strongest].region, change_hpa=10.0,
                         level=lv[strongest], gain=float(g[strongest])) if g.max() > 0 else None
     return m.SkinPain(seq=seq, stamp_ns=t, trace=m.Trace(seq, t - 1000), model="continuous", level=lv,
-                      gain=g.tolist(), strongest=contact)
+                      gain=g.tolist(), strongest=contact, light_touch=[pad(name) for name in light])
 
 
 def test_a_weaker_new_touch_during_a_reflex_restarts_it_and_counts() -> None:
@@ -195,9 +215,12 @@ def test_the_task_pauses_for_a_touch_felt_in_its_way_and_resumes_once_it_is_gone
     assert planner.mode == "TASK"
 
 
-def test_the_task_pauses_for_a_felt_touch_it_would_push_only_a_few_millimetres_into() -> None:
+@pytest.mark.parametrize("how", ["felt", "light"])
+def test_the_task_pauses_for_a_felt_touch_it_would_push_only_a_few_millimetres_into(how: str) -> None:
     """Not only a fast way into it: the person is there now, so a few millimetres (a slowly rising press at
-    PL 2 while the task drifts into it) stop the task too (planner.contact_margin_m is for recent touches)."""
+    PL 2 while the task drifts into it) stop the task too (planner.contact_margin_m is for recent touches); a
+    press still below PL 2 that the skin feels in contact (light) too, so the task does not push the pad into
+    it until the press is felt."""
     planner, t = in_task(PlannerSection(strategy="cartesian"))
     found = None
     for step in range(3000):  # along the figure-eight, until the task drifts a pad 2-9 mm along its normal in 1 s
@@ -214,8 +237,17 @@ def test_the_task_pauses_for_a_felt_touch_it_would_push_only_a_few_millimetres_i
         if found is not None:
             break
     assert found is not None, "the task drifts some pad a few millimetres into whatever touches it"
-    command = planner.on_pain(pain(t, 1, levels(**{NAMES[found]: 2}), gains()), t)
+    felt = pain(t, 1, levels(**{NAMES[found]: 2}), gains()) if how == "felt" else \
+        pain(t, 1, levels(), gains(), light=(NAMES[found],))
+    command = planner.on_pain(felt, t)
     assert command is not None and planner.mode == "HOLDING" and planner.reflex is None
+    held = planner.q.copy()
+    for k in range(1000):  # held while the skin feels it, 2 s
+        t += 2_000_000
+        planner.step(t)
+        if k % 20 == 0:
+            planner.on_pain(felt if how == "felt" else pain(t, 2 + k, levels(), gains(), light=(NAMES[found],)), t)
+    assert planner.mode == "HOLDING" and np.max(np.abs(planner.q - held)) < 0.01
 
 
 def test_the_paper_mode_keeps_the_papers_task_through_a_felt_touch() -> None:

@@ -268,7 +268,7 @@ def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:
         (keys.SKIN_PAIN, m.SkinPain(seq=0, stamp_ns=stamp_ns, trace=TRACE, model="effective-mass", level=[1, 3],
                                     gain=[0.0, 0.185], strongest=CONTACT, effective_mass_kg=[12.5, 3.1],
                                     impact_n=[0.0, 88.1], threshold_scale=[1.0, 0.874], impact_basis="state",
-                                    torque_pads=[1])),
+                                    torque_pads=[1], light_touch=[0])),
         (keys.robot_command(PLANNER), m.PositionCommand(seq=0, stamp_ns=stamp_ns, owner=PLANNER, q=q, trace=TRACE,
                                                         ahead=[q, q], period_s=0.002)),
         (keys.robot_command(PLANNER), m.VelocityCommand(seq=1, stamp_ns=stamp_ns, owner=PLANNER, dq=[0.0] * 6,

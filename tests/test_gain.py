@@ -109,6 +109,16 @@ def test_estimator_no_contact_below_pl3():
     assert est.process(sample([5.9, 1.0, 0.0]), 0).strongest is None
 
 
+def test_estimator_says_which_pads_the_skin_feels_in_contact_below_pl_2():
+    est = GainEstimator(GainSection(), pads())
+    pain = est.process(sample([1.5, 0.5, 3.0]), 0)  # the gateway's contact on pad 0 (1.5 hPa), PL 1
+    assert pain.level == [1, 1, 2] and pain.light_touch == [0]  # pad 2 is felt (PL 2): no light touch
+    assert est.process(sample([0.0, 0.0, 9.0]), 0).light_touch == []
+    bare = m.SkinPressure(seq=1, stamp_ns=0, absolute_hpa=[0.0] * 3, baseline_hpa=[0.0] * 3,
+                          change_hpa=[1.5, 0.0, 0.0], contact=[])
+    assert est.process(bare, 0).light_touch == []  # no contact flags: none known
+
+
 def test_estimator_discrete_model_and_override():
     cfg = GainSection(model="discrete", overrides={"pad2": PadGainOverride(thresholds_hpa=[1.0, 2.0, 3.0, 4.0])})
     est = GainEstimator(cfg, pads())

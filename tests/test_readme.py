@@ -65,7 +65,7 @@ def tables(block: str) -> list[tuple[list[str], list[dict[str, str]]]]:
 
 def shape(block: str) -> dict[str, Any]:
     """What a run of the demo's touch script prints, whatever the run's timings: the tables' columns, per touch its
-    pad, pain level and whether it caused a reflex, the physics world's fingers (pads), the strategy's rows, and
+    pad and whether it caused a reflex, the physics world's fingers (pads), the strategy's rows, and
     the lines that do not depend on the run."""
     found = tables(block)
     touch_header, touches = found[0]
@@ -73,7 +73,9 @@ def shape(block: str) -> dict[str, Any]:
     return {
         "tables": [header for header, _ in found],
         "touch columns": touch_header,
-        "touches": [(t["pad"], t["PL"], t["reflex"]) for t in touches],
+        # Not the pain level: a touch whose peak is within a hPa of a threshold reads one level apart in two
+        # runs (the demo's elbow_outer at 19 s peaks at 1.7-2.4 hPa, wrist_3 at 27 s at 11.9-13.0 hPa).
+        "touches": [(t["pad"], t["reflex"]) for t in touches],
         "fingers": [row["pad"] for header, rows in found[1:] if "pad" in header for row in rows
                     if re.fullmatch(r"[\d.]+", row["t (s)"])],  # the rows, not the note under them
         "quality columns": quality_header,
@@ -99,8 +101,10 @@ def test_the_shape_tells_a_table_of_other_columns_or_touches_apart() -> None:
     shown = readme_example.readme_block((ROOT / "README.md").read_text(encoding="utf-8"))
     same = shape(shown)
     assert len(same["touch columns"]) >= 10 and len(same["touches"]) == 9 and same["quality rows"] == ["cartesian"]
-    assert same["fingers"] == [pad for pad, _, _ in same["touches"]]  # the physics world's table of its fingers
-    assert shape(shown.replace("forearm_top", "forearm_bot", 2))["fingers"] != same["fingers"]
+    assert same["fingers"] == [pad for pad, _ in same["touches"]]  # the physics world's table of its fingers
+    head, fingers = shown.split("the physics world's fingers", 1)
+    assert shape(head + "the physics world's fingers" + fingers.replace("forearm_top", "forearm_bot", 1))[
+        "fingers"] != same["fingers"]
     assert "withdrawal (mm)" in same["touch columns"] and "other pad closer (mm)" in same["touch columns"]
     fewer = shown.replace("no  ", "yes ", 1)
     assert shape(fewer)["touches"] != same["touches"]

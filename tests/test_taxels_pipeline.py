@@ -90,6 +90,15 @@ def test_a_finger_gives_its_pads_level_and_the_strongest_contact_its_place() -> 
         assert pain.trace == m.Trace(0, 0) and pain.model == "continuous"
 
 
+def test_a_finger_too_light_for_a_pain_level_is_a_light_touch_of_its_pad() -> None:
+    gain = estimator()
+    kpa, _ = finger("forearm_top", 0.3)
+    pain = gain.process(sample(kpa), 5)
+    assert pain.level == [1] * len(DESC.pads) and pain.light_touch == [PAD["forearm_top"]]
+    kpa, _ = finger("forearm_top", 3.0)
+    assert gain.process(sample(kpa), 6).light_touch == []  # felt at PL 3: no light touch
+
+
 def test_two_fingers_on_one_patch_give_its_pad_the_stronger_and_the_strongest_is_the_firmest() -> None:
     weak, _ = finger("upper_arm_top", 2.5)
     strong, centre = finger("upper_arm_top", 8.0, (-0.15, 0.0, 0.0))  # 15 cm along the tube: another cluster

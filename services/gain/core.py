@@ -161,11 +161,15 @@ class GainEstimator:
         gains: list[float] = []
         best = -1
         per_pad = self.per_pad
+        touching = sample.contact if len(sample.contact) == len(change) else ()
+        light: list[int] = []
         for i, p in enumerate(change):
             if -math.inf < p < per_pad[i].thresholds[0]:
                 # PL 1 (a finite change below the first threshold): G = 0 in both models, and no contact.
                 levels.append(1)
                 gains.append(0.0)
+                if touching and touching[i]:
+                    light.append(i)  # in contact all the same: a light touch
                 continue
             if not math.isfinite(p):
                 self.non_finite += 1
@@ -178,6 +182,7 @@ class GainEstimator:
         msg = m.SkinPain(
             seq=self.seq, stamp_ns=now_ns, trace=m.Trace(sample.seq, sample.stamp_ns),
             model=self.model, level=levels, gain=gains, strongest=self._contact(best, change, levels, gains),
+            light_touch=light,
         )
         self.seq += 1
         return msg
@@ -197,10 +202,14 @@ class GainEstimator:
         gains: list[float] = []
         best = -1
         per_pad = self.per_pad
+        touching = sample.contact if len(sample.contact) == len(change) else ()
+        light: list[int] = []
         for i, p in enumerate(change):
             if -math.inf < p < per_pad[i].thresholds[0] * scales[i]:
                 levels.append(1)  # PL 1 at the pad's scaled thresholds: G = 0, no contact
                 gains.append(0.0)
+                if touching and touching[i]:
+                    light.append(i)
                 continue
             if not math.isfinite(p):
                 self.non_finite += 1
@@ -213,7 +222,7 @@ class GainEstimator:
             seq=self.seq, stamp_ns=now_ns, trace=m.Trace(sample.seq, sample.stamp_ns),
             model=self.model, level=levels, gain=gains, strongest=self._contact(best, change, levels, gains),
             effective_mass_kg=impact.mass_kg.tolist(), impact_n=impact.force_n.tolist(), threshold_scale=scales,
-            impact_basis=impact.basis,
+            impact_basis=impact.basis, light_touch=light,
         )
         self.seq += 1
         return msg

@@ -77,7 +77,9 @@ class TaxelGain:
                     pad=pad, name=self.pads[pad].name, region=c.region, change_hpa=c.peak * self.hpa_per_unit,
                     level=level, gain=g, link=c.link, point=c.point.tolist(), normal=c.normal.tolist(),
                     force_n=c.force_n)
+        light = sorted({self.pad_of[c.patch] for c in self.contacts} - {i for i, level in enumerate(levels)
+                                                                         if level > 1})
         msg = m.SkinPain(seq=self.seq, stamp_ns=now_ns, trace=m.Trace(sample.seq, sample.stamp_ns),
-                         model=self.model, level=levels, gain=gains, strongest=strongest)
+                         model=self.model, level=levels, gain=gains, strongest=strongest, light_touch=light)
         self.seq += 1
         return msg

@@ -1,7 +1,8 @@
 """Every contact counts: the touches the skin feels now, and the ones it felt in the last few seconds.
 
 A pad is *touched* while it feels a touch (pain level 2 or more, or a
-gain); its touch begins when it is touched after at least ``gap_s``
+gain) or the skin says it is in contact below that (a light touch:
+``SkinPain.light_touch``, a hand resting on the arm); its touch begins when it is touched after at least ``gap_s``
 without (the restarts' own rule: a flicker is one touch). The touch's
 *contact point* and *normal* are the pad's reference point and outward
 normal at the commanded pose of that first sample, in the base frame: where
@@ -58,10 +59,12 @@ class Contacts:
         self.earlier: list[ContactPoint] = []  # recent touches a later touch of the same pad took the place of
         self.touched: set[int] = set()  # the pads touched in the last sample
 
-    def observe(self, q: np.ndarray, levels: list[int], gains: np.ndarray, now_ns: int) -> list[int]:
-        """One pain message's levels and gains, at the commanded pose ``q``; the pads whose touch began in it."""
+    def observe(self, q: np.ndarray, levels: list[int], gains: np.ndarray, now_ns: int,
+                light: Iterable[int] = ()) -> list[int]:
+        """One pain message's levels and gains, at the commanded pose ``q``; the pads whose touch began in it.
+        ``light``: the pads it says are in contact below the felt level (``SkinPain.light_touch``), touched too."""
         touched = {pad for pad, (level, gain) in enumerate(zip(levels, gains)) if level >= self.felt_level
-                   or gain > 0.0}
+                   or gain > 0.0} | {pad for pad in light if 0 <= pad < len(levels)}
         begun = []
         for pad in sorted(touched):
             touch = self.touches.get(pad)

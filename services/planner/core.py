@@ -51,7 +51,6 @@ import numpy as np
 from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
-from nwr.services.planner.contacts import FELT_LEVEL
 from nwr.services.planner.standby import Standby
 
 log = logging.getLogger(__name__)
@@ -129,10 +128,11 @@ class Planner(Standby):
             self.target_index += 1  # the study's target was touched: the next pad lights up
             self.changed = True
         self.last_level = list(pain.level)
-        begun = self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns) \
+        self.light_touch = [pad for pad in pain.light_touch if 0 <= pad < len(self.last_gain)]
+        begun = self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns, self.light_touch) \
             if len(pain.level) == len(self.last_gain) else []
         if len(pain.level) == len(self.felt_ns):
-            self.felt_ns[np.asarray(pain.level) >= FELT_LEVEL] = now_ns
+            self.felt_ns[self._felt()] = now_ns
         contact = pain.strongest
         if not self.active:
             self._on_pain_inactive(contact, new, pain.trace, now_ns)

@@ -53,6 +53,7 @@ class Holding(Returning):
         n = len(desc.joints)
         self.holds = cfg.sustained_contact == "hold"
         self.last_level = [1] * len(desc.pads)  # each pad's pain level in the last pain message
+        self.light_touch: list[int] = []  # the pads in contact below PL 2 in the last pain message
         self.felt_ns = np.full(len(desc.pads), np.iinfo(np.int64).min // 2, dtype=np.int64)  # each pad's last touch
         self.hold_since_ns = 0
         self.held_max = False  # this hold has reached max_hold_s (and made its partial return, if any)
@@ -148,7 +149,7 @@ class Holding(Returning):
         other pad feeling one that the way to ``target`` (the saved pose, where the task resumes) would bring
         closer to it, and any recent touch the way back or the task after it would go through."""
         within = np.flatnonzero(now_ns - self.felt_ns < round(self.cfg.release_s * 1e9)).tolist()
-        recent: list[int] = sorted(set(within) | {i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL})
+        recent: list[int] = sorted(set(within) | set(self._felt()))
         touched = self.reflex.contact.pad if self.reflex is not None else -1
         out = []
         for pad in recent:
@@ -176,6 +177,10 @@ class Holding(Returning):
                              (now_ns - contact.felt_ns) / 1e9, self.cfg.recent_contact_s)
         return sorted(out)
 
+    def _felt(self) -> list[int]:
+        """The pads feeling a touch in the last pain message: PL 2 or more, or a light touch below it."""
+        return sorted({i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL} | set(self.light_touch))
+
     def _task_presses(self) -> list[int]:
         """The pads feeling a touch without a gain (PL 2: no reflex) that the task, within TASK_AHEAD_S, would
         take more than FELT_MARGIN_M past where the touch met them: a slow press the task would push into."""
@@ -189,7 +194,7 @@ class Holding(Returning):
     def _felt_ahead(self, now_ns: int) -> list[int]:
         """The pads feeling a touch now that the rest of the return brings closer to it."""
         assert self.saved is not None
-        felt = [i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL]
+        felt = self._felt()
         if not felt:
             return []
         d = self.saved - self.q

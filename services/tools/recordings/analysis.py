@@ -81,9 +81,10 @@ class TouchSummary:
     # stays there, counts in pressed_toward_mm only).
     pressed_toward_mm: float | None = None
     past_after_mm: float | None = None
-    # From its first pain sample at PL 2 or with a gain (what the planner knows) until CONTACT_RECENT_S after it,
-    # during returns (phase RETURNING): the fastest any pad within RETURN_NEAR_M of where the touched pad was then
-    # moved toward that place, m/s (None: no such state; the planner's rule: planner.approach_speed_m_s at most).
+    # From its first pain sample at PL 2, with a gain or a light touch (what the planner knows) until
+    # CONTACT_RECENT_S after it, during returns (phase RETURNING): the fastest any pad within RETURN_NEAR_M of
+    # where the touched pad was then moved toward that place, m/s (None: no such state; the planner's rule:
+    # planner.approach_speed_m_s at most).
     return_toward_m_s: float | None = None
     # The fastest point of the arm while it returned (phase RETURNING) until the touch's reflex ended, m/s.
     return_speed_m_s: float | None = None
@@ -171,7 +172,8 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
     for touch in touches:
         _contact_figures(touch, model, state_t, state_q)
         felt = next((p.stamp_ns for p in pain if touch.start_ns <= p.stamp_ns <= touch.end_ns
-                     and len(p.level) > touch.pad and (p.level[touch.pad] >= 2 or p.gain[touch.pad] > 0.0)),
+                     and len(p.level) > touch.pad and (p.level[touch.pad] >= 2 or p.gain[touch.pad] > 0.0
+                                                       or touch.pad in p.light_touch)),
                     touch.start_ns)
         _return_toward(touch, model, state_t, state_q, state_dq, returning, felt)
     world_figures(touches, records)
