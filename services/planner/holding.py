@@ -30,13 +30,17 @@ from nwr.common import messages as m
 from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.services.planner import retreat
-from nwr.services.planner.contacts import FELT_LEVEL, passes_through, straight
+from nwr.services.planner.contacts import FELT_LEVEL, ContactPoint, passes_through, past, straight
 from nwr.services.planner.returning import Returning
 
 log = logging.getLogger(__name__)
 
 # How often a hold checks whether the return may begin, ns (the skin's period is 40 ms).
 HOLD_CHECK_NS = 20_000_000
+# The task after a return is checked against a recent touch at poses this far apart in its own time, s: the
+# task moves a pad at up to about 0.2 m/s, so a few millimetres apart, and no way past the place falls between
+# two of them (0.12 s apart, a way 11.4 mm past a touch did, at the edge of where the person was).
+TASK_STEP_S = 0.02
 # How far ahead the task is checked for a touch felt in its way (PL 2, no reflex yet), s.
 TASK_AHEAD_S = 1.0
 # How far past where a touch felt now (PL 2, no reflex yet) met its pad the task may take that pad, m: the
@@ -61,6 +65,10 @@ class Holding(Returning):
         self.braking = False  # HOLDING: still braking to rest
         self._hold_check_ns = 0
         self._waiting: set[int] = set()  # the recent touches this hold's return waits for (said once each)
+        # How far the way back from the hold's pose, and the task after it, take a recent touch's pad past its
+        # place, by touch (pad, onset): the same while the arm holds (its pose and the task's clock stand still).
+        self._ways: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
+        self._ways_of: tuple[bytes, bytes, float] | None = None
         # The hold's brake: from the commanded state to rest, jerk-limited.
         self._brake = Ruckig(n, self.dt)
         self._brake_in = InputParameter(n)
@@ -161,11 +169,10 @@ class Holding(Returning):
         for contact in self.contacts.recent(now_ns):
             if contact.pad in out:
                 continue
-            poses = straight(self.q, target)
+            back, task = self._way_past(contact, target)
             left_s = (contact.felt_ns + self.contacts.recent_ns - now_ns) / 1e9
-            if left_s > 0.0:  # target: the saved pose, where the task resumes
-                poses += [self.task.position(self.clock.s + s) for s in np.linspace(0.0, left_s, 21)[1:]]
-            depth = passes_through(self.model, poses, contact, self.cfg.contact_margin_m)
+            steps = max(0, min(len(task), int(np.floor(left_s / TASK_STEP_S + 1e-9))))
+            depth = max(back, float(task[:steps].max(initial=0.0)))
             if depth > 0.0:
                 out.append(contact.pad)
                 if contact.pad not in self._waiting:
@@ -176,6 +183,23 @@ class Holding(Returning):
                              self.desc.pads[contact.pad].name, 1e3 * (depth + self.cfg.contact_margin_m),
                              (now_ns - contact.felt_ns) / 1e9, self.cfg.recent_contact_s)
         return sorted(out)
+
+    def _way_past(self, contact: ContactPoint, target: np.ndarray) -> tuple[float, np.ndarray]:
+        """How far the straight way from the pose to ``target`` (the saved pose, where the task resumes) takes
+        ``contact``'s pad past where it was touched beyond the margin (:func:`passes_through`), and the task after
+        it at each TASK_STEP_S of its time while the touch may be recent, m; once per touch and hold."""
+        key = (self.q.tobytes(), target.tobytes(), self.clock.s)
+        if key != self._ways_of:
+            self._ways, self._ways_of = {}, key
+        touch = (contact.pad, contact.onset_ns)
+        if touch not in self._ways:
+            margin = self.cfg.contact_margin_m
+            back = passes_through(self.model, straight(self.q, target), contact, margin)
+            times = TASK_STEP_S * np.arange(1, int(np.ceil(self.cfg.recent_contact_s / TASK_STEP_S)) + 1)
+            task = np.array([max(0.0, past(self.model, self.task.position(self.clock.s + s), contact) - margin)
+                             for s in times])
+            self._ways[touch] = (back, task)
+        return self._ways[touch]
 
     def _felt(self) -> list[int]:
         """The pads feeling a touch in the last pain message: PL 2 or more, or a light touch below it."""
