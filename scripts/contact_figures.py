@@ -25,8 +25,10 @@ quality table (:func:`nwr.services.tools.recordings.analysis.quality`, as
   point; back past: the arm taking a touched pad more than 10 mm back through
   where a recent touch had been;
 - rho: Spearman's rank correlation of withdrawal with gain per pad (pads
-  touched at three or more pressures, the pads the strategy found it could
-  withdraw), the median over pads; rho min: the lowest pad's, named.
+  touched at three or more pressures; the touches whose reflex withdrew the
+  pad along its normal as far as the joints let it, not sideways or blocked:
+  `analysis.serves_normal`), the median over pads; rho min: the lowest
+  pad's, named.
 
 A session that a world refuses (a script the physics world cannot play) is
 reported as such, never dropped silently.
@@ -122,7 +124,7 @@ def pad_rhos(touches: list[analysis.TouchSummary]) -> dict[str, float]:
     PRESSURES_HPA apart: a burst of taps at one pressure, whose gains differ by the sampling alone, is one)."""
     from scipy.stats import spearmanr
 
-    done = [t for t in touches if t.reflex_seq and t.withdrawal_mm is not None and t.withdraws]
+    done = [t for t in touches if t.reflex_seq and t.withdrawal_mm is not None and analysis.serves_normal(t)]
     out = {}
     for name in sorted({t.name for t in done}):
         mine = [(t.gain, t.withdrawal_mm) for t in done if t.name == name]

@@ -129,6 +129,24 @@ def test_no_other_pad_moves_out_along_its_normal_faster_than_the_cap_and_the_dis
     assert withdraw(touched, 1.0, POSES[pose])["away_m"].max() >= 0.8 * s.distance_m
 
 
+def test_the_reach_is_no_further_than_the_joints_range_lets_the_motion_go() -> None:
+    """Near a joint limit the speed the QP allows says nothing of how far the pad may go: the reach stops where
+    the first joint the withdrawal moves reaches its range (less the margin)."""
+    s = build()
+    q = DESC.home.copy()
+    q[2] = DESC.q_max[2] - whole_arm.MARGIN_RAD - 0.01  # the elbow 0.01 rad inside its range's margin
+    dq = np.zeros_like(q)
+    assert s._room_s(q, dq) == np.inf
+    dq[2], dq[1] = 0.5, -0.1  # the elbow toward its limit: 0.02 s
+    assert s._room_s(q, dq) == pytest.approx(0.02)
+    dq[2] = -0.5  # away from it: the room toward its other end, or the shoulder's
+    lo = DESC.q_min + whole_arm.MARGIN_RAD
+    assert s._room_s(q, dq) == pytest.approx(min((q[2] - lo[2]) / 0.5, (q[1] - lo[1]) / 0.1))
+    for name in SHORT:  # at home, nothing near a limit: the reach is the QP's
+        s.start(DESC.home.copy(), contact(NAMES.index(name), 1.0))
+        assert whole_arm.REACH_MIN_M <= s.reach_m < whole_arm.SHORT_SHARE * s.distance_m
+
+
 # How far each leaves the contact point at G = 1 at least, m: shoulder_back only by turning the base, which
 # swings the pads farther out along their normals, each no faster than outward_speed_m_s.
 LEAVES_M = {"shoulder_back": 0.005, "shoulder_outer": 0.02}

@@ -119,9 +119,9 @@ SIDEWAYS_DIRECTIONS = 8
 # SHORT_SHARE of distance_m, withdraws along it the gain's share of that reach ("short"), not sideways.
 REACH_MIN_M = 0.005
 SHORT_SHARE = 0.5
-# A short withdrawal is at least this share of the reach, at any gain: a light touch's still moves the pad
-# visibly away (more than the retreat check's smallest withdrawal, a tenth of 2 mm), rather than hold the arm
-# braking along the task's way.
+# A short withdrawal is this share of the reach at G = 0, growing linearly to all of it at G = 1: a light
+# touch's still moves the pad visibly away (more than the retreat check's smallest withdrawal, a tenth of
+# 2 mm), rather than hold the arm braking along the task's way, and a stronger touch's further.
 SHORT_MIN_SHARE = 0.15
 # Below this share of its speed in every direction the pad cannot withdraw at all: the arm holds still.
 HOLD_SHARE = 0.05
@@ -307,8 +307,9 @@ class WholeArm(ReflexStrategy):
             self.reach_m = self._reach(q, samples)
             distance = self.distance_m
             if REACH_MIN_M <= self.reach_m < SHORT_SHARE * distance:
-                # Only so far along the normal: the gain's share of that reach, in proportion still.
-                self.short, distance = True, self.reach_m * max(1.0, SHORT_MIN_SHARE / self.gain)
+                # Only so far along the normal: a share of that reach growing with the gain, in proportion still.
+                share = SHORT_MIN_SHARE + (1.0 - SHORT_MIN_SHARE) * self.gain
+                self.short, distance = True, self.reach_m * share / self.gain
                 self.speed_m_s = self.gain * distance / self.duration_s
             along = self._probe(q, self.away, samples)
             if not self.short and along < NORMAL_SHARE * self.speed_m_s:
@@ -360,10 +361,23 @@ class WholeArm(ReflexStrategy):
         """
         full = self.distance_m / (self.configured_s - self.ramp_s)
         jac = samples[1][self.pad]
-        fast = float(self.away @ (jac @ self._solve(q, full, self.away, samples=samples)[0]))
-        rigid = float(self.away @ (jac @ self._solve(q, full, self.away, samples=samples, budgets=0.0)[0]))
+        dq_fast = self._solve(q, full, self.away, samples=samples)[0]
+        fast = float(self.away @ (jac @ dq_fast))
+        dq_rigid = self._solve(q, full, self.away, samples=samples, budgets=0.0)[0]
+        rigid = float(self.away @ (jac @ dq_rigid))
         rigid = min(max(rigid, 0.0), max(fast, 0.0))
-        return rigid * (STRETCH_MAX * self.configured_s - self.ramp_s) + (max(fast, 0.0) - rigid) * TAU_S
+        reach = rigid * (STRETCH_MAX * self.configured_s - self.ramp_s) + (max(fast, 0.0) - rigid) * TAU_S
+        # No further than the motion goes before a joint reaches its range (less the margin): near a joint limit
+        # the speed the QP allows there says nothing of how far it may go.
+        return min(reach, max(fast, 0.0) * self._room_s(q, dq_fast))
+
+    def _room_s(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """How long ``dq`` may go on from ``q`` before a joint reaches its range less MARGIN_RAD, s."""
+        room = np.where(dq > 0.0, self.q_hi - q, q - self.q_lo)
+        moving = np.abs(dq) > 1e-9
+        if not moving.any():
+            return np.inf
+        return float(np.min(np.maximum(room[moving], 0.0) / np.abs(dq[moving])))
 
     def _sideways(self, q: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float]:
         """The best direction across the pad's normal that its joints allow, and its speed along it (m/s).

@@ -67,6 +67,9 @@ class TouchSummary:
     peak_toward_m_s: float | None = None
     # False: the planner found that no motion could move the touched pad away from the contact (it held still).
     withdraws: bool = True
+    # Why its reflex's motion is not the strategy's plain withdrawal (ReflexInfo.reason: "sideways", "short",
+    # "blocked", "failed"; "" when it is).
+    reason: str = ""
     # Reflexes of this pad begun while the touch lasted, after the first, from a return or the task or after the
     # pad had stopped feeling the touch's pain: each one a return into the finger still pressing (0 is the goal).
     returns_into: int = 0
@@ -189,6 +192,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             continue
         touch.reflex_seq = reflex.reflex_seq
         touch.withdraws = reflex.withdraws
+        touch.reason = reflex.reason
         onset = onsets.get(reflex.reflex_seq)
         if onset is None or onset.accepted is None:
             continue
@@ -392,6 +396,13 @@ def world_figures(touches: list[TouchSummary], records: list[Recorded]) -> None:
                                  touch.peak_pressure_n_cm2 / region.pressure_n_cm2)
 
 
+def serves_normal(touch: TouchSummary) -> bool:
+    """Whether the touch's reflex withdrew its pad along the pad's normal, as far as the joints let it: not one
+    whose joints could not (sideways, blocked: the withdrawal along the normal is then not the gain's to
+    judge), nor one the planner found cannot withdraw it."""
+    return touch.withdraws and touch.reason in ("", "short")
+
+
 def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray) -> None:
     """A touch's ``pressed_toward_mm`` and ``past_after_mm`` from the robot states (TouchSummary)."""
     first = int(np.searchsorted(state_t, touch.start_ns))
@@ -551,10 +562,11 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
     q.repeat_pairs = len(diffs)
     q.repeat_diff_mm = float(np.median(diffs)) if diffs else None
     # In proportion to the gain, pad by pad (across pads the joints behind each one dominate): Spearman's rho
-    # of each pad touched at three or more gains, the median over those pads.
+    # of each pad touched at three or more gains, the median over those pads; of the touches its joints could
+    # serve (serves_normal).
     rhos = []
     for pad in {t.pad for t in done}:
-        mine = [(t.gain, t.withdrawal_mm) for t in done if t.pad == pad and t.withdraws]
+        mine = [(t.gain, t.withdrawal_mm) for t in done if t.pad == pad and serves_normal(t)]
         if len({g for g, _ in mine}) >= 3 and len({w for _, w in mine}) > 1:
             rhos.append(float(spearmanr(*zip(*mine)).statistic))
     q.gain_rank_corr = float(np.median(rhos)) if rhos else None
