@@ -272,7 +272,8 @@ class PlannerSection(Plugged):
     # joint limits.
     q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = []
     # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
-    # motion would move the touched pad toward the contact, and report it.
+    # motion would move the touched pad, or any other touched pad (contacts =
+    # "every"), toward its contact, and report it.
     guarded: bool = False
     # The study's target pads in the order they light up (names of the robot's
     # pads); empty = every pad, in an order shuffled with target_seed. The
