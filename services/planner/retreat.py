@@ -22,9 +22,10 @@ displacement, J_lin^T n0 (the smallest joint-space change that makes every
 one of them retreat: a small quadratic programme, quadprog, when two or more
 push at once, so that the correction for one does not undo another's),
 checking the whole path with the full kinematics, and as a last resort
-shortens the motion to the part that retreats. :func:`guard_velocity` does
-the same for one control cycle's joint velocity: the nearest velocity that
-moves no touched pad toward its contact.
+shortens the motion to the part that retreats (as when no joint change
+retreats them all). :func:`guard_velocity` does the same for one control
+cycle's joint velocity: the nearest velocity that moves no touched pad
+toward its contact (a non-negative least-squares fit, scipy's ``nnls``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import quadprog
+from scipy.optimize import nnls
 
 from nwr.common import messages as m
 from nwr.common.robot import RobotModel
@@ -195,8 +197,9 @@ def guard_velocity(jac_lin: np.ndarray, normal: np.ndarray, dq: np.ndarray,
     if len(rows) == 1:  # the closed form of the one-pad case
         grad = rows[0]
         return dq - float(grad @ dq) * grad / float(grad @ grad), True
-    # quadprog: the nearest dq' to dq (minimise 1/2 dq'dq' - dq.dq') with every row g . dq' <= 0; dq' = 0 always
-    # meets them, so the programme is never infeasible.
+    # The nearest dq' with every row g . dq' <= 0 is dq's projection on that cone: dq less its projection on the
+    # polar cone {G' l, l >= 0} (Moreau), whose l is a non-negative least-squares fit of dq (scipy's nnls, sound
+    # however many rows and however dependent, where an active-set QP can fail on degenerate ones).
     grads = np.array(rows)
-    solved = quadprog.solve_qp(np.eye(len(dq)), np.asarray(dq, dtype=float), -grads.T, np.zeros(len(grads)))[0]
-    return np.asarray(solved), True
+    weights = nnls(grads.T, np.asarray(dq, dtype=float))[0]
+    return dq - grads.T @ weights, True
