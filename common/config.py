@@ -298,11 +298,12 @@ class PlannerSection(Plugged):
     # the return begins as soon as the withdrawal's motion ends.
     sustained_contact: Literal["hold", "paper"] = "hold"
     # Several contacts at once. "every" (this project's): each strategy reacts
-    # to every active contact, not only the strongest (UR and LR: the
-    # joint-space sum; CR: one row set per touched pad; guarded mode and the
-    # retreat check: every touched pad; docs/reflexes.md "Every contact
-    # counts"). "strongest": the paper's, every strategy is given the
-    # reflex's own contact only (a new touch elsewhere still restarts it).
+    # to every active contact, not only the strongest (LR: the joint-space
+    # sum; UR: the same target; CR: one row set per touched pad; whole-arm:
+    # kept away from each; guarded mode and the retreat check: every touched
+    # pad; docs/reflexes.md "Every contact counts"). "strongest": the
+    # paper's, every strategy is given the reflex's own contact only (a new
+    # touch elsewhere still restarts it).
     contacts: Literal["every", "strongest"] = "every"
     release_s: Annotated[float, msgspec.Meta(ge=0, le=5)] = 0.3
     max_hold_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
