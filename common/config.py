@@ -272,7 +272,8 @@ class PlannerSection(Plugged):
     # joint limits.
     q_max_deg: list[Annotated[float, msgspec.Meta(ge=0, le=180)]] = []
     # Guarded mode (off: the paper's behaviour): correct a reflex whose planned
-    # motion would move the touched pad toward the contact, and report it.
+    # motion would move the touched pad, or any other touched pad (contacts =
+    # "every"), toward its contact, and report it.
     guarded: bool = False
     # The study's target pads in the order they light up (names of the robot's
     # pads); empty = every pad, in an order shuffled with target_seed. The
@@ -296,6 +297,14 @@ class PlannerSection(Plugged):
     # "paper": the paper's exact behaviour, for a lab reproducing its study:
     # the return begins as soon as the withdrawal's motion ends.
     sustained_contact: Literal["hold", "paper"] = "hold"
+    # Several contacts at once. "every" (this project's): each strategy reacts
+    # to every active contact, not only the strongest (LR: the joint-space
+    # sum; UR: the same target; CR: one row set per touched pad; whole-arm:
+    # kept away from each; guarded mode and the retreat check: every touched
+    # pad; docs/reflexes.md "Every contact counts"). "strongest": the
+    # paper's, every strategy is given the reflex's own contact only (a new
+    # touch elsewhere still restarts it).
+    contacts: Literal["every", "strongest"] = "every"
     release_s: Annotated[float, msgspec.Meta(ge=0, le=5)] = 0.3
     max_hold_s: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
     # Hold: a touch stays *recent* this long after it was last felt; the

@@ -67,6 +67,7 @@ GUARDS: dict[str, Guard] = {
     "planner.speed_fraction": Guard("above"),
     # Sustained contact: when and how the arm comes back.
     "planner.sustained_contact": Guard("other"),
+    "planner.contacts": Guard("other"),
     "planner.release_s": Guard("below", "s"),
     "planner.max_hold_s": Guard("below", "s"),
     "planner.recent_contact_s": Guard("below", "s"),

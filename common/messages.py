@@ -350,11 +350,15 @@ class RobotState(msgspec.Struct, tag="robot_state", tag_field="kind", forbid_unk
     tau_ext: list[Finite] = []
 
 
-class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True, omit_defaults=True):
     """Does the touched pad retreat? Computed from the kinematics of the planned reflex.
 
     Distances in m, speeds in m/s; "toward" is along the touched pad's outward
-    normal at the onset, i.e. toward the person touching it.
+    normal at the onset, i.e. toward the person touching it. With other
+    active contacts at the onset, ``contacts`` names their pads and
+    ``contacts_toward_m`` how far each moves toward its own contact (along its
+    own normal at the onset); with none both are empty and left off the wire,
+    so a single touch's message encodes as before these fields.
     """
 
     sample_dt_s: Finite
@@ -366,6 +370,8 @@ class Retreat(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     worst_approach_m: Finite
     approached: bool  # the touched pad moved toward the contact
     corrected: bool  # guarded mode changed the reflex so that it retreats
+    contacts: list[int] = []  # the other active contacts' pads
+    contacts_toward_m: list[Finite] = []  # per such pad: furthest it moves toward its own contact (>= 0)
 
 
 class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

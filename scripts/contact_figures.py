@@ -3,6 +3,7 @@
     .venv/bin/python scripts/contact_figures.py [--scripts contacts,survey-held-out] [--poses home,reach,limits]
                                                 [--worlds open,closed,physics] [--strategies uniform,...]
                                                 [--jobs 2] [--keep DIR | --read DIR] [--by world]
+                                            [--guarded] [--contacts every|strongest]
 
 For each touch script, pose, world and reflex strategy, one simulated
 session in lockstep (``nwr demo --fast --script S --reflex R`` with the task
@@ -29,6 +30,10 @@ quality table (:func:`nwr.services.tools.recordings.analysis.quality`, as
   pad along its normal as far as the joints let it, not sideways or blocked:
   `analysis.serves_normal`), the median over pads; rho min: the lowest
   pad's, named.
+
+``--guarded`` runs every session in guarded mode (``planner.guarded``);
+``--contacts strongest`` gives each strategy the strongest contact only, the
+paper's (``planner.contacts``), for a comparison with every contact.
 
 A session that a world refuses (a script the physics world cannot play) is
 reported as such, never dropped silently.
@@ -83,8 +88,10 @@ class Session:
     wall_s: float = 0.0
 
 
-def profile_for(world: str, pose: str) -> Profile:
+def profile_for(world: str, pose: str, guarded: bool = False, contacts: str = "every") -> Profile:
     profile = Profile()
+    profile.planner.guarded = guarded
+    profile.planner.contacts = "strongest" if contacts == "strongest" else "every"
     profile.planner.task.home_rad = list(POSES[pose])
     profile.bridge.initial_q = list(POSES[pose])  # the arm starts where its task is drawn
     if world == "physics":
@@ -95,13 +102,13 @@ def profile_for(world: str, pose: str) -> Profile:
 
 
 def run(script: str, pose: str, world: str, strategy: str, out: Path, read: bool = False,
-        resume: bool = False) -> Session:
+        resume: bool = False, guarded: bool = False, contacts: str = "every") -> Session:
     """One session (``read``: its recording in ``out``, made before; ``resume``: that recording if it is
     there)."""
     logging.disable(logging.WARNING)  # the services' own warnings, hundreds per session: the table says what counts
     s = Session(script, pose, world, strategy)
     began = time.monotonic()
-    profile = profile_for(world, pose)
+    profile = profile_for(world, pose, guarded, contacts)
     path = out / f"{script}-{pose}-{world}-{strategy}.mcap"
     if read and not path.exists():
         s.refused = f"{path} is not there"
@@ -175,6 +182,9 @@ def main() -> int:
                         help="run nothing: read the recordings a run with --keep DIR wrote")
     parser.add_argument("--by", choices=("strategy", "world", "pose", "script"), action="append", default=[],
                         help="also print one table per value of this (repeatable)")
+    parser.add_argument("--guarded", action="store_true", help="every session in guarded mode (planner.guarded)")
+    parser.add_argument("--contacts", choices=("every", "strongest"), default="every",
+                        help="planner.contacts: every active contact (default) or the strongest only (the paper's)")
     args = parser.parse_args()
 
     def listed(text: str, known: tuple[str, ...] | dict[str, list[float]] | None = None) -> list[str]:
@@ -197,7 +207,8 @@ def main() -> int:
         plan = [(sc, p, w, st) for sc in scripts for p in poses for w in worlds for st in chosen]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             sessions = list(pool.map(run, *zip(*plan), [out] * len(plan), [args.read is not None] * len(plan),
-                                     [args.resume] * len(plan)))
+                                     [args.resume] * len(plan), [args.guarded] * len(plan),
+                                     [args.contacts] * len(plan)))
     for s in sessions:
         if s.refused:
             print(f"refused: {s.script} at {s.pose} in the {s.world} world with {s.strategy}: {s.refused}")

@@ -257,7 +257,8 @@ def hand_made(stamp_ns: int) -> list[tuple[str, Any]]:
     """A message of each kind with every optional part filled (what a short session may leave empty)."""
     q = [0.1, -1.2, 1.3, -1.6, -1.5, 0.0]
     retreat = m.Retreat(sample_dt_s=0.01, normal_speed_m_s=[-0.1, -0.2], toward_m=0.0, withdrawal_m=0.05,
-                        approach_m=[0.0] * 10, worst_pad=2, worst_approach_m=0.0, approached=False, corrected=False)
+                        approach_m=[0.0] * 10, worst_pad=2, worst_approach_m=0.0, approached=False, corrected=False,
+                        contacts=[3], contacts_toward_m=[0.0])  # a second touched pad's
     reflex = m.ReflexInfo(reflex_seq=1, strategy="uniform", contact=CONTACT, trace=TRACE, started_ns=stamp_ns,
                           duration_s=0.5, direction=[0.0, 0.0, 0.1], target=q, retreat=retreat)
     return [

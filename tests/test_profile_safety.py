@@ -111,6 +111,7 @@ LOOSENED: dict[str, Any] = {
     "planner.whole-arm.point_speed_m_s": 0.6,
     "planner.whole-arm.outward_speed_m_s": 0.1,
     "planner.sustained_contact": "paper",
+    "planner.contacts": "strongest",
     "planner.release_s": 0.1,
     "planner.max_hold_s": 10.0,
     "planner.recent_contact_s": 1.0,

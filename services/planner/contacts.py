@@ -37,7 +37,8 @@ CONTACT_RADIUS_M = 0.1
 
 @dataclass(frozen=True)
 class ContactPoint:
-    """One touch: its pad, where the pad was (point, outward normal; base frame, m), its gain, its times."""
+    """One touch: its pad, where the pad was (point, outward normal; base frame, m), its gain and pain level,
+    its times."""
 
     pad: int
     point: np.ndarray
@@ -45,6 +46,7 @@ class ContactPoint:
     gain: float  # in the last sample (0 once it is no longer felt)
     onset_ns: int
     felt_ns: int  # the last sample with a gain
+    level: int = 0  # the pain level in the last sample (0 once it is no longer felt)
 
 
 class Contacts:
@@ -68,20 +70,20 @@ class Contacts:
         begun = []
         for pad in sorted(touched):
             touch = self.touches.get(pad)
-            gain = float(gains[pad])
+            gain, level = float(gains[pad]), int(levels[pad])
             if touch is None or (pad not in self.touched and now_ns - touch.felt_ns >= self.gap_ns):
                 if touch is not None:
-                    self.earlier.append(replace(touch, gain=0.0))
+                    self.earlier.append(replace(touch, gain=0.0, level=0))
                 self.touches[pad] = ContactPoint(pad, self.model.pad_point(q, pad), self.model.pad_normal(q, pad),
-                                                 gain, now_ns, now_ns)
+                                                 gain, now_ns, now_ns, level)
                 begun.append(pad)
             else:
-                self.touches[pad] = replace(touch, gain=gain, felt_ns=now_ns)
+                self.touches[pad] = replace(touch, gain=gain, felt_ns=now_ns, level=level)
         for pad in [p for p in self.touches if p not in touched]:
             if now_ns - self.touches[pad].felt_ns >= self.recent_ns:
                 del self.touches[pad]
-            elif self.touches[pad].gain != 0.0:
-                self.touches[pad] = replace(self.touches[pad], gain=0.0)
+            elif self.touches[pad].gain != 0.0 or self.touches[pad].level != 0:
+                self.touches[pad] = replace(self.touches[pad], gain=0.0, level=0)
         self.earlier = [touch for touch in self.earlier if now_ns - touch.felt_ns < self.recent_ns]
         self.touched = touched
         return begun

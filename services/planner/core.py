@@ -142,7 +142,8 @@ class Planner(Standby):
         if contact is None or not contact.gain > 0 or not (self._reacts_to(contact, new, now_ns)
                                                            or self._new_elsewhere(contact, new, now_ns)):
             if self.mode == "REFLEX" and self.reflex is not None:
-                self.strategy.set_contacts(self.q, self.contacts.recent(now_ns), self.reflex.contact.pad)
+                main = self.reflex.contact.pad
+                self.strategy.set_contacts(self.q, self.given_contacts(now_ns, main), main)
             if self.holds and self.mode == "TASK" and self.initialized:
                 pressed = self._task_presses()
                 if pressed:  # the task would push into a touch the skin feels below a reflex's level

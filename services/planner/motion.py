@@ -59,6 +59,8 @@ class Reflex:
     reason: str = ""
     # A retracing strategy's withdrawal: the commanded poses of its stream, from the onset (one a cycle).
     path: list[np.ndarray] = field(default_factory=list)
+    # The pads of the other active contacts with a gain at its onset: the retreat check judges each too.
+    others: tuple[int, ...] = ()
 
 
 class Motion:

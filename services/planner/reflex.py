@@ -10,7 +10,10 @@ velocity mode its joint velocity stream, for the strategy's ``duration_s``
 touch begins: no gain for ``restarts.gap_s``) or a *stronger* one (gain
 above the current reflex's by ``update_margin``) updates the reflex: new
 target or direction from the current motion state (the trajectory blends,
-nothing jumps), duration restarted, new number. Restarts are rate-limited
+nothing jumps), duration restarted, new number. The strategy is given every
+recent contact first (``planner.contacts = "every"``; the paper's strongest
+only with ``"strongest"``), and the retreat check judges the pad of every
+other active contact as well as the reflex's own. Restarts are rate-limited
 per pad and overall (:mod:`.restarts`: no reflex storm from a flickering
 pad or a forged stream); a start from the task is never delayed. Once the
 motion is over the arm holds or returns (:mod:`.holding`).
@@ -39,9 +42,10 @@ from nwr.common.config import CartesianLimits, PlannerSection
 from nwr.common.robot import RobotDescription, RobotModel
 from nwr.common.skin import contact_normal
 from nwr.services.planner import restarts, retreat
+from nwr.services.planner.contacts import ContactPoint
 from nwr.services.planner.holding import Holding
 from nwr.services.planner.motion import Reflex
-from nwr.services.planner.strategies import ReflexStrategy
+from nwr.services.planner.strategies import ReflexStrategy, others
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +81,7 @@ class RetreatCheck:
             assert self.stream is not None
             self.stream.model = model
             path, dt = integrate_stream(self.stream, self.q0, self.t0, self.duration_s, self.q_min, self.q_max)
-        return retreat.assess(model, path, dt, self.reflex.contact.pad)
+        return retreat.assess(model, path, dt, self.reflex.contact.pad, self.reflex.others)
 
 
 def integrate_stream(stream: ReflexStrategy, q0: np.ndarray, t0: float, duration_s: float, q_min: np.ndarray,
@@ -149,10 +153,18 @@ class ReflexControl(Holding):
     def _onset(self, reflex: Reflex) -> None:
         """The strategy starts ``reflex`` from the commanded pose: its target (position mode) or direction; every
         other active contact given first (:meth:`ReflexStrategy.set_contacts`)."""
-        self.strategy.set_contacts(self.q, self.contacts.recent(reflex.started_ns), reflex.contact.pad)
+        contacts = self.given_contacts(reflex.started_ns, reflex.contact.pad)
+        self.strategy.set_contacts(self.q, contacts, reflex.contact.pad)
+        reflex.others = tuple(contact.pad for contact in others(contacts, reflex.contact.pad))
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
         reflex.reason = onset.reason
+
+    def given_contacts(self, now_ns: int, main: int) -> list[ContactPoint]:
+        """The recent contacts the strategy is given for a reflex on pad ``main`` (``planner.contacts``: every
+        one, or the reflex's own only, the paper's)."""
+        recent = self.contacts.recent(now_ns)
+        return recent if self.cfg.contacts == "every" else [contact for contact in recent if contact.pad == main]
 
     def _withdrawal_speeds(self, target: np.ndarray, contact: m.Contact | None) -> np.ndarray:
         """Joint speed limits of a joint-space withdrawal to ``target``: every point within the withdrawal

@@ -81,7 +81,8 @@ class JointReflex(ReflexStrategy):
 
     @abstractmethod
     def displacement(self, contact: m.Contact) -> np.ndarray:
-        """q_ref, rad, before the direction signs and clipping."""
+        """q_ref, rad, before the direction signs and clipping (the other active contacts' included:
+        :attr:`other_contacts`)."""
 
     def bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where a target from ``q`` may go: the joint ranges less the margin, widened to ``q`` itself."""
@@ -94,6 +95,7 @@ class JointReflex(ReflexStrategy):
         target = self.target(q, contact)
         corrected = False
         if self.guarded:
-            delta, corrected = guard_displacement(self.model, q, target - q, contact.pad, *self.bounds(q))
+            delta, corrected = guard_displacement(self.model, q, target - q, contact.pad, *self.bounds(q),
+                                                  others=[other.pad for other in self.other_contacts])
             target = q + delta
         return Onset(target=target, corrected=corrected)

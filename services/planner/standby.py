@@ -219,7 +219,7 @@ class Standby(ReflexControl):
             path, dt = self._preview_to(shadow.target, contact)
         else:
             path, dt = self._integrate_stream(self.q, 0.0)
-        assessment = retreat.assess(self.model, path, dt, contact.pad)
+        assessment = retreat.assess(self.model, path, dt, contact.pad, shadow.others)
         shadow.retreat = assessment.to_message(contact.pad, shadow.corrected or self.strategy.corrections > 0)
         shadow.withdraws = self._withdraws(shadow, assessment)
         self.shadow = shadow

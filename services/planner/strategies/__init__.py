@@ -87,12 +87,16 @@ class ReflexStrategy(ABC):
         self.corrections = 0
         # Diagnostics for the planner to publish (level, code, message); live cycles only.
         self.notes: list[tuple[str, str, str]] = []
+        # The other active contacts with a gain when the reflex (re)starts (set_contacts), by pad.
+        self.other_contacts: list[ContactPoint] = []
 
     def set_contacts(self, q: np.ndarray, contacts: list[ContactPoint], main: int) -> None:
         """The recent contacts (:mod:`nwr.services.planner.contacts`) at the commanded pose ``q``, the reflex's
-        own on pad ``main``: a strategy that keeps the arm away from every contact takes them (the whole-arm
-        withdrawal); the paper's strategies react to the strongest contact only, as published."""
-        return None
+        own on pad ``main``; the planner gives them before each :meth:`start` and, during a reflex, at each
+        pain message. The paper's strategies keep the other active ones with a gain (:attr:`other_contacts`)
+        and react to those at the next (re)start (docs/reflexes.md "Every contact counts"): one contact gives
+        exactly the published motion."""
+        self.other_contacts = others(contacts, main)
 
     @abstractmethod
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
@@ -109,6 +113,11 @@ class ReflexStrategy(ABC):
     def snapshot(self) -> ReflexStrategy:
         """A copy of the current reflex's state, for a retreat check on another thread (and model)."""
         return copy.copy(self)
+
+
+def others(contacts: list[ContactPoint], main: int) -> list[ContactPoint]:
+    """The active contacts with a gain among ``contacts`` besides the one on pad ``main``."""
+    return [contact for contact in contacts if contact.pad != main and contact.gain > 0.0]
 
 
 def discover(package: ModuleType) -> dict[str, type[ReflexStrategy]]:

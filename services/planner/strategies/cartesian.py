@@ -26,6 +26,23 @@ Choices where the paper is silent (documented in the profile as well):
   whole q_dot is scaled down uniformly (the pad keeps its direction).
 - Guarded mode removes, every cycle, any component of q_dot that pushes the
   pad toward the contact (:func:`~nwr.services.planner.retreat.guard_velocity`).
+
+Other active contacts (this project's; the paper has one): each other pad
+touched with a gain G_i when the reflex (re)starts adds the rows the paper
+asks of one pad (6 with ``hold_orientation``, else the 3 linear ones),
+asking [v_i; 0], v_i = -v_max G_i n_i (n_i its pad's outward normal then,
+kept like the reflex's own), and the stacked system is solved with the same
+damped least-squares inverse over the joints that move any of the pads. The
+same row set as the reflex's own: with the linear rows only, a forearm pad
+that is not the strongest withdraws several times farther than it would as
+the reflex's own and folds the wrist toward the other hand (on the project's
+``contacts`` script, another pad up to 67 mm closer to the strongest's
+contact, against 25 mm). The rows are not weighted: each asks a velocity in
+m/s (or rad/s), so where the joints cannot serve every pad at once each
+pad's shortfall counts by its size, the reflex's own included. In guarded
+mode no touched pad moves toward its contact: q_dot becomes the nearest
+joint velocity that moves none of them toward it. One contact gives exactly
+the paper's stream.
 """
 
 from __future__ import annotations
@@ -61,6 +78,8 @@ class Cartesian(ReflexStrategy):
         self._twist = np.zeros(6)
         self._normal = np.zeros(3)
         self.pad = -1
+        # The other active contacts at the (re)start: (pad, its outward normal then, its twist [v_i; 0]).
+        self._extra: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
 
     def start(self, q: np.ndarray, contact: m.Contact) -> Onset:
         """Begin (or update) a reflex; its direction is the contact's normal (the pad's, or the taxels')."""
@@ -69,17 +88,27 @@ class Cartesian(ReflexStrategy):
         normal = self._normal = contact_normal(self.model, q, contact)
         self._twist[:3] = -self.v_max * contact.gain * normal
         self._twist[3:] = 0.0
+        extra = []
+        for other in self.other_contacts:
+            normal_i = self.model.pad_normal(q, other.pad)
+            extra.append((other.pad, normal_i, np.concatenate([-self.v_max * other.gain * normal_i, np.zeros(3)])))
+        self._extra = tuple(extra)
         return Onset(direction=self._twist[:3].tolist())
 
     def velocity(self, q: np.ndarray, t: float, *, count: bool = True) -> np.ndarray:
         """q_dot at the current pose (every control cycle; the plain stream does not depend on ``t``)."""
         full = self.model.pad_jacobian(q, self.pad)
-        jac = full[: self.rows]
+        jac, twist = full[: self.rows], self._twist[: self.rows]
+        fulls = [self.model.pad_jacobian(q, pad) for pad, _, _ in self._extra]
+        if fulls:  # every other touched pad's rows below the reflex's own
+            jac = np.vstack([jac, *(full_i[: self.rows] for full_i in fulls)])
+            twist = np.concatenate([twist, *(twist_i[: self.rows] for _, _, twist_i in self._extra)])
         moving = np.any(jac != 0.0, axis=0)
         dq = np.zeros(jac.shape[1])
-        dq[moving] = damped_pinv(jac[:, moving], self.damping_max, self.threshold) @ self._twist[: self.rows]
+        dq[moving] = damped_pinv(jac[:, moving], self.damping_max, self.threshold) @ twist
         if self.guarded:
-            dq, corrected = guard_velocity(full[:3], self._normal, dq)
+            others = [(full_i[:3], normal_i) for full_i, (_, normal_i, _) in zip(fulls, self._extra, strict=True)]
+            dq, corrected = guard_velocity(full[:3], self._normal, dq, others)
             if corrected and count:
                 self.corrections += 1
         return scale_to_limits(dq, self.v_limit)

@@ -5,6 +5,11 @@ table (robot.toml [location]; the UR10e's is the paper's Table II) or the profil
 table per pain level 3 and 4 (PL 1-2: no motion); the displacement is added
 to the pose as every joint-space reflex's
 (:class:`~nwr.services.planner.reflexes.JointReflex`).
+
+With other active contacts (each with its gain G_i, pain level PL_i and its
+pad's region) q_ref is the joint-space sum sum_i G_i W(PL_i, region_i) q_max
+over every contact, the reflex's own included, each joint at most its q_max:
+two hands on the forearm swing the elbow no farther than one at full gain.
 """
 
 from __future__ import annotations
@@ -81,6 +86,7 @@ class Location(JointReflex):
     def __init__(self, cfg: PlannerSection, desc: RobotDescription, model: RobotModel, v_limit: np.ndarray) -> None:
         super().__init__(cfg, desc, model, v_limit)
         self.weights: dict[int, dict[str, np.ndarray]] = {}
+        self.regions = [pad.region for pad in desc.pads]
         weights = resolved(KIND.settings(cfg, self.name, LocationSettings), desc)
         for level, table in ((3, weights.pl3), (4, weights.pl4)):
             self.weights[level] = {}
@@ -94,14 +100,22 @@ class Location(JointReflex):
                 self.weights[level][region] = desc.joint_weights(w)
 
     def displacement(self, contact: m.Contact) -> np.ndarray:
-        table = self.weights.get(contact.level)
+        own = self._share(contact.level, contact.region, contact.gain)
+        if not self.other_contacts:
+            return own
+        total = own + sum(self._share(other.level, self.regions[other.pad], other.gain)
+                          for other in self.other_contacts)
+        return np.minimum(total, self.q_max)
+
+    def _share(self, level: int, region: str, gain: float) -> np.ndarray:
+        """One contact's G W(PL, region) q_max."""
+        table = self.weights.get(level)
         if table is None:  # PL 1-2: no motion
             return np.zeros_like(self.q_max)
-        w = table.get(contact.region)
+        w = table.get(region)
         if w is None:
-            raise ConfigError(f"planner.location.pl{contact.level} has no weights "
-                              f"for region {contact.region!r}")
-        return contact.gain * w * self.q_max
+            raise ConfigError(f"planner.location.pl{level} has no weights for region {region!r}")
+        return gain * w * self.q_max
 
 
 STRATEGY = Location

@@ -2,6 +2,8 @@
 
 The fraction is ``[planner.uniform] fraction``; the displacement is added to
 the pose as every joint-space reflex's (:class:`~nwr.services.planner.reflexes.JointReflex`).
+It does not depend on the contact, so two contacts give the same motion as
+one; only guarded mode differs, which keeps every touched pad from its contact.
 """
 
 from __future__ import annotations
