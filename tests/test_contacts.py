@@ -281,6 +281,36 @@ def test_a_hold_waits_for_any_way_of_the_task_past_a_recent_touch_however_brief(
     assert 10 <= blocked <= 55 and missed <= 3  # both kinds occur; a miss (under 0.5 mm) would be sampling's
 
 
+@pytest.mark.parametrize("depth_m, pauses", [(0.016, True), (0.004, False)])
+def test_the_task_pauses_before_going_through_where_a_touch_just_was(depth_m: float, pauses: bool) -> None:
+    """A touch felt without a gain on a pad the task moved away from, then let go: the task, while the touch
+    is recent, would take the pad back 16 mm past where it met it (more than planner.contact_margin_m): it
+    pauses and waits; 4 mm past: it goes on."""
+    planner, t = in_task(PlannerSection(strategy="cartesian"))
+    for _ in range(300):
+        t += 2_000_000
+        planner.step(t)
+    ahead = planner.task.position(planner.clock.s + 1.5)
+    i = pad("forearm_top")
+    normal = MODEL.pad_normal(ahead, i)
+    point = MODEL.pad_point(ahead, i) - depth_m * normal  # the task takes the pad depth_m past it in 1.5 s
+    planner.contacts.touches = {i: ContactPoint(i, point, normal, 0.0, t - 200_000_000, t - 40_000_000)}
+    planner.on_pain(pain(t, 1, levels(), gains()), t)  # no longer felt, recent
+    assert (planner.mode == "HOLDING") is pauses
+    if pauses:
+        touch = planner.contacts.touches[i]
+        for _ in range(2000):  # it waits until what is left of the touch's recency no longer reaches the place
+            t += 2_000_000
+            planner.step(t)
+            if planner.mode == "TASK":
+                break
+        assert planner.mode == "TASK" and t - touch.felt_ns > 1_000_000_000
+        while t < touch.felt_ns + planner.contacts.recent_ns:  # and then never takes the pad past it while recent
+            t += 2_000_000
+            planner.step(t)
+            assert past(MODEL, planner.q, touch) <= planner.cfg.contact_margin_m
+
+
 def test_the_paper_mode_keeps_the_papers_task_through_a_felt_touch() -> None:
     planner, t = in_task(PlannerSection(strategy="cartesian", sustained_contact="paper"))
     for _ in range(500):

@@ -145,11 +145,12 @@ class Planner(Standby):
                 main = self.reflex.contact.pad
                 self.strategy.set_contacts(self.q, self.given_contacts(now_ns, main), main)
             if self.holds and self.mode == "TASK" and self.initialized:
-                pressed = self._task_presses()
-                if pressed:  # the task would push into a touch the skin feels below a reflex's level
+                pressed = self._task_presses(now_ns)
+                if pressed:  # the task would push into a touch felt below a reflex's level, or one just gone
                     names = ", ".join(self.desc.pads[i].name for i in pressed)
-                    log.info("the task would press into a touch felt on %s (below a reflex's level): pausing it "
-                             "there until the touch is gone", names)
+                    log.info("the task would press into a touch felt on %s (below a reflex's level), or through "
+                             "where it just was: pausing it there until the touch is gone and no longer recent",
+                             names)
                     self.saved = self.q.copy()
                     self._planned_ahead = 0
                     self._begin_hold(now_ns)

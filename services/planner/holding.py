@@ -69,6 +69,8 @@ class Holding(Returning):
         # place, by touch (pad, onset): the same while the arm holds (its pose and the task's clock stand still).
         self._ways: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
         self._ways_of: tuple[bytes, bytes, float] | None = None
+        # The task's times at which it takes a recent touch's pad past its place, by touch (_task_past).
+        self._task_ways: dict[tuple[int, int], np.ndarray] = {}
         # The hold's brake: from the commanded state to rest, jerk-limited.
         self._brake = Ruckig(n, self.dt)
         self._brake_in = InputParameter(n)
@@ -205,15 +207,41 @@ class Holding(Returning):
         """The pads feeling a touch in the last pain message: PL 2 or more, or a light touch below it."""
         return sorted({i for i, level in enumerate(self.last_level) if level >= FELT_LEVEL} | set(self.light_touch))
 
-    def _task_presses(self) -> list[int]:
-        """The pads feeling a touch without a gain (PL 2: no reflex) that the task, within TASK_AHEAD_S, would
-        take more than FELT_MARGIN_M past where the touch met them: a slow press the task would push into."""
-        felt = [c for c in self.contacts.active() if c.gain <= 0.0]
-        if not felt:  # every pain message in the task asks: nothing to compute without such a touch
+    def _task_presses(self, now_ns: int) -> list[int]:
+        """The pads feeling a touch without a gain (PL 2 or a light touch: no reflex) that the task, within
+        TASK_AHEAD_S, would take more than FELT_MARGIN_M past where the touch met them (a slow press the task
+        would push into), and those of recent touches no longer felt that the task, while they are recent,
+        would take more than ``contact_margin_m`` past where they met them (a hand that has just let go)."""
+        recent = self.contacts.recent(now_ns)
+        if not recent:  # every pain message in the task asks: nothing to compute without a touch
+            self._task_ways = {}
             return []
-        poses = [self.task.position(self.clock.s + s) for s in np.linspace(0.0, TASK_AHEAD_S, 11)[1:]]
-        margin = min(FELT_MARGIN_M, self.cfg.contact_margin_m)
-        return [c.pad for c in felt if passes_through(self.model, poses, c, margin) > 0.0]
+        felt = [c for c in recent if c.pad in self.contacts.touched and c.gain <= 0.0]
+        out = []
+        if felt:
+            poses = [self.task.position(self.clock.s + s) for s in np.linspace(0.0, TASK_AHEAD_S, 11)[1:]]
+            margin = min(FELT_MARGIN_M, self.cfg.contact_margin_m)
+            out = [c.pad for c in felt if passes_through(self.model, poses, c, margin) > 0.0]
+        for c in recent:
+            if c.pad in self.contacts.touched:
+                continue
+            left_s = (c.felt_ns + self.contacts.recent_ns - now_ns) / 1e9
+            if np.any((self._task_past(c) > self.clock.s) & (self._task_past(c) <= self.clock.s + left_s)):
+                out.append(c.pad)
+        return sorted(set(out))
+
+    def _task_past(self, contact: ContactPoint) -> np.ndarray:
+        """The task's times, every TASK_STEP_S from where it was when first asked for ``contact`` to
+        ``recent_contact_s`` after, at which it takes the contact's pad more than ``contact_margin_m`` past
+        where the touch met it; once per touch (the task's clock and the touch's recency only run on, so what
+        is left to check stays within them)."""
+        touch = (contact.pad, contact.onset_ns)
+        if touch not in self._task_ways:
+            times = self.clock.s + TASK_STEP_S * np.arange(1, int(np.ceil(self.cfg.recent_contact_s / TASK_STEP_S)) + 1)
+            depth = np.array([past(self.model, self.task.position(s), contact) for s in times])
+            self._task_ways = {key: way for key, way in self._task_ways.items() if key[0] != contact.pad}
+            self._task_ways[touch] = times[depth > self.cfg.contact_margin_m]
+        return self._task_ways[touch]
 
     def _felt_ahead(self, now_ns: int) -> list[int]:
         """The pads feeling a touch now that the rest of the return brings closer to it."""
