@@ -137,7 +137,7 @@ def pad_rhos(touches: list[analysis.TouchSummary]) -> dict[str, float]:
         mine = [(t.gain, t.withdrawal_mm) for t in done if t.name == name]
         peaks = sorted(t.peak_hpa for t in done if t.name == name)
         pressures = 1 + sum(b - a > PRESSURES_HPA for a, b in zip(peaks, peaks[1:]))
-        if pressures >= 3 and len({w for _, w in mine}) > 1:
+        if pressures >= 3 and len({w for _, w in mine}) > 1 and len({g for g, _ in mine}) > 1:
             out[name] = float(spearmanr(*zip(*mine)).statistic)
     return out
 
