@@ -195,13 +195,17 @@ class Holding(Returning):
             self._ways, self._ways_of = {}, key
         touch = (contact.pad, contact.onset_ns)
         if touch not in self._ways:
-            margin = self.cfg.contact_margin_m
-            back = passes_through(self.model, straight(self.q, target), contact, margin)
-            times = TASK_STEP_S * np.arange(1, int(np.ceil(self.cfg.recent_contact_s / TASK_STEP_S)) + 1)
-            task = np.array([max(0.0, past(self.model, self.task.position(self.clock.s + s), contact) - margin)
-                             for s in times])
-            self._ways[touch] = (back, task)
+            back = passes_through(self.model, straight(self.q, target), contact, self.cfg.contact_margin_m)
+            self._ways[touch] = (back, np.maximum(0.0, self._task_beyond(contact)[1]))
         return self._ways[touch]
+
+    def _task_beyond(self, contact: ContactPoint) -> tuple[np.ndarray, np.ndarray]:
+        """The task's times every TASK_STEP_S from now for ``recent_contact_s``, and how far it takes ``contact``'s
+        pad past where the touch met it at each, beyond ``contact_margin_m`` (:func:`past`; -inf away from
+        where the person was), m."""
+        times = self.clock.s + TASK_STEP_S * np.arange(1, int(np.ceil(self.cfg.recent_contact_s / TASK_STEP_S)) + 1)
+        depth = np.array([past(self.model, self.task.position(s), contact) for s in times])
+        return times, depth - self.cfg.contact_margin_m
 
     def _felt(self) -> list[int]:
         """The pads feeling a touch in the last pain message: PL 2 or more, or a light touch below it."""
@@ -226,7 +230,8 @@ class Holding(Returning):
             if c.pad in self.contacts.touched:
                 continue
             left_s = (c.felt_ns + self.contacts.recent_ns - now_ns) / 1e9
-            if np.any((self._task_past(c) > self.clock.s) & (self._task_past(c) <= self.clock.s + left_s)):
+            times = self._task_past(c)
+            if np.any((times > self.clock.s) & (times <= self.clock.s + left_s)):
                 out.append(c.pad)
         return sorted(set(out))
 
@@ -237,10 +242,9 @@ class Holding(Returning):
         is left to check stays within them)."""
         touch = (contact.pad, contact.onset_ns)
         if touch not in self._task_ways:
-            times = self.clock.s + TASK_STEP_S * np.arange(1, int(np.ceil(self.cfg.recent_contact_s / TASK_STEP_S)) + 1)
-            depth = np.array([past(self.model, self.task.position(s), contact) for s in times])
+            times, beyond = self._task_beyond(contact)
             self._task_ways = {key: way for key, way in self._task_ways.items() if key[0] != contact.pad}
-            self._task_ways[touch] = times[depth > self.cfg.contact_margin_m]
+            self._task_ways[touch] = times[beyond > 0.0]
         return self._task_ways[touch]
 
     def _felt_ahead(self, now_ns: int) -> list[int]:
