@@ -130,6 +130,11 @@ class GatewaySection(Plugged):
     # A "contact" longer than this is taken as a new no-contact level (a pad
     # that changed, not a hand): the baseline is re-acquired, with a warning.
     max_contact_s: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 120.0
+    # A physics world's skin sample (gateway.source = "physics") that reaches
+    # the gateway later than this after the world took it is dropped, counted
+    # and reported: a gateway behind a fast stream (1 kHz taxels on a busy
+    # machine) catches up instead of passing on old pressures as new, s.
+    max_sample_age_s: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.05
 
 
 class PadGainOverride(_Section):

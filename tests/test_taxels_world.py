@@ -122,9 +122,11 @@ def test_the_hosted_world_publishes_the_taxels_at_their_rate_with_the_worlds_for
     profile = msgspec.convert({"robot": {"skin": "taxels"}, "gateway": {"source": "physics"},
                                "bridge": {"backend": "physics"}}, Profile)
     pressures: list[tuple[str, object]] = []
-    gateway = GatewayWiring(profile, journal=Recording(ManualClock(10**9)), out=lambda k, v: pressures.append((k, v)),
+    arrival = ManualClock(0)
+    gateway = GatewayWiring(profile, journal=Recording(arrival), out=lambda k, v: pressures.append((k, v)),
                             diag=lambda *a, **k: None)
     for sample in skin:
+        arrival.t_ns = sample.stamp_ns + 2_000_000  # type: ignore[union-attr]
         gateway.on_world_skin(sample)  # type: ignore[arg-type]
     door = Door(DESC, SKIN)
     assert len(pressures) == len(skin) and not [door.refuse(p) for _, p in pressures if door.refuse(p)]
@@ -168,15 +170,23 @@ def test_a_pad_sample_encodes_as_before_and_the_gateway_reads_taxels_in_hpa() ->
     kpa = finger_pressure(SKIN, "forearm_link", SKIN.points[nearest_taxel(SKIN, "forearm_link",
                                                                           DESC.pad("forearm_top").point)], 0.03, 5.0)
     for seq, readings in enumerate((np.zeros(len(SKIN)), kpa)):  # the first sample sets the baselines
-        gateway.on_world_skin(m.WorldSkin(seq=seq, stamp_ns=1, world_ns=1, absolute_hpa=[], change_hpa=[],
-                                          force_n=[], taxels=readings.tolist()))
+        gateway.on_world_skin(m.WorldSkin(seq=seq, stamp_ns=clock.t_ns - 1_000_000, world_ns=1, absolute_hpa=[],
+                                          change_hpa=[], force_n=[], taxels=readings.tolist()))
     (_, quiet), (key, pressure) = out
     assert isinstance(quiet, m.SkinPressure) and len(quiet.change_hpa) == 300 and not any(quiet.contact)
     assert key == keys.SKIN_PRESSURE and isinstance(pressure, m.SkinPressure)
     np.testing.assert_array_equal(pressure.absolute_hpa, kpa * 10.0)  # kPa x 10, as the scripted taxels
     assert sum(pressure.contact) == int((kpa * 10.0 > 1.0).sum()) and not pressure.touch_hpa
-    gateway.on_world_skin(pads)  # a pad sample on a taxel skin: dropped, said
+    # A pad sample on a taxel skin: dropped, said.
+    gateway.on_world_skin(msgspec.structs.replace(pads, stamp_ns=clock.t_ns))
     assert len(out) == 2 and diags[-1][1] == "world_skin_pads" and "0 taxels" in diags[-1][2]
+    # A sample that arrives later than gateway.max_sample_age_s (50 ms) after the world took it: dropped, counted,
+    # said (a gateway behind a 1 kHz stream catches up instead of passing on old pressures as new); 50 ms is not.
+    for age_ms in (51, 50):
+        gateway.on_world_skin(m.WorldSkin(seq=9, stamp_ns=clock.t_ns - age_ms * 1_000_000, world_ns=1,
+                                          absolute_hpa=[], change_hpa=[], force_n=[], taxels=kpa.tolist()))
+    assert len(out) == 3 and gateway.late_samples == 1 and diags[-1][1] == "late_world_skin"
+    assert "arrived 51 ms after the world took it" in diags[-1][2]
     # The door: a taxel sample passes a taxel skin's door, not a pad skin's; the count and the range are checked.
     door, pad_door = Door(DESC, SKIN), Door(DESC)
     sample = m.WorldSkin(seq=0, stamp_ns=1, world_ns=1, absolute_hpa=[], change_hpa=[], force_n=[],

@@ -91,6 +91,7 @@ class GatewayWiring(Wiring):
         self.arm_busy = False  # the active planner is in a reflex or its return (its status says)
         self.origin_ns = 0
         self.touch_seq = 0
+        self.late_samples = 0  # world skin samples dropped for arriving too late (on_world_skin)
         journal.begin("start")
 
     @classmethod
@@ -181,7 +182,18 @@ class GatewayWiring(Wiring):
     def on_world_skin(self, sample: m.WorldSkin) -> None:
         """A physics world's skin sample (``gateway.source = "physics"``): its pads' absolute pressures, as a
         device's sample (stamped when it arrives); on a taxel skin its taxels' readings, in hPa as the
-        scripted taxel skin's (the skin file's unit converted)."""
+        scripted taxel skin's (the skin file's unit converted). A sample older than ``max_sample_age_s`` when
+        it arrives is dropped (a gateway behind the stream catches up rather than pass on old pressures as new).
+        """
+        now = self.journal.now_ns()
+        age_s = (now - sample.stamp_ns) / 1e9
+        if age_s > self.cfg.max_sample_age_s:
+            self.late_samples += 1
+            self.diag("warning", "late_world_skin",
+                      f"world skin sample {sample.seq} arrived {1e3 * age_s:.0f} ms after the world took it (limit "
+                      f"gateway.max_sample_age_s = {1e3 * self.cfg.max_sample_age_s:g} ms): dropped, as "
+                      f"{self.late_samples} so far; the gateway is behind the world's skin stream (a busy machine)")
+            return
         if self.n_taxels:
             absolute = np.asarray(sample.taxels, dtype=float) * self.taxel_hpa
             count, what = self.n_taxels, "taxels"
@@ -192,7 +204,6 @@ class GatewayWiring(Wiring):
             self.diag("error", "world_skin_pads", f"world skin sample {sample.seq} has {absolute.size} {what}, "
                       f"the skin has {count}: dropped")
             return
-        now = self.journal.now_ns()
         msg, events = self.gateway.process((now - self.origin_ns) / 1e9, now, absolute)
         self.out(keys.SKIN_PRESSURE, msg)
         self._reacquired(events.reacquired)

@@ -93,6 +93,9 @@ def run(profile: Profile, args: argparse.Namespace) -> int:
                         notify_end(notify)
         finally:
             log.info(rate.summary())
+            if wiring.late_samples:
+                log.warning("%d world skin samples arrived later than gateway.max_sample_age_s and were dropped",
+                            wiring.late_samples)
     return 0
 
 
