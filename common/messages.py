@@ -400,6 +400,10 @@ class ReflexInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     # reach, along ``direction``), "blocked" (nothing withdraws it without that: the arm holds still),
     # "failed" (the strategy's computation failed: stand-still commands). Set by the whole-arm withdrawal.
     reason: str = ""
+    # How far the touched pad would withdraw along its normal at full gain (G = 1), m: what its joints allow
+    # this reflex (the whole-arm withdrawal's distance_m, or a short one's reach), against which its
+    # withdrawal is the gain's share. 0: the strategy does not say (the paper's; an older recording).
+    reach_m: Finite = 0.0
 
 
 class PlannerStatus(msgspec.Struct, tag="planner_status", tag_field="kind", forbid_unknown_fields=True):

@@ -134,7 +134,7 @@ def pad_rhos(touches: list[analysis.TouchSummary]) -> dict[str, float]:
     done = [t for t in touches if t.reflex_seq and t.withdrawal_mm is not None and analysis.serves_normal(t)]
     out = {}
     for name in sorted({t.name for t in done}):
-        mine = [(t.gain, t.withdrawal_mm) for t in done if t.name == name]
+        mine = [(t.gain, analysis.withdrawal_share(t)) for t in done if t.name == name]
         peaks = sorted(t.peak_hpa for t in done if t.name == name)
         pressures = 1 + sum(b - a > PRESSURES_HPA for a, b in zip(peaks, peaks[1:]))
         if pressures >= 3 and len({w for _, w in mine}) > 1 and len({g for g, _ in mine}) > 1:

@@ -251,6 +251,25 @@ def test_the_quality_row_counts_approaches_repeats_and_the_gain_ranking():
     assert quality([]).reflexes == 0
 
 
+def test_the_gain_ranking_judges_each_withdrawal_by_what_the_joints_allowed_its_reflex():
+    """A pad whose reach changes with the task's phase: full withdrawals (125 mm at G = 1) at one phase, short
+    ones (a 20 mm reach) at another. In proportion within each reach; not across them."""
+    import dataclasses
+
+    from nwr.services.tools.recordings.analysis import quality, withdrawal_share
+
+    def at(reach, gain, withdrawal):
+        return dataclasses.replace(_touch(0, 4.0 + 20 * gain, gain, withdrawal), reach_mm=reach)
+
+    touches = [at(125.0, 0.3, 37.0), at(20.0, 0.5, 11.5), at(125.0, 0.7, 86.0), at(20.0, 0.9, 18.0),
+               at(125.0, 1.0, 121.0)]
+    assert withdrawal_share(touches[1]) == pytest.approx(0.575)
+    assert quality(touches).gain_rank_corr == pytest.approx(1.0)
+    raw = [dataclasses.replace(t, reach_mm=None) for t in touches]  # a strategy that does not say
+    assert quality(raw).gain_rank_corr == pytest.approx(0.5)
+    assert withdrawal_share(dataclasses.replace(touches[0], withdrawal_mm=None)) is None
+
+
 def test_peak_jerk_tells_a_velocity_step_from_a_ramp():
     from nwr.services.tools.recordings.analysis import peak_jerk
 

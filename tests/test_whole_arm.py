@@ -101,7 +101,9 @@ def test_the_touched_pad_never_comes_toward_the_contact_and_nothing_else_does(pa
 @pytest.mark.parametrize("pad", STRAIGHT)
 def test_a_pad_its_joints_can_move_withdraws_in_proportion_to_the_gain(pad: str, pose: str) -> None:
     distance = build().distance_m
-    away = [withdraw(NAMES.index(pad), g, POSES[pose])["away_m"].max() for g in GAINS]
+    runs = [withdraw(NAMES.index(pad), g, POSES[pose]) for g in GAINS]
+    assert all(r["onset"].reach_m == distance for r in runs)  # ReflexInfo.reach_m: all of distance_m at G = 1
+    away = [r["away_m"].max() for r in runs]
     assert away[-1] >= 0.07, f"{pad} withdrew only {1e3 * away[-1]:.1f} mm at G = 1"
     assert away[0] < away[1] < away[2]
     for g, a in zip(GAINS[:2], away[:2]):  # below the speed caps: the gain's share of the distance (less what
@@ -161,6 +163,7 @@ def test_a_pad_its_joints_move_only_a_little_along_its_normal_withdraws_the_gain
     reach.start(POSES[pose].copy(), contact(NAMES.index(pad), 1.0))
     assert whole_arm.REACH_MIN_M <= reach.reach_m < whole_arm.SHORT_SHARE * reach.distance_m
     assert all(r["onset"].reason == "short" and not r["onset"].sideways for r in runs)
+    assert all(r["onset"].reach_m == reach.reach_m for r in runs)  # ReflexInfo.reach_m: the reach, at any gain
     away = [r["away_m"].max() for r in runs]
     assert away == sorted(away) and away[0] < away[-1]  # in proportion: a rank correlation of 1
     assert away[-1] >= 0.7 * reach.reach_m  # most of its reach at G = 1; never toward, nothing else closer

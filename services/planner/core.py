@@ -294,7 +294,7 @@ class Planner(Standby):
                 reflex_seq=r.seq, strategy=self.strategy.name, contact=r.contact, trace=r.trace,
                 started_ns=r.started_ns, duration_s=float(duration), direction=r.direction,
                 target=r.target.tolist() if r.target is not None else [], retreat=r.retreat,
-                shadow=not self.active, withdraws=r.withdraws, reason=r.reason,
+                shadow=not self.active, withdraws=r.withdraws, reason=r.reason, reach_m=r.reach_m,
             )
         msg = m.PlannerStatus(
             seq=self.status_seq, stamp_ns=now_ns, name=self.name, strategy=self.strategy.name,

@@ -57,6 +57,7 @@ class Reflex:
     # ReflexInfo.reason: why the motion is not the strategy's plain withdrawal; "sideways": the pad withdraws
     # across its normal (its joints cannot move it along it), judged by its distance from the contact point.
     reason: str = ""
+    reach_m: float = 0.0  # ReflexInfo.reach_m
     # A retracing strategy's withdrawal: the commanded poses of its stream, from the onset (one a cycle).
     path: list[np.ndarray] = field(default_factory=list)
     # The pads of the other active contacts with a gain at its onset: the retreat check judges each too.

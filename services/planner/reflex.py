@@ -158,7 +158,7 @@ class ReflexControl(Holding):
         reflex.others = tuple(contact.pad for contact in others(contacts, reflex.contact.pad))
         onset = self.strategy.start(self.q, reflex.contact)
         reflex.target, reflex.direction, reflex.corrected = onset.target, onset.direction, onset.corrected
-        reflex.reason = onset.reason
+        reflex.reason, reflex.reach_m = onset.reason, onset.reach_m
 
     def given_contacts(self, now_ns: int, main: int) -> list[ContactPoint]:
         """The recent contacts the strategy is given for a reflex on pad ``main`` (``planner.contacts``: every

@@ -54,6 +54,8 @@ class Onset:
     corrected: bool = False  # guarded mode changed the planned motion
     # Why the motion is not the strategy's plain withdrawal ("" when it is): ReflexInfo.reason.
     reason: str = ""
+    # ReflexInfo.reach_m: how far the pad would withdraw at full gain, m (0: the strategy does not say).
+    reach_m: float = 0.0
 
     @property
     def sideways(self) -> bool:

@@ -336,13 +336,14 @@ class WholeArm(ReflexStrategy):
                       f"reflex on pad {name}: its joints move it along its normal only "
                       f"{1e3 * self.reach_m:.1f} mm without bringing another part of the arm closer to the contact; "
                       f"it withdraws {1e3 * self.speed_m_s * self.duration_s:.1f} mm, the gain's share of that")
-            return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="short")
+            return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="short", reach_m=self.reach_m)
         if self.sideways:
             self._say("info", "whole_arm_sideways",
                       f"reflex on pad {name}: its joints cannot move it along its normal without bringing another "
                       f"part of the arm closer to the contact; it withdraws sideways, along "
                       f"{np.round(self.away, 3).tolist()} (base frame), away from the contact point")
-        return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="sideways" if self.sideways else "")
+        return Onset(direction=(self.speed_m_s * self.away).tolist(), reason="sideways" if self.sideways else "",
+                     reach_m=self.distance_m)
 
     def _probe(self, q: np.ndarray, away: np.ndarray, samples: tuple[np.ndarray, np.ndarray]) -> float:
         """How fast the pad can withdraw along ``away`` at the profile's plateau within the approach budgets

@@ -57,6 +57,10 @@ class TouchSummary:
     other_approach_mm: float | None = None  # any other pad's largest approach to the contact point
     other_pad: str = ""
     planned_toward_mm: float | None = None  # the planner's own retreat check
+    # Its retreat check of the other touched pads at the onset (Retreat.contacts_toward_m): the furthest one of
+    # them was planned to move toward its own contact, mm, and which (None, "": no other touched pad).
+    planned_others_toward_mm: float | None = None
+    planned_others_pad: str = ""
     corrected: bool = False
     strategy: str = ""
     resumed_after_s: float | None = None
@@ -70,6 +74,9 @@ class TouchSummary:
     # Why its reflex's motion is not the strategy's plain withdrawal (ReflexInfo.reason: "sideways", "short",
     # "blocked", "failed"; "" when it is).
     reason: str = ""
+    # How far its reflex would have withdrawn the pad at full gain, mm (ReflexInfo.reach_m: what the joints
+    # allowed it; None: the strategy does not say): the gain's share of it is the withdrawal in proportion.
+    reach_mm: float | None = None
     # Reflexes of this pad begun while the touch lasted, after the first, from a return or the task or after the
     # pad had stopped feeling the touch's pain: each one a return into the finger still pressing (0 is the goal).
     returns_into: int = 0
@@ -193,6 +200,7 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
         touch.reflex_seq = reflex.reflex_seq
         touch.withdraws = reflex.withdraws
         touch.reason = reflex.reason
+        touch.reach_mm = 1e3 * reflex.reach_m if reflex.reach_m > 0.0 else None
         onset = onsets.get(reflex.reflex_seq)
         if onset is None or onset.accepted is None:
             continue
@@ -273,6 +281,10 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
                         and st.reflex.retreat is not None), None)
         if planned is not None:
             touch.planned_toward_mm = 1e3 * planned.toward_m
+            if planned.contacts:
+                worst = int(np.argmax(planned.contacts_toward_m))
+                touch.planned_others_toward_mm = 1e3 * planned.contacts_toward_m[worst]
+                touch.planned_others_pad = desc.pads[planned.contacts[worst]].name
             touch.corrected = planned.corrected
         saved = next((st.saved_pose for st in statuses if st.stamp_ns >= t0 and st.saved_pose is not None), None)
         if resumed is not None and saved is not None and len(state_t):
@@ -401,6 +413,16 @@ def serves_normal(touch: TouchSummary) -> bool:
     whose joints could not (sideways, blocked: the withdrawal along the normal is then not the gain's to
     judge), nor one the planner found cannot withdraw it."""
     return touch.withdraws and touch.reason in ("", "short")
+
+
+def withdrawal_share(touch: TouchSummary) -> float | None:
+    """The touch's withdrawal as the proportion to its gain is judged by: its share of what the joints allowed
+    its reflex at full gain (``reach_mm``), where the strategy says, else the withdrawal itself, mm. A pad whose
+    reach changes with the task's phase (12 mm at one, 125 mm at another) withdraws in proportion to the gain
+    within each reach, not across them."""
+    if touch.withdrawal_mm is None:
+        return None
+    return touch.withdrawal_mm / touch.reach_mm if touch.reach_mm else touch.withdrawal_mm
 
 
 def _contact_figures(touch: TouchSummary, model: RobotModel, state_t: np.ndarray, state_q: np.ndarray) -> None:
@@ -563,10 +585,10 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
     q.repeat_diff_mm = float(np.median(diffs)) if diffs else None
     # In proportion to the gain, pad by pad (across pads the joints behind each one dominate): Spearman's rho
     # of each pad touched at three or more gains, the median over those pads; of the touches its joints could
-    # serve (serves_normal).
+    # serve (serves_normal), each withdrawal as a share of what the joints allowed it (withdrawal_share).
     rhos = []
     for pad in {t.pad for t in done}:
-        mine = [(t.gain, t.withdrawal_mm) for t in done if t.pad == pad and serves_normal(t)]
+        mine = [(t.gain, withdrawal_share(t)) for t in done if t.pad == pad and serves_normal(t)]
         if len({g for g, _ in mine}) >= 3 and len({w for _, w in mine}) > 1:
             rhos.append(float(spearmanr(*zip(*mine)).statistic))
     q.gain_rank_corr = float(np.median(rhos)) if rhos else None
@@ -585,7 +607,8 @@ CONTACT_QUALITY_FROM = QUALITY_HEADER.index(f"any touched pad toward >{APPROACH_
 # pad toward: touches whose touched pad moved more than 5 mm toward the contact; worst other pad: any other
 # pad's largest approach to the contact point; withdrawal min: of the pads that can withdraw; repeats: pairs of
 # touches of one pad within 1 hPa of each other, repeat diff: their median withdrawal difference; rho: Spearman's
-# rank correlation of withdrawal with gain per pad (pads touched at three or more gains), the median over pads;
+# rank correlation of withdrawal (as a share of what the joints allowed the reflex, where the strategy says: the
+# whole-arm withdrawal) with gain per pad (pads touched at three or more gains), the median over pads;
 # peak jerk: the touched pad's, median over the touches (at the state rate); any touched pad toward: every touch
 # with a gain (a second hand's too, not only the reflex's), its pad moving toward where it was touched while the
 # touch lasted; back past a recent touch: the arm taking a touched pad back through where the touch had been, within

@@ -64,6 +64,13 @@ COLUMNS = [
     Column("back_to", "back to (mm)", lambda t, _: cell(t.back_mm, ".1f"), False),
     Column("return_speed", "return (m/s)", lambda t, _: cell(t.return_speed_m_s, ".3f"), False),
     Column("resumed", "resumed (s)", lambda t, _: cell(t.resumed_after_s, ".2f"), True),
+    # Why the reflex's motion is not its strategy's plain withdrawal (ReflexInfo.reason), what the joints allowed
+    # it at full gain (reach_mm), and its retreat check of the other touched pads (their worst, planned).
+    Column("why", "why", lambda t, _: t.reason or "-", False),
+    Column("reach", "reach (mm)", lambda t, _: cell(t.reach_mm, ".1f"), False),
+    Column("others_planned", "others planned toward (mm)",
+           lambda t, _: "-" if t.planned_others_toward_mm is None
+           else f"{t.planned_others_toward_mm:.1f} {t.planned_others_pad}", False),
     Column("impact", "impact (N)", lambda t, _: cell(t.impact_n, ".0f"), False),
     Column("mass", "mass (kg)", lambda t, _: cell(t.effective_mass_kg, ".1f"), False),
     # A physics world's (nwr summary prints them in a table of their own when the recording has them).
