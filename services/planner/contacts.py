@@ -63,7 +63,8 @@ class Contacts:
 
     def observe(self, q: np.ndarray, levels: list[int], gains: np.ndarray, now_ns: int,
                 light: Iterable[int] = ()) -> list[int]:
-        """One pain message's levels and gains, at the commanded pose ``q``; the pads whose touch began in it.
+        """One pain message's levels and gains, at the pose ``q`` (where the arm was as the skin felt it: the
+        measured pose, Planner._felt_pose); the pads whose touch began in it.
         ``light``: the pads it says are in contact below the felt level (``SkinPain.light_touch``), touched too."""
         touched = {pad for pad, (level, gain) in enumerate(zip(levels, gains)) if level >= self.felt_level
                    or gain > 0.0} | {pad for pad in light if 0 <= pad < len(levels)}

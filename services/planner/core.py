@@ -114,6 +114,16 @@ class Planner(Standby):
             elif self.mode != "REFLEX":
                 self._begin_return()
 
+    def _felt_pose(self) -> np.ndarray:
+        """Where the arm was as the skin felt it, for the places of new touches: the measured pose, which the
+        skin feels (the commanded one leads it by the arm's tracking lag: a millimetre or more at the task's
+        speed), where the bridge's last state was fine and near the command; else the commanded pose."""
+        seen = self.seen.q
+        if seen is not None and self.seen.ok and seen.shape == self.q.shape and \
+                float(np.max(np.abs(seen - self.q))) <= RESYNC_RAD:
+            return seen
+        return self.q
+
     def on_pain(self, pain: m.SkinPain, now_ns: int) -> m.Command | None:
         """A pain message; returns the first command of a reflex if one starts."""
         gains = np.asarray(pain.gain, dtype=float)
@@ -129,7 +139,7 @@ class Planner(Standby):
             self.changed = True
         self.last_level = list(pain.level)
         self.light_touch = [pad for pad in pain.light_touch if 0 <= pad < len(self.last_gain)]
-        begun = self.contacts.observe(self.q, self.last_level, self.last_gain, now_ns, self.light_touch) \
+        begun = self.contacts.observe(self._felt_pose(), self.last_level, self.last_gain, now_ns, self.light_touch) \
             if len(pain.level) == len(self.last_gain) else []
         if len(pain.level) == len(self.felt_ns):
             self.felt_ns[self._felt()] = now_ns
