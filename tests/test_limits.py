@@ -172,7 +172,10 @@ def test_a_demo_session_keeps_every_point_within_the_limits(strategy: str) -> No
     touches = [t for t in analysis.summarize(records, DESC, MODEL) if t.reflex_seq]
     assert len(touches) == 6
     for t in touches:
-        assert t.peak_speed_m_s is not None and 0 < t.peak_speed_m_s <= limits.withdrawal_speed_m_s + TOLERANCE
+        # A reflex whose pad cannot withdraw may hold the arm still (cartesian-smooth on shoulder_outer, whose
+        # normal its joints cannot follow: 0 m/s, 4e-51 m/s once, a rounding's residue).
+        assert t.peak_speed_m_s is not None and t.peak_speed_m_s <= limits.withdrawal_speed_m_s + TOLERANCE
+        assert t.peak_speed_m_s > 0 or not t.withdraws, t.name
         # Over the whole withdrawal of a press that restarted its reflex too, along the first onset's normal.
         assert t.peak_toward_m_s is not None and t.peak_toward_m_s <= limits.speed_m_s + TOLERANCE, t.name
 

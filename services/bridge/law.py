@@ -92,6 +92,16 @@ class Law:
         self.velocity_in = ruckig_input(env, ControlInterface.Velocity)
         self.velocity_in.synchronization = Synchronization.Phase
         self.velocity_in.current_position = [0.0] * n
+        # A velocity step whose state is along one direction (a Cartesian withdrawal's ramp): one scalar along
+        # it (:meth:`_along`), so that the joints stay in proportion by construction, not by ruckig's check of
+        # collinearity (ten machine epsilons: a rounding the machine's vector arithmetic decides breaks it).
+        self.line_otg = Ruckig(1)
+        self.line_trajectory = Trajectory(1)
+        self.line_in = InputParameter(1)
+        self.line_in.control_interface = ControlInterface.Velocity
+        self.line_in.current_position = [0.0]
+        self.line_in.target_velocity = [0.0]
+        self.line_in.target_acceleration = [0.0]
 
     def step(self, frame: Frame, h: float, cap: np.ndarray | None) -> State | None:
         """One cycle of the jerk-limited law in ``frame``; None if ruckig failed.
@@ -138,14 +148,11 @@ class Law:
             inp.max_jerk = (env.j_max - np.abs(jerk)).tolist() if jerky else self.j
         else:
             u = joints.dq - v_ref
+            line = self._along(u, du, a_end, h)
+            if line is not None:
+                x, dx, ddx = line
+                return joints.q + v_ref * h + a_ref * (0.5 * h * h) + x, v_ref + a_ref * h + dx, a_ref + ddx
             inp = self.velocity_in
-            # A velocity step keeps its direction (a Cartesian withdrawal's) while it ramps only if the joints
-            # stay in proportion: ruckig synchronises their phases when the state is collinear, to its tolerance.
-            uu = float(u @ u)
-            if uu > 0.0:
-                along = u * (float(du @ u) / uu)
-                if float(np.abs(du - along).max()) <= COLLINEAR * float(np.abs(du).max()) + 1e-12:
-                    du = along
         inp.current_velocity = u.tolist()
         inp.current_acceleration = du.tolist()
         inp.max_acceleration = (env.a_max - a_end).tolist()
@@ -167,6 +174,38 @@ class Law:
             return q1, v_ref + a_ref * h + jerk * (0.5 * h * h) + np.asarray(dx), a_end + np.asarray(ddx)
         q1 = (r0 if r0 is not None else joints.q) + v_ref * h + a_ref * (0.5 * h * h) + np.asarray(x)
         return q1, v_ref + a_ref * h + np.asarray(dx), a_ref + np.asarray(ddx)
+    def _along(self, u: np.ndarray, du: np.ndarray, a_end: np.ndarray, h: float) -> State | None:
+        """A velocity step from a state along one direction (``du`` a multiple of ``u``, to COLLINEAR): the
+        cycle's offsets (position, velocity, acceleration) of one jerk-limited scalar ``s`` from 1 to rest,
+        times ``u``, every joint within its limits (``s``'s are the tightest joint's); None when the state is
+        not along one direction or ruckig fails (the joints' own law then)."""
+        uu = float(u @ u)
+        if uu <= 0.0:
+            return None
+        ratio = float(du @ u) / uu
+        if float(np.abs(du - ratio * u).max()) > COLLINEAR * float(np.abs(du).max()) + 1e-12:
+            return None
+        env = self.env
+        moving = u != 0.0
+        d = u[moving]
+        hi, lo = env.a_max[moving] - a_end[moving], -env.a_max[moving] - a_end[moving]
+        a_hi = float(np.min(np.where(d > 0.0, hi / d, lo / d)))
+        a_lo = float(np.max(np.where(d > 0.0, lo / d, hi / d)))
+        inp = self.line_in
+        inp.current_velocity = [1.0]
+        inp.current_acceleration = [min(max(ratio, a_lo), a_hi)]  # a state at its limit, rounded past it: at it
+        inp.max_acceleration = [a_hi]
+        inp.min_acceleration = [a_lo]
+        inp.max_jerk = [float(np.min(env.j_max[moving] / np.abs(d)))]
+        try:
+            result = self.line_otg.calculate(inp, self.line_trajectory)
+        except (RuckigError, RuntimeError, ValueError):
+            return None
+        if result not in (Result.Working, Result.Finished):
+            return None
+        x, dx, ddx = self.line_trajectory.at_time(h)
+        return x[0] * u, dx[0] * u, ddx[0] * u
+
     def accelerate(self, v_des: list[float], h: float,
                    target: list[float] | None) -> tuple[State, np.ndarray, tuple[int, float, float] | None]:
         """One cycle of the acceleration-limited law (per joint, in floats): ruckig's stand-in.
@@ -214,3 +253,4 @@ class Law:
     def release(self) -> None:
         """Drop the trajectory generator at shutdown (its objects must not outlive their module)."""
         self.otg = self.position_in = self.velocity_in = self.trajectory = None
+        self.line_otg = self.line_in = self.line_trajectory = None
