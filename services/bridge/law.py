@@ -174,6 +174,7 @@ class Law:
             return q1, v_ref + a_ref * h + jerk * (0.5 * h * h) + np.asarray(dx), a_end + np.asarray(ddx)
         q1 = (r0 if r0 is not None else joints.q) + v_ref * h + a_ref * (0.5 * h * h) + np.asarray(x)
         return q1, v_ref + a_ref * h + np.asarray(dx), a_ref + np.asarray(ddx)
+
     def _along(self, u: np.ndarray, du: np.ndarray, a_end: np.ndarray, h: float) -> State | None:
         """A velocity step from a state along one direction (``du`` a multiple of ``u``, to COLLINEAR): the
         cycle's offsets (position, velocity, acceleration) of one jerk-limited scalar ``s`` from 1 to rest,
