@@ -241,8 +241,18 @@ def test_frame_shows_gain_contact_target_and_signals():
     assert skin["gain"]["wrist_2"] == 0.8 and skin["strongest"] == {"pad": "wrist_2", "gain": 0.8, "level": 3}
     planner = dict(frame.signals)["/nwr/planner"]
     assert planner["mode_index"] == 0 and planner["target_name"] == "upper_arm_top" and planner["active"]
+    assert (planner["reason"], planner["reach_m"], planner["others"]) == ("", 0.0, [])
     # Unchanged skin and status are not sent again; the robot state is (it goes with /tf).
     assert [t for t, _ in core.frame(2000).signals] == ["/nwr/robot"]
+    # A whole-arm reflex's reason and reach, and its retreat check of another touched pad, by name.
+    retreat = m.Retreat(sample_dt_s=0.01, normal_speed_m_s=[], toward_m=0.0, withdrawal_m=0.02, approach_m=[],
+                        worst_pad=0, worst_approach_m=0.0, approached=False, corrected=False, contacts=[3],
+                        contacts_toward_m=[0.0004])
+    core.apply(status("REFLEX", seq=2, reflex=msgspec.structs.replace(
+        reflex_info(8, 0.8, direction=[0.0, 0.0, 0.1]), reason="short", reach_m=0.02, retreat=retreat)))
+    planner = dict(core.frame(3000).signals)["/nwr/planner"]
+    assert (planner["reason"], planner["reach_m"], planner["others"]) == (
+        "short", 0.02, [{"pad": "upper_arm_bottom", "toward_m": 0.0004}])
 
 
 def test_onset_latency_is_published_once_per_reflex():

@@ -578,14 +578,26 @@ class ViewCore:
             if self._status_sent.get(name) == s.seq:
                 continue
             self._status_sent[name] = s.seq
-            target = s.target_pad
+            target, reflex = s.target_pad, s.reflex
+            retreat = reflex.retreat if reflex is not None else None
             out.append(("/nwr/planner", {
                 "stamp_ns": s.stamp_ns, "seq": s.seq, "name": s.name, "strategy": s.strategy, "mode": s.mode,
                 "mode_index": MODE_INDEX.get(s.mode, -1), "active": s.name == active, "active_planner": active,
-                "target_pad": target, "target_name": self.names[target] if 0 <= target < len(self.names) else "",
-                "reflex_seq": s.reflex.reflex_seq if s.reflex is not None else 0,
+                "target_pad": target, "target_name": self._name(target),
+                "reflex_seq": reflex.reflex_seq if reflex is not None else 0,
                 "task_time_s": s.task_time_s,
+                # Why the reflex's motion is not its strategy's plain one, what the joints allow it at full gain,
+                # and how far its retreat check found each other touched pad moves toward its own contact.
+                "reason": reflex.reason if reflex is not None else "",
+                "reach_m": reflex.reach_m if reflex is not None else 0.0,
+                "others": [] if retreat is None else [
+                    {"pad": self._name(pad), "toward_m": toward}
+                    for pad, toward in zip(retreat.contacts, retreat.contacts_toward_m)],
             }))
+
+    def _name(self, pad: int) -> str:
+        """A pad's name ("" for none, -1)."""
+        return self.names[pad] if 0 <= pad < len(self.names) else ""
 
     def description(self, now_ns: int) -> Output:
         return Output(ROBOT_DESCRIPTION, now_ns, json.dumps({"data": self.urdf}).encode())
@@ -644,9 +656,12 @@ def channel_specs(pad_names: Sequence[str]) -> tuple[ChannelSpec, ...]:
             "strategy": {"type": "string"}, "mode": {"type": "string", "enum": list(m.MODES)},
             "mode_index": {"type": "integer"}, "active": {"type": "boolean"}, "active_planner": {"type": "string"},
             "target_pad": {"type": "integer"}, "target_name": {"type": "string"}, "reflex_seq": {"type": "integer"},
-            "task_time_s": {"type": "number"},
+            "task_time_s": {"type": "number"}, "reason": {"type": "string"}, "reach_m": {"type": "number"},
+            "others": {"type": "array", "items": {"type": "object", "properties": {
+                "pad": {"type": "string"}, "toward_m": {"type": "number"}}}},
         }, "nwr.view.Planner"),
-            "each planner's mode (TASK 0, REFLEX 1, RETURNING 2, HOLDING 3), strategy, target pad"),
+            "each planner's mode (TASK 0, REFLEX 1, RETURNING 2, HOLDING 3), strategy, target pad; its reflex's "
+            "reason, reach (m) and each other touched pad's planned motion toward its own contact (m)"),
         ChannelSpec("/nwr/robot", "json", "nwr.view.Robot", "jsonschema", _object({
             "stamp_ns": {"type": "integer"}, "seq": {"type": "integer"},
             "q": {"type": "array", "items": {"type": "number"}}, "status": {"type": "string"},
