@@ -56,12 +56,12 @@ def gains(**given: float) -> np.ndarray:
 
 def test_a_touch_is_kept_where_it_met_its_pad_active_then_recent_then_forgotten() -> None:
     contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
-    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    q0, q1 = DESC.home.copy(), DESC.home - 0.1  # q1: the pad further out along its normal
     contacts.observe(q0, levels(wrist_2=2), gains(), 0)  # felt (PL 2): a touch begins, no gain yet
     touch = contacts.active()[0]
     assert touch.pad == pad("wrist_2") and touch.gain == 0.0
     assert np.allclose(touch.point, MODEL.pad_point(q0, pad("wrist_2")))
-    contacts.observe(q1, levels(wrist_2=4), gains(wrist_2=0.8), 40_000_000)  # the same touch, stronger, elsewhere
+    contacts.observe(q1, levels(wrist_2=4), gains(wrist_2=0.8), 40_000_000)  # the same touch, stronger, further out
     touch = contacts.active()[0]
     assert touch.gain == 0.8 and np.allclose(touch.point, MODEL.pad_point(q0, pad("wrist_2")))  # where it met it
     contacts.observe(q1, levels(), gains(), 80_000_000)  # released: recent, no longer active, no gain
@@ -78,11 +78,40 @@ def test_a_touch_is_kept_where_it_met_its_pad_active_then_recent_then_forgotten(
     assert contacts.recent(400_000_000 + 3_000_000_000) == [] and contacts.touches == {}
 
 
+def test_a_touch_felt_again_where_its_pad_withdrew_to_is_there_now() -> None:
+    """A pad touched again within gap_s (the same touch) further in than where the touch met it has the hand
+    where it is now (a hand that followed the withdrawn pad and came back to it): the place moves there, never
+    out toward the person, and stays there once let go, so that the way back to where the touch began goes
+    past it. A touch felt without a break as its pad withdraws keeps its first place."""
+    contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
+    i = pad("forearm_top")
+    q0 = DESC.home.copy()
+    normal = MODEL.pad_normal(q0, i)
+    step = np.linalg.pinv(MODEL.pad_jacobian(q0, i)[:3]) @ normal  # rad per m of the pad along its normal
+    withdrawn, pushed, deeper = q0 - 0.03 * step, q0 - 0.01 * step, q0 - 0.05 * step
+    assert float((MODEL.pad_point(withdrawn, i) - MODEL.pad_point(q0, i)) @ normal) < -0.025
+    contacts.observe(q0, levels(forearm_top=4), gains(forearm_top=0.6), 0)
+    contacts.observe(withdrawn, levels(forearm_top=3), gains(forearm_top=0.3), 40_000_000)  # felt on: first place
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(q0, i))
+    contacts.observe(withdrawn, levels(), gains(), 80_000_000)  # a break
+    contacts.observe(withdrawn, levels(), gains(), 120_000_000, light=[i])  # lightly again, where it withdrew to
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(withdrawn, i))
+    assert np.allclose(contacts.active()[0].normal, normal)  # the side it was touched from
+    contacts.observe(deeper, levels(forearm_top=2), gains(), 160_000_000)  # felt on as it withdraws further
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(withdrawn, i))
+    contacts.observe(pushed, levels(), gains(), 200_000_000)
+    contacts.observe(pushed, levels(forearm_top=2), gains(), 240_000_000)  # again, further out: not there
+    assert np.allclose(contacts.active()[0].point, MODEL.pad_point(withdrawn, i))
+    contacts.observe(q0, levels(), gains(), 280_000_000)  # let go: recent where the hand came back to it
+    assert np.allclose(contacts.recent(280_000_000)[0].point, MODEL.pad_point(withdrawn, i))
+    assert past(MODEL, q0, contacts.recent(280_000_000)[0]) > 0.025  # the way back to q0 goes through it
+
+
 def test_a_light_touch_below_pl_2_is_a_touch_too_and_keeps_it_recent() -> None:
     """A hand resting on the arm below PL 2 (the skin's contact, SkinPain.light_touch) begins a touch where it
     met the pad, and keeps it active and then recent as long as the skin feels it."""
     contacts = Contacts(MODEL, recent_s=3.0, gap_s=0.1, felt_level=2)
-    q0, q1 = DESC.home.copy(), DESC.home + 0.1
+    q0, q1 = DESC.home.copy(), DESC.home - 0.1  # q1: the pad further out along its normal
     i = pad("forearm_top")
     assert contacts.observe(q0, levels(), gains(), 0, light=[i]) == [i]  # PL 1, in contact: a touch begins
     assert [t.pad for t in contacts.active()] == [i] and contacts.active()[0].gain == 0.0

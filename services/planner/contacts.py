@@ -5,8 +5,16 @@ gain) or the skin says it is in contact below that (a light touch:
 ``SkinPain.light_touch``, a hand resting on the arm); its touch begins when it is touched after at least ``gap_s``
 without (the restarts' own rule: a flicker is one touch). The touch's
 *contact point* and *normal* are the pad's reference point and outward
-normal at the commanded pose of that first sample, in the base frame: where
-the person met the arm. The touch is *active* while the pad is touched, and
+normal, in the base frame, at the pose where the arm was as the skin felt
+that first sample (the measured one, :meth:`.core.Planner._felt_pose`):
+where the person met the arm. A pad touched again within ``gap_s`` (the
+same touch) further in than that point (against the normal, the way a
+withdrawal goes) has the hand where it is now, one that followed the
+withdrawn pad and came back to it: the point moves there, and a return keeps
+clear of that place, not of the first. (A pad touched without a break as it
+withdraws keeps the first: the skin's pressure outlasts a tap by a few
+tenths of a second, so that a pad that left the finger still feels it.)
+The touch is *active* while the pad is touched, and
 *recent* until ``recent_contact_s`` after the last sample in which it was.
 
 The planner passes every recent contact besides the reflex's own to its
@@ -79,7 +87,12 @@ class Contacts:
                                                  gain, now_ns, now_ns, level)
                 begun.append(pad)
             else:
-                self.touches[pad] = replace(touch, gain=gain, felt_ns=now_ns, level=level)
+                point = touch.point
+                if pad not in self.touched:  # touched again within gap_s: the hand came back to the pad here
+                    here = self.model.pad_point(q, pad)
+                    if float((here - touch.point) @ touch.normal) < 0.0:  # further in than the place
+                        point = here
+                self.touches[pad] = replace(touch, point=point, gain=gain, felt_ns=now_ns, level=level)
         for pad in [p for p in self.touches if p not in touched]:
             if now_ns - self.touches[pad].felt_ns >= self.recent_ns:
                 del self.touches[pad]

@@ -67,10 +67,10 @@ class Holding(Returning):
         self._waiting: set[int] = set()  # the recent touches this hold's return waits for (said once each)
         # How far the way back from the hold's pose, and the task after it, take a recent touch's pad past its
         # place, by touch (pad, onset): the same while the arm holds (its pose and the task's clock stand still).
-        self._ways: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
+        self._ways: dict[tuple[int, int, bytes], tuple[float, np.ndarray]] = {}
         self._ways_of: tuple[bytes, bytes, float] | None = None
         # The task's times at which it takes a recent touch's pad past its place, by touch (_task_past).
-        self._task_ways: dict[tuple[int, int], np.ndarray] = {}
+        self._task_ways: dict[tuple[int, int, bytes], np.ndarray] = {}
         # The hold's brake: from the commanded state to rest, jerk-limited.
         self._brake = Ruckig(n, self.dt)
         self._brake_in = InputParameter(n)
@@ -193,7 +193,7 @@ class Holding(Returning):
         key = (self.q.tobytes(), target.tobytes(), self.clock.s)
         if key != self._ways_of:
             self._ways, self._ways_of = {}, key
-        touch = (contact.pad, contact.onset_ns)
+        touch = (contact.pad, contact.onset_ns, contact.point.tobytes())
         if touch not in self._ways:
             back = passes_through(self.model, straight(self.q, target), contact, self.cfg.contact_margin_m)
             self._ways[touch] = (back, np.maximum(0.0, self._task_beyond(contact)[1]))
@@ -240,7 +240,7 @@ class Holding(Returning):
         ``recent_contact_s`` after, at which it takes the contact's pad more than ``contact_margin_m`` past
         where the touch met it; once per touch (the task's clock and the touch's recency only run on, so what
         is left to check stays within them)."""
-        touch = (contact.pad, contact.onset_ns)
+        touch = (contact.pad, contact.onset_ns, contact.point.tobytes())
         if touch not in self._task_ways:
             times, beyond = self._task_beyond(contact)
             self._task_ways = {key: way for key, way in self._task_ways.items() if key[0] != contact.pad}
