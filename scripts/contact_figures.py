@@ -23,8 +23,9 @@ quality table (:func:`nwr.services.tools.recordings.analysis.quality`, as
   whose pad moved more than 5 mm toward where it was touched while the touch
   lasted; worst toward (mm): the largest such move;
 - worst other (mm): any other pad's largest approach to a reflex's contact
-  point; back past: the arm taking a touched pad more than 10 mm back through
-  where a recent touch had been;
+  point; back past: touches (any the skin felt, with a gain or not) whose pad
+  the arm took more than 10 mm back through where it had been touched, within
+  3 s of their end;
 - rho: Spearman's rank correlation of withdrawal with gain per pad (pads
   touched at three or more pressures; the touches whose reflex withdrew the
   pad along its normal as far as the joints let it, not sideways or blocked:

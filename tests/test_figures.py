@@ -248,7 +248,14 @@ def test_the_quality_row_counts_approaches_repeats_and_the_gain_ranking():
     assert (q.repeat_pairs, q.repeat_diff_mm) == (1, 2.0)
     assert q.gain_rank_corr == pytest.approx(0.0)  # pad 0: +1, pad 2: -1; the median
     assert q.peak_jerk_m_s3 == 70.0
+    assert q.back_past == 0
     assert quality([]).reflexes == 0
+    # Back past a recent touch: every touch the skin felt counts, a light one without a gain too.
+    light = _touch(3, 1.2, 0.0, None)
+    light.reflex_seq, light.past_after_mm = 0, 38.9
+    assert quality([*touches, light]).back_past == 1
+    light.past_after_mm = 9.7  # within the 10 mm margin
+    assert quality([*touches, light]).back_past == 0
 
 
 def test_the_gain_ranking_judges_each_withdrawal_by_what_the_joints_allowed_its_reflex():

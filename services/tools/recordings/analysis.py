@@ -531,7 +531,8 @@ class Quality:
     gain_rank_corr: float | None = None  # Spearman's rho of withdrawal with gain, per pad, median over pads
     peak_jerk_m_s3: float | None = None  # the touched pads' largest jerk (median over touches)
     # Every touch with a gain, whichever reflex ran: those whose pad moved more than APPROACH_MM toward where the
-    # touch met it while it lasted, and those the arm took back more than PAST_MM past that place while recent.
+    # touch met it while it lasted; every touch the skin felt, with a gain or not: those the arm took back more
+    # than PAST_MM past that place while recent.
     any_toward: int = 0
     back_past: int = 0
     # Over those touches: the fastest any pad near one's place moved toward it during a return, m/s.
@@ -558,7 +559,8 @@ def quality(touches: list[TouchSummary], strategy: str = "") -> Quality:
     q = Quality(strategy or next((t.strategy for t in done if t.strategy), ""), len(done))
     felt = [t for t in touches if t.gain > 0.0]
     q.any_toward = sum((t.pressed_toward_mm or 0.0) > APPROACH_MM for t in felt)
-    q.back_past = sum((t.past_after_mm or 0.0) > PAST_MM for t in felt)
+    # Every touch the skin felt, with a gain or not (a light touch is where a person is, to the planner too).
+    q.back_past = sum((t.past_after_mm or 0.0) > PAST_MM for t in touches)
     near = [t.return_toward_m_s for t in felt if t.return_toward_m_s is not None]
     q.return_toward_m_s = max(near) if near else None
     measured = [t for t in touches if t.peak_force_n is not None]

@@ -101,8 +101,8 @@ MEASURES: list[tuple[Column, Callable[[list[Any], Any], Any]]] = [
     (Column("any_touched_pad_toward_gt_5mm", "int", "touches with a gain (whichever reflex ran) whose pad moved "
                                                     "more than 5 mm toward where it was touched while it lasted"),
      lambda ts, q: q.any_toward),
-    (Column("back_past_recent_touch_gt_10mm", "int", "touches the arm went back through by more than 10 mm "
-                                                     "within 3 s of their end"),
+    (Column("back_past_recent_touch_gt_10mm", "int", "touches (any the skin felt, with a gain or not) the arm "
+                                                     "went back through by more than 10 mm within 3 s of their end"),
      lambda ts, q: q.back_past),
 ]
 
