@@ -66,7 +66,7 @@ class Holding(Returning):
         self._hold_check_ns = 0
         self._waiting: set[int] = set()  # the recent touches this hold's return waits for (said once each)
         # How far the way back from the hold's pose, and the task after it, take a recent touch's pad past its
-        # place, by touch (pad, onset): the same while the arm holds (its pose and the task's clock stand still).
+        # place, by touch (pad, onset, place): the same while the arm holds (its pose and the task's clock stand still).
         self._ways: dict[tuple[int, int, bytes], tuple[float, np.ndarray]] = {}
         self._ways_of: tuple[bytes, bytes, float] | None = None
         # The task's times at which it takes a recent touch's pad past its place, by touch (_task_past).
