@@ -63,6 +63,10 @@ def relabel_logging(service: str) -> None:
 # A pipeline's instance: the launcher (nwr up, demo, replay, study, bench) sets it for every process it starts,
 # so that a service it restarts finds its own pipeline's tokens, not another's.
 INSTANCE_ENV = "NWR_INSTANCE"
+# Why this process is a restart, set by the launcher that restarted it (nwr up, demo): the service says so on its
+# diag/<service> (``restarted``), once something listens there or after RESTARTED_WAIT_S.
+RESTART_ENV = "NWR_RESTART"
+RESTARTED_WAIT_S = 2.0
 # A message of another pipeline instance is reported at most this often per service, s (each one is counted).
 FOREIGN_DIAG_EVERY_S = 10.0
 # How long a starting service asks who else drives its robot, s (the answers come as soon as the peers reply).
@@ -330,6 +334,7 @@ class Node:
         self._publishers: list[Any] = []
         self._subscribers: list[Any] = []
         self._diag_seq = 0
+        self._diag_lock = threading.Lock()
         self._diag_last: dict[str, tuple[int, int]] = {}  # code -> (last sent ns, suppressed)
         self._diag_log = RepeatedLog()
         self.decode_errors = 0
@@ -346,6 +351,9 @@ class Node:
         self._journal_thread: threading.Thread | None = None
         self._journal_stop = threading.Event()
         self._ros2: Any = None
+        restart = os.environ.pop(RESTART_ENV, None)  # the process's first Node says it
+        if restart:
+            threading.Thread(target=self._say_restarted, args=(restart,), name="restarted", daemon=True).start()
 
     def owners(self, service: str = "*", timeout_s: float = OWNER_QUERY_S) -> list[keys.Owner]:
         """The live services of every pipeline on this robot (``service``: one name, or ``*`` for all)."""
@@ -540,26 +548,40 @@ class Node:
     # -- diagnostics ------------------------------------------------------
     def diag(self, level: str, code: str, message: str, *, every_s: float = 1.0) -> None:
         """Log and publish a diagnostic; repeats of a code are rate limited."""
-        now = self.clock.now_ns()
-        last, suppressed = self._diag_last.get(code, (0, 0))
-        if last and now - last < every_s * 1e9:
-            self._diag_last[code] = (last, suppressed + 1)
-            return
-        self._diag_last[code] = (now, 0)
-        text = message if not suppressed else f"{message} ({suppressed} more like it suppressed)"
-        if level in ("warning", "error"):
-            self._diag_log.log(level, code, message, suppressed + 1, now)
-        else:
-            log.info("[%s] %s", code, text)
-        msg = m.Diagnostic(
-            seq=self._diag_seq, stamp_ns=now, service=self.service, level=level,  # type: ignore[arg-type]
-            code=code, message=text, count=suppressed + 1,
-        )
-        self._diag_seq += 1
+        with self._diag_lock:  # the services' threads and Zenoh's call it
+            now = self.clock.now_ns()
+            last, suppressed = self._diag_last.get(code, (0, 0))
+            if last and now - last < every_s * 1e9:
+                self._diag_last[code] = (last, suppressed + 1)
+                return
+            self._diag_last[code] = (now, 0)
+            text = message if not suppressed else f"{message} ({suppressed} more like it suppressed)"
+            if level in ("warning", "error"):
+                self._diag_log.log(level, code, message, suppressed + 1, now)
+            else:
+                log.info("[%s] %s", code, text)
+            msg = m.Diagnostic(
+                seq=self._diag_seq, stamp_ns=now, service=self.service, level=level,  # type: ignore[arg-type]
+                code=code, message=text, count=suppressed + 1,
+            )
+            self._diag_seq += 1
+            try:
+                self._diag_pub.put(self._diag_codec.encode(msg), attachment=self._attachment)
+            except zenoh.ZError:  # the session is closing
+                pass
+
+    def _say_restarted(self, why: str) -> None:
+        """A restarted service says so where a person and the session's recording see it: on its diag channel,
+        once a subscriber matches it (the recorder, the view) or after :data:`RESTARTED_WAIT_S`."""
+        deadline = time.monotonic() + RESTARTED_WAIT_S
         try:
-            self._diag_pub.put(self._diag_codec.encode(msg), attachment=self._attachment)
-        except zenoh.ZError:  # the session is closing
-            pass
+            # (zenoh's stub says bool; it is a MatchingStatus)
+            while not self._diag_pub.matching_status.matching and time.monotonic() < deadline:  # type: ignore[attr-defined]
+                if self.stop.wait(0.02):
+                    return
+        except zenoh.ZError:
+            return  # the session is closing
+        self.diag("warning", "restarted", f"{self.service} was restarted by its launcher: {why}")
 
     # -- lifecycle --------------------------------------------------------
     def install_signal_handlers(self) -> None:

@@ -1,12 +1,21 @@
 """Which pipeline a message comes from: the instance each put carries, what a consumer takes, which planners a
-bridge follows. The live check, with real sessions on loopback, is in ``test_wrong_messages_e2e.py``."""
+bridge follows; a restarted service saying so. The live check, with real sessions on loopback, is in
+``test_wrong_messages_e2e.py``."""
 
 from __future__ import annotations
 
+import os
+import threading
+import time
+
 import pytest
+import zenoh
+from pipeline import free_base_port
 
 from nwr.common import keys
-from nwr.common.node import from_this_pipeline, sender_instance
+from nwr.common import messages as m
+from nwr.common.config import ZenohSection
+from nwr.common.node import RESTART_ENV, RESTARTED_WAIT_S, Node, from_this_pipeline, sender_instance
 from nwr.services.bridge.main import PipelinePlanners
 
 MINE, OTHER, ALONE = "lab.1.100", "lab.2.200", keys.NO_INSTANCE
@@ -64,3 +73,29 @@ def test_a_bridge_started_alone_follows_every_planner_token() -> None:
     planners = PipelinePlanners(ALONE)
     assert planners.on_alive("cartesian", True) == ("cartesian", True)
     assert planners.strangers() == []
+
+
+def test_a_service_its_launcher_restarted_says_so_on_its_diag_channel(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``nwr up`` restarts a service with ``NWR_RESTART`` (why); the service's first Node says it on diag/<service>
+    once a subscriber hears (a real session on loopback); a second Node of the same process does not repeat it."""
+    zc = ZenohSection(base_port=free_base_port())
+    got: list[m.Diagnostic] = []
+    heard = threading.Event()
+
+    def keep(sample: zenoh.Sample) -> None:
+        got.append(keys.codec("diag/gain").decode(sample.payload.to_bytes()))
+        heard.set()
+
+    monkeypatch.delenv(RESTART_ENV, raising=False)
+    with Node("recorder", "ur10e", zc, listen_slot="recorder", token=False) as recorder:
+        sub = recorder.session.declare_subscriber(keys.key("ur10e", "diag/gain"), keep)
+        why = "its last process ended with code -11 (restart 1)"
+        monkeypatch.setenv(RESTART_ENV, why)
+        with Node("gain", "ur10e", zc, listen_slot="gain", token=False):
+            assert heard.wait(RESTARTED_WAIT_S + 3.0), "no diagnostic"
+            assert RESTART_ENV not in os.environ
+            with Node("gain", "ur10e", zc, token=False):
+                time.sleep(0.5)
+        sub.undeclare()
+    assert [(d.service, d.level, d.code) for d in got] == [("gain", "warning", "restarted")]
+    assert got[0].message == f"gain was restarted by its launcher: {why}"

@@ -3,7 +3,7 @@
 A peer of the pipeline on the embedded network (as a buggy peer of another
 version, or anyone on a lab PC's LAN who carries the pipeline's instance)
 publishes each message of ``wrong_messages.py`` on its key, three times; then one service is killed. Checked: no service
-exits, no traceback, the killed one is restarted and the others never
+exits, no traceback, the killed one is restarted (and says so) and the others never
 stopped, the arm kept its owner and its limits, every refusal was reported
 on the refusing service's diag key, and the recording stays readable. Then a
 peer of another pipeline instance (a stale process of an earlier run) puts
@@ -120,6 +120,10 @@ def test_wrong_messages_on_every_key_and_a_killed_service(tmp_path: Path, pipeli
         assert any(d.service == service for d in refusals), (service, {d.service for d in refusals})
     assert len(refusals) < 3 * len(wrong)
     assert any(d.code == "unfit_for_mcap" for d in diags)  # the recorder kept what MCAP's record cannot hold
+    # The restarted gain estimator said so, and why (SIGKILL: code -9), where the session's record keeps it.
+    restarted = [(d.service, d.message) for d in diags if d.code == "restarted"]
+    assert restarted == [("gain", "gain was restarted by its launcher: its last process ended with code -9 "
+                                  "(restart 1)")], restarted
 
     # The arm: the bridge's own states (the forged ones are in the recording too) kept owner and limits.
     model = RobotModel(desc)

@@ -71,13 +71,19 @@ def wait_for_router(unit: Unit, proc: subprocess.Popen[bytes]) -> None:
 # This launcher's pipeline instance, which every process it starts carries (NWR_INSTANCE): a service it
 # restarts finds its own pipeline's owner tokens, and refuses another's (nwr.common.node.Node.claim).
 INSTANCE = os.environ.get("NWR_INSTANCE") or f"{socket.gethostname()}.{os.getpid()}.{int(time.time())}"
+# Why a process is a restart (nwr.common.node.RESTART_ENV): the service says so on its diag/<service>.
+RESTART_ENV = "NWR_RESTART"
 
 
 def spawn(unit: Unit, profile: str, log_level: str, log_path: Path | None = None, *,
-          pass_fds: tuple[int, ...] = ()) -> subprocess.Popen[bytes]:
-    """Start one unit; its output goes to ``log_path`` if given, else to this process's; ``pass_fds``: inherited."""
+          pass_fds: tuple[int, ...] = (), restart: str | None = None) -> subprocess.Popen[bytes]:
+    """Start one unit; its output goes to ``log_path`` if given, else to this process's; ``pass_fds``: inherited;
+    ``restart``: why this is a restart, which the service reports on its ``diag/<service>`` (``restarted``)."""
     cmd = [sys.executable, "-m", "nwr.services.cli", "--profile", profile, "--log-level", log_level, *unit.command()]
     env = {**os.environ, "NWR_INSTANCE": INSTANCE}
+    env.pop(RESTART_ENV, None)
+    if restart is not None:
+        env[RESTART_ENV] = restart
     if log_path is None:
         return subprocess.Popen(cmd, pass_fds=pass_fds, env=env)
     with log_path.open("wb") as out:
@@ -191,9 +197,9 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
         gateway = by_label["gateway"]
         by_label["gateway"] = Unit(gateway.label, gateway.service, (*gateway.args, "--notify-fd", str(ends.write_fd)))
 
-    def start(unit: Unit) -> subprocess.Popen[bytes]:
+    def start(unit: Unit, restart: str | None = None) -> subprocess.Popen[bytes]:
         fds = (ends.write_fd,) if ends is not None and unit.service == "gateway" else ()
-        return spawn(unit, profile_arg, log_level, pass_fds=fds)
+        return spawn(unit, profile_arg, log_level, pass_fds=fds, restart=restart)
 
     try:
         for unit in by_label.values():
@@ -228,8 +234,9 @@ def launch(layout: Layout, profile: Profile, profile_arg: str, log_level: str, *
                               "restarted recorder writes %s", delay,
                               _restart_output(by_label[label], restarts.count[label]))
             for label in restarts.ready(now):
-                unit = by_label[label].restarted(restarts.count[label])
-                procs[label] = start(unit)
+                n = restarts.count[label]
+                procs[label] = start(by_label[label].restarted(n),
+                                     f"its last process ended with code {procs[label].returncode} (restart {n})")
                 started[label] = now
                 log.warning("restarted %s (pid %d)", label, procs[label].pid)
             time.sleep(0.1)
