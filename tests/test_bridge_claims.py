@@ -141,6 +141,30 @@ def test_a_controller_clock_that_stands_still_is_caught_while_the_arm_is_command
     assert limit - 2 * DT <= k * DT <= limit + 2 * DT
 
 
+def test_a_bridge_that_was_not_looking_does_not_blame_the_controllers_clock():
+    """The bridge's own process stopped for 1.5 s (SIGSTOP, a hang): its first report after is the one from before,
+    the stamp unchanged; that is no stopped controller. A clock that still stands from then on is caught, counted
+    from the bridge's return."""
+    from nwr.services.bridge.checks import STILL_CLOCK_FACTOR
+    sc = check()
+    q, t, stamp = np.zeros(2), 0, 0.0
+    for _ in range(200):
+        t += 2 * MS
+        stamp += DT
+        assert sc.observe(q, np.zeros(2), t, stamp) is None
+        sc.command("position", q, q, np.zeros(2), t)
+    t += 1500 * MS  # the bridge stopped; nothing observed, nothing commanded
+    back = t
+    limit = STILL_CLOCK_FACTOR * StateBounds().frozen_s
+    why = None
+    while why is None and t - back < 2 * limit * 1e9:
+        why = sc.observe(q, np.zeros(2), t, stamp)
+        sc.command("position", q, q, np.zeros(2), t)
+        t += 2 * MS
+    assert why is not None and "clock has stood" in why, why
+    assert limit - 2 * DT <= (t - back) / 1e9 <= limit + 2 * DT
+
+
 def test_reports_that_arrive_late_then_in_a_burst_are_no_jump():
     """A client starved for 40 ms sees the same report again and again, then the newest: not a jump."""
     sc = check()

@@ -277,8 +277,9 @@ class StateCheck:
     and change its speed no more than ``a_max`` allows (plus
     ``speed_jump_rad_s``), and change at all within ``frozen_s`` while the
     commands move; a controller that stamps its reports must advance its
-    clock within ``STILL_CLOCK_FACTOR * frozen_s``, moving or not. :meth:`observe` returns why a report is not believed,
-    naming the joint and the size, or None.
+    clock within ``STILL_CLOCK_FACTOR * frozen_s``, moving or not (both timed while the bridge observes: a gap
+    longer than ``frozen_s`` between two observations, the bridge itself stopped or starved, starts them
+    afresh). :meth:`observe` returns why a report is not believed, naming the joint and the size, or None.
     """
 
     def __init__(self, joints: tuple[str, ...], v_max: np.ndarray, a_max: np.ndarray, q0: np.ndarray, now_ns: int,
@@ -307,6 +308,7 @@ class StateCheck:
         self.frozen_at = q.copy()  # the commanded pose when they stopped changing
         self.clock_stamp: float | None = None  # the controller's newest stamp
         self.clock_ns = now_ns  # when it was first seen
+        self.seen_ns = now_ns  # the last observation
 
     def _advance(self, now_ns: int) -> None:
         h = (now_ns - self.t_ns) / 1e9
@@ -349,6 +351,13 @@ class StateCheck:
             i = int(np.argmin(np.isfinite(q) & np.isfinite(dq)))
             return f"joint {joints[i]} reported a non-finite position or speed (q {q[i]}, dq {dq[i]})"
         self._advance(now_ns)
+        if now_ns - self.seen_ns > b.frozen_s * 1e9:
+            # The bridge itself was not looking (stopped, hung, starved): how long a report stood meanwhile says
+            # nothing of the controller; the frozen and still-clock checks count from now.
+            self.clock_ns = now_ns
+            if self.frozen_ns is not None:
+                self.frozen_ns = now_ns
+        self.seen_ns = now_ns
         why = None
         # As floats: np.array_equal's dispatch costs more than six comparisons (the shapes are the same, the
         # values finite).
