@@ -287,3 +287,16 @@ def test_peak_jerk_tells_a_velocity_step_from_a_ramp():
     ramp[:, 0] = 0.25 * np.clip((np.arange(21) - 5) / 10, 0, 1)
     assert peak_jerk(t, step) > 3 * peak_jerk(t, ramp) > 0
     assert peak_jerk(t[:2], step[:2]) is None
+
+
+def test_a_recording_that_ends_as_a_reflex_begins_summarizes(short_sessions):
+    """A session stopped in the arm's state that began a reflex (a study block's end) has no withdrawal to
+    measure: its speeds are unknown, not an error."""
+    cr = short_sessions[1]
+    touch = next(t for t in cr.touches if t.name == "wrist_2")
+    onset = next(r for r in cr.records if r.key == "robot/state" and r.message.reflex_seq == touch.reflex_seq
+                 and r.message.accepted is not None)
+    cut = [r for r in cr.records if r.log_time_ns <= onset.log_time_ns]
+    last = next(t for t in analysis.summarize(cut, DESC, MODEL) if t.name == "wrist_2")
+    assert last.reflex_seq == touch.reflex_seq and last.peak_speed_m_s is None and last.peak_jerk_m_s3 is None
+    assert touch.peak_speed_m_s is not None  # the whole session's: measured

@@ -263,10 +263,12 @@ def summarize(records: list[Recorded], desc: RobotDescription, model: RobotModel
             # The withdrawal's states (the bridge says which; older recordings do not: the whole window).
             own = window & (state_t < until)
             moving = own & withdrawing if (own & withdrawing).any() else own
+            # (None when the recording ends at the reflex's first state: a session stopped as it began.)
             velocities = [model.speed_jacobians(q) @ dq for q, dq in zip(state_q[moving], state_dq[moving])]
-            touch.peak_speed_m_s = max(float(np.linalg.norm(v, axis=1).max()) for v in velocities)
-            touch.peak_toward_m_s = max(0.0, max(float((v @ n0).max()) for v in velocities))
-            touch.peak_jerk_m_s3 = peak_jerk(state_t[moving], np.array([v[touch.pad] for v in velocities]))
+            if velocities:
+                touch.peak_speed_m_s = max(float(np.linalg.norm(v, axis=1).max()) for v in velocities)
+                touch.peak_toward_m_s = max(0.0, max(float((v @ n0).max()) for v in velocities))
+                touch.peak_jerk_m_s3 = peak_jerk(state_t[moving], np.array([v[touch.pad] for v in velocities]))
             # Back toward the contact after the furthest withdrawal, while the touch lasted.
             pressed = np.flatnonzero(window & (state_t <= touch_end))
             if len(pressed):
