@@ -291,7 +291,8 @@ def test_peak_jerk_tells_a_velocity_step_from_a_ramp():
 
 def test_a_recording_that_ends_as_a_reflex_begins_summarizes(short_sessions):
     """A session stopped in the arm's state that began a reflex (a study block's end) has no withdrawal to
-    measure: its speeds are unknown, not an error."""
+    measure: its speeds are unknown, not an error; nor is a recording cut just before or after any reflex's
+    first status or first state (a session ended by a crash) one."""
     cr = short_sessions[1]
     touch = next(t for t in cr.touches if t.name == "wrist_2")
     onset = next(r for r in cr.records if r.key == "robot/state" and r.message.reflex_seq == touch.reflex_seq
@@ -300,3 +301,13 @@ def test_a_recording_that_ends_as_a_reflex_begins_summarizes(short_sessions):
     last = next(t for t in analysis.summarize(cut, DESC, MODEL) if t.name == "wrist_2")
     assert last.reflex_seq == touch.reflex_seq and last.peak_speed_m_s is None and last.peak_jerk_m_s3 is None
     assert touch.peak_speed_m_s is not None  # the whole session's: measured
+    for session in short_sessions:
+        seen: set[tuple[str, int]] = set()
+        for i, r in enumerate(session.records):
+            seq = r.message.reflex_seq if r.key == "robot/state" else \
+                r.message.reflex.reflex_seq if r.key.endswith("/status") and r.message.reflex is not None else 0
+            if seq and (r.key, seq) not in seen:
+                seen.add((r.key, seq))
+                for end in (i, i + 1, i + 2):
+                    analysis.quality(analysis.summarize(session.records[:end], DESC, MODEL))
+        assert len(seen) > 4
