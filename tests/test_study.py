@@ -65,3 +65,24 @@ def test_study_session(tmp_path, conditions, order, port):
     # The target pad moved on after touches. Per block it may not: the simulated participant presses only
     # while the arm does its task, and a loaded machine leaves a 6 s block room for one strong touch.
     assert len(targets) >= 2
+
+
+def test_the_blocks_table_says_which_recording_is_unreadable_and_lists_the_others(tmp_path, capsys):
+    """A recorder killed mid-block leaves an unfinished file: the study's closing table says so for that block
+    and still lists the others (it used to end the session with a traceback after every block was stored)."""
+    from pathlib import Path
+
+    from nwr.common.config import Profile
+    from nwr.services.tools.recordings.replay import simulate
+    from nwr.services.tools.study.main import _print_blocks
+
+    good = simulate(Profile(), str(Path(__file__).parent / "data" / "short.toml"), "cartesian",
+                    tmp_path / "P01-b1-cartesian.mcap")[0]
+    cut = tmp_path / "P01-b2-uniform.mcap"
+    cut.write_bytes(Path(good).read_bytes()[:4000])
+    _print_blocks([(1, "cartesian", Path(good)), (2, "uniform", cut)], Profile())
+    lines = capsys.readouterr().out.splitlines()
+    first = next(line for line in lines if line.split()[:2] == ["1", "cartesian"])
+    assert int(first.split()[2]) >= 3 and str(good) in first  # its touches
+    second = next(line for line in lines if line.split()[:2] == ["2", "uniform"])
+    assert "unreadable" in second and str(cut) in second

@@ -41,7 +41,7 @@ import numpy as np
 from nwr.common import keys
 from nwr.common import messages as m
 from nwr.common.config import Profile
-from nwr.common.errors import ConfigError
+from nwr.common.errors import ConfigError, NwrError
 from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
 from nwr.services.pipeline.supervisor import spawn, stop_all
@@ -230,7 +230,11 @@ def _print_blocks(done: list[tuple[int, str, Path]], profile: Profile) -> None:
     desc = load_description(profile.robot.description or None)
     print("\nblock  condition  touches  reflexes  onset p50 (ms)  approached  file")
     for block, condition, path in done:
-        records, _ = read_recording(path)
+        try:  # a recorder that was killed leaves an unfinished file: say so, the other blocks still count
+            records, _ = read_recording(path)
+        except NwrError as exc:
+            print(f"{block:5d}  {condition:9s}  unreadable: {exc}")
+            continue
         touches = analysis.summarize(records, desc)
         reflexes = [t for t in touches if t.reflex_seq]
         onsets = [t.onset_latency_ms for t in reflexes if t.onset_latency_ms is not None]
