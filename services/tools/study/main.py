@@ -44,7 +44,7 @@ from nwr.common.config import Profile
 from nwr.common.errors import ConfigError, NwrError
 from nwr.common.node import Node
 from nwr.services.pipeline.graph import Layout, Unit, recorder_args, units
-from nwr.services.pipeline.supervisor import spawn, stop_all
+from nwr.services.pipeline.supervisor import failed, spawn, stop_all
 from nwr.services.planner import strategies
 from nwr.services.profile import profile_for
 from nwr.services.tools.study.store import STORE_NAME, Store, check_participant, recording_name
@@ -194,8 +194,8 @@ def _run_blocks(args: argparse.Namespace, profile: Profile, conditions: tuple[st
                     recorder.kill()
                     return 1
                 stopped = node.stop.wait(args.block_s)
-                recorder.send_signal(signal.SIGTERM)
-                recorder.wait(15)
+                if failed(stop_all({"recorder": recorder}, 15.0)):  # killed if it hangs: the next block goes on
+                    log.warning("the recorder of block %d did not stop cleanly: %s may be unfinished", block, path)
                 done.append((block, condition, path))
                 store.recorded(args.participant, block)
                 if stopped:
